@@ -1,0 +1,77 @@
+"""Fixtures for training tests: a tiny synthetic dataset in the Human3.6M file layout."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# A standing pose in the template frame (mm; x right, y down, z away from the camera).
+STANDING = np.array(
+    [[0, 0, 0], [-134, 0, 0], [-140, 440, 20], [-140, 870, 60], [134, 0, 0], [140, 440, 20],
+     [140, 870, 60], [0, -230, 10], [0, -480, 0], [0, -580, -60], [0, -700, -10], [137, -431, 0],
+     [200, -170, 0], [230, 70, -40], [-137, -431, 0], [-200, -170, 0], [-230, 70, -40]],
+    dtype=np.float64,
+)
+
+
+def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """World-to-camera rotation of a camera at centre looking at target, world Z up."""
+    z = target - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def synthetic_sequence(rng: np.random.Generator, frames: int) -> np.ndarray:
+    """(frames, 17, 3) world poses (mm, Z up): the standing pose, perturbed and turned."""
+    base = STANDING[:, [0, 2, 1]] * [1, 1, -1]  # template (x, y down, z) -> world (x, y, z up)
+    angles = rng.uniform(-np.pi, np.pi, frames)
+    c, s = np.cos(angles), np.sin(angles)
+    rot = np.zeros((frames, 3, 3))
+    rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s, s, c, 1
+    poses = base + rng.normal(0, 25, (frames, 17, 3))
+    poses = poses - poses[:, :1]
+    return (poses @ rot.transpose(0, 2, 1) + [0, 0, 950]).astype(np.float32)
+
+
+def write_synthetic_h36m(folder: Path, seed: int = 0, frames: int = 120) -> Path:
+    """Write poses_3d_{train,test}.npz, cameras.json and detections_sh_train.npz to folder."""
+    from training import data
+
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    cameras: dict[str, dict[str, dict[str, list[float]]]] = {}
+    for subject in data.TRAIN_SUBJECTS + data.TEST_SUBJECTS:
+        cameras[subject] = {}
+        for i, cam in enumerate(data.CAMERAS):
+            a = np.pi / 4 + i * np.pi / 2
+            centre = np.array([4000 * np.cos(a), 4000 * np.sin(a), 1500.0])
+            cameras[subject][cam] = {
+                "R": look_at(centre, np.array([0.0, 0.0, 900.0])).tolist(), "T": centre.tolist(),
+                "f": [1145.0, 1144.0], "c": [512.0, 515.0], "k": [0.0, 0.0, 0.0], "p": [0.0, 0.0],
+            }
+    (folder / "cameras.json").write_text(json.dumps(cameras))
+    train = {f"{s}/Walking": synthetic_sequence(rng, frames) for s in data.TRAIN_SUBJECTS}
+    test = {f"{s}/{a}": synthetic_sequence(rng, frames // 2) for s in data.TEST_SUBJECTS
+            for a in ("Walking", "Greeting")}
+    np.savez(folder / "poses_3d_train.npz", **train)
+    np.savez(folder / "poses_3d_test.npz", **test)
+    detections = {}
+    mpii_from_h36m = [3, 2, 1, 4, 5, 6, 0, 8, 9, 10, 16, 15, 14, 11, 12, 13]
+    for key, seq in train.items():
+        for cam_id in data.CAMERAS:
+            cam = data.load_cameras(folder)[key.split("/")[0]][cam_id]
+            px = data.project_to_pixels(seq, cam)[:, mpii_from_h36m]
+            detections[f"{key}/{cam_id}"] = np.round(px + rng.normal(0, 3, px.shape)).astype(np.float32)
+    np.savez(folder / "detections_sh_train.npz", **detections)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def synthetic_h36m(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_h36m(tmp_path_factory.mktemp("h36m"))

@@ -1,0 +1,75 @@
+"""Template alignment, 2D normalisation, projection and detection mapping."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.training.conftest import STANDING
+from training import data, skeleton
+
+
+def _rotation_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def test_align_to_template_removes_rotation_scale_and_translation() -> None:
+    moved = 1.3 * STANDING @ _rotation_z(1.1).T + [100.0, -50.0, 900.0]
+    aligned = data.align_to_template(np.stack([STANDING, moved]))
+    np.testing.assert_allclose(aligned[1], aligned[0], atol=1e-2)
+    assert np.all(aligned[:, skeleton.ROOT] == 0)
+    np.testing.assert_allclose(aligned[0, skeleton.TORSO_JOINTS], skeleton.TEMPLATE_TORSO, atol=25.0)
+
+
+def test_procrustes_recovers_a_known_similarity() -> None:
+    rot = _rotation_z(0.7) @ np.array([[1, 0, 0], [0, 0.6, -0.8], [0, 0.8, 0.6]])
+    target = 0.8 * STANDING @ rot.T + [10.0, 20.0, 30.0]
+    scale, r, t = data.procrustes(STANDING[None], target[None])
+    np.testing.assert_allclose(scale, [0.8], rtol=1e-9)
+    np.testing.assert_allclose(r[0], rot, atol=1e-9)
+    np.testing.assert_allclose(t[0], [10.0, 20.0, 30.0], atol=1e-6)
+
+
+def test_normalize_2d_uses_visible_joints_only() -> None:
+    points = STANDING[None, :, :2] + 300.0
+    visible = np.ones((1, 17), dtype=np.float32)
+    visible[0, 0] = 0
+    points[0, 0] = 1e9
+    out = data.normalize_2d(points, visible)
+    assert out[0, 0].tolist() == [0.0, 0.0]
+    np.testing.assert_allclose(out[0, 1:].mean(axis=0), 0.0, atol=1e-6)
+    np.testing.assert_allclose((out[0, 1:] ** 2).mean(), 1.0, rtol=1e-5)
+
+
+def test_mpii_detections_map_to_h36m_slots_with_spine_masked() -> None:
+    mpii = np.arange(32, dtype=np.float32).reshape(1, 16, 2)
+    points, visible = data.mpii_to_h36m(mpii)
+    assert visible[0].tolist() == [1.0] * 7 + [0.0] + [1.0] * 9
+    assert points[0, 0].tolist() == mpii[0, 6].tolist()  # pelvis
+    assert points[0, 16].tolist() == mpii[0, 10].tolist()  # right wrist
+    assert points[0, 7].tolist() == [0.0, 0.0]
+
+
+def test_projection_without_distortion_is_pinhole(synthetic_h36m: Path) -> None:
+    cam = data.load_cameras(synthetic_h36m)["S1"]["54138969"]
+    world = data.load_poses(synthetic_h36m, "train")["S1/Walking"][:3]
+    x_cam = data.world_to_camera(world, cam)
+    expected = x_cam[..., :2] / x_cam[..., 2:] * cam.f + cam.c
+    np.testing.assert_allclose(data.project_to_pixels(world, cam), expected, rtol=1e-5)
+
+
+def test_training_sets_hold_out_the_tail_of_each_sequence(synthetic_h36m: Path) -> None:
+    train, val = data.build_training_sets(synthetic_h36m, "gt+sh", val_fraction=0.25)
+    assert train.poses_3d.shape == (5 * 90, 17, 3)
+    assert train.points_2d.shape == (2 * 4 * 5 * 90, 17, 2)
+    assert set(val) == {"gt", "sh"}
+    assert val["gt"].poses_3d.shape == (4 * 5 * 30, 17, 3)
+    assert np.all(val["sh"].visible[:, skeleton.SPINE] == 0)
+
+
+def test_missing_data_dir_names_the_flag_and_variable(tmp_path: Path) -> None:
+    with pytest.raises(data.DataNotFound, match="REPNET_H36M_DIR"):
+        data.resolve_data_dir(tmp_path)

@@ -1,0 +1,57 @@
+"""ONNX export: the contract (names, shapes, dynamic N, metadata) and torch/onnxruntime parity."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from tests.training.conftest import STANDING
+from training import data, export, skeleton
+from training.config import RepNetConfig
+from training.model import RepNet
+
+
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory: pytest.TempPathFactory) -> tuple[RepNet, Path]:
+    torch.manual_seed(0)
+    generator = RepNet(RepNetConfig(width=32, critic_width=32, kcs_width=8)).eval()
+    path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
+    meta = export.build_metadata(generator.config, "tiny-test", "python -m training.train --x", "synthetic",
+                                 {"pa_mpjpe": 1.0})
+    export.export_onnx(generator, path, meta)
+    return generator, path
+
+
+def test_onnx_has_the_service_contract(tiny_onnx: tuple[RepNet, Path]) -> None:
+    _, path = tiny_onnx
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    inputs = [(i.name, i.shape[1:]) for i in session.get_inputs()]
+    assert inputs == [("keypoints_2d", [17, 2]), ("visibility", [17])]
+    assert [o.name for o in session.get_outputs()] == ["pose_3d", "camera"]
+    meta = session.get_modelmeta().custom_metadata_map
+    assert json.loads(meta["joint_names"]) == list(skeleton.JOINT_NAMES)
+    assert json.loads(meta["evaluation"]) == {"pa_mpjpe": 1.0}
+    assert "research" in meta["licence"] and meta["model_id"] == "tiny-test"
+    for n in (1, 5):
+        points = np.full((n, 17, 2), 10, np.float32) + STANDING[:, :2].astype(np.float32)
+        pose, camera = session.run(None, {"keypoints_2d": points, "visibility": np.ones((n, 17), np.float32)})
+        assert pose.shape == (n, 17, 3) and camera.shape == (n, 2, 3)
+
+
+def test_torch_and_onnxruntime_agree_on_real_poses(tiny_onnx: tuple[RepNet, Path]) -> None:
+    generator, path = tiny_onnx
+    try:
+        data_dir = data.resolve_data_dir()
+    except data.DataNotFound as err:
+        pytest.skip(f"Human3.6M not present, parity on real poses skipped: {err}")
+    cam = data.load_cameras(data_dir)["S9"]["54138969"]
+    world = data.load_poses(data_dir, "test")["S9/Walking"][::50]
+    points = data.project_to_pixels(world, cam)
+    visible = np.ones(points.shape[:2], np.float32)
+    visible[::3, 7] = 0
+    assert export.check_parity(generator, path, points, visible) <= 0.01

@@ -1,0 +1,69 @@
+"""Shapes and invariances of the RepNet generator, the critic and the KCS layer."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from tests.training.conftest import STANDING
+from training import skeleton
+from training.config import RepNetConfig
+from training.model import KCS, Critic, LiftingGraph, RepNet, normalize_keypoints
+
+TINY = RepNetConfig(width=32, critic_width=32, kcs_width=8)
+
+
+def test_generator_shapes_and_root_at_origin() -> None:
+    torch.manual_seed(0)
+    pose, camera = RepNet(TINY)(torch.randn(5, 17, 2), torch.ones(5, 17))
+    assert pose.shape == (5, 17, 3)
+    assert camera.shape == (5, 2, 3)
+    assert torch.all(pose[:, skeleton.ROOT] == 0)
+
+
+def test_critic_scores_one_value_per_pose() -> None:
+    assert Critic(TINY)(torch.randn(7, 17, 3)).shape == (7,)
+
+
+def test_kcs_diagonal_holds_squared_bone_lengths() -> None:
+    pose = torch.from_numpy(STANDING).float().unsqueeze(0)
+    psi = KCS()(pose)[0]
+    expected = [np.sum((STANDING[c] - STANDING[p]) ** 2) for p, c in skeleton.BONES]
+    np.testing.assert_allclose(psi.diagonal().numpy(), expected, rtol=1e-5)
+    assert psi.shape == (skeleton.NUM_BONES, skeleton.NUM_BONES)
+
+
+def test_normalize_keypoints_is_centred_unit_std_and_zero_for_missing() -> None:
+    points = torch.tensor(STANDING[None, :, :2] * 0.3 + 500.0, dtype=torch.float32)
+    visible = torch.ones(1, 17)
+    visible[0, 3] = 0
+    points[0, 3] = float("nan")
+    out = normalize_keypoints(points, visible)
+    vis = out[0, visible[0] > 0]
+    torch.testing.assert_close(vis.mean(dim=0), torch.zeros(2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(vis.pow(2).mean(), torch.tensor(1.0), atol=1e-5, rtol=0)
+    assert torch.all(out[0, 3] == 0)
+
+
+def test_normalisation_removes_image_translation_and_scale() -> None:
+    torch.manual_seed(0)
+    graph = LiftingGraph(RepNet(TINY)).eval()
+    points = torch.tensor(STANDING[None, :, :2] * 0.3 + 400.0, dtype=torch.float32)
+    visible = torch.ones(1, 17)
+    pose_a, _ = graph(points, visible)
+    pose_b, _ = graph(points * 2.5 + 100.0, visible)
+    torch.testing.assert_close(pose_a, pose_b, atol=1e-3, rtol=1e-4)
+
+
+def test_masked_joint_values_cannot_change_the_output() -> None:
+    torch.manual_seed(0)
+    graph = LiftingGraph(RepNet(TINY)).eval()
+    points = torch.tensor(STANDING[None, :, :2] * 0.3 + 400.0, dtype=torch.float32).repeat(3, 1, 1)
+    visibility = torch.ones(3, 17)
+    visibility[:, [7, 13]] = 0
+    points[1, [7, 13]] = torch.tensor([[1e6, -1e6], [3.0, 4.0]])
+    points[2, [7, 13]] = float("nan")
+    pose, camera = graph(points, visibility)
+    for i in (1, 2):  # equal up to float rounding (mm, and K in 1/mm)
+        torch.testing.assert_close(pose[i], pose[0], atol=1e-3, rtol=1e-5)
+        torch.testing.assert_close(camera[i], camera[0], atol=1e-7, rtol=1e-5)

@@ -1,0 +1,223 @@
+"""Human3.6M loading: cameras, projection, template alignment and 2D normalisation."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from training import skeleton
+
+TRAIN_SUBJECTS: tuple[str, ...] = ("S1", "S5", "S6", "S7", "S8")
+TEST_SUBJECTS: tuple[str, ...] = ("S9", "S11")
+CAMERAS: tuple[str, ...] = ("54138969", "55011271", "58860488", "60457274")
+# S9 sequences whose ground truth is misaligned with the video (data README).
+MISALIGNED: tuple[str, ...] = ("S9/Greeting", "S9/SittingDown 1", "S9/Waiting 1")
+
+# MPII-16 (Stacked-Hourglass) joint feeding each Human3.6M-17 slot; -1: no source (masked).
+MPII_TO_H36M: tuple[int, ...] = (6, 2, 1, 0, 3, 4, 5, -1, 7, 8, 9, 13, 14, 15, 12, 11, 10)
+
+DATA_ENV = "REPNET_H36M_DIR"
+
+
+class DataNotFound(FileNotFoundError):
+    """The Human3.6M directory is missing or incomplete."""
+
+
+def resolve_data_dir(path: str | os.PathLike[str] | None = None) -> Path:
+    """The Human3.6M directory: the argument, else $REPNET_H36M_DIR, else ../shared/data/h36m."""
+    candidates: list[Path] = []
+    if path:
+        candidates.append(Path(path))
+    elif os.environ.get(DATA_ENV):
+        candidates.append(Path(os.environ[DATA_ENV]))
+    else:
+        repo = Path(__file__).resolve().parent.parent
+        candidates += [repo.parent / "shared/data/h36m", Path.cwd().parent / "shared/data/h36m"]
+    for candidate in candidates:
+        if (candidate / "poses_3d_train.npz").is_file():
+            return candidate
+    raise DataNotFound(
+        f"Human3.6M data not found in {', '.join(map(str, candidates))}: pass --data-dir "
+        f"or set {DATA_ENV} to the folder holding poses_3d_train.npz and cameras.json"
+    )
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Human3.6M camera: X_cam = R (X_world - T), then pinhole with radial/tangential distortion."""
+
+    R: np.ndarray  # (3, 3) world-to-camera rotation
+    T: np.ndarray  # (3,) camera centre in world mm
+    f: np.ndarray  # (2,) focal lengths in px
+    c: np.ndarray  # (2,) principal point in px
+    k: np.ndarray  # (3,) radial distortion
+    p: np.ndarray  # (2,) tangential distortion
+
+
+def load_cameras(data_dir: Path) -> dict[str, dict[str, Camera]]:
+    """{subject: {camera id: Camera}} from cameras.json."""
+    raw = json.loads((data_dir / "cameras.json").read_text())
+    return {
+        subject: {
+            cam: Camera(**{key: np.asarray(val, dtype=np.float64) for key, val in params.items()})
+            for cam, params in cams.items()
+        }
+        for subject, cams in raw.items()
+    }
+
+
+def load_poses(data_dir: Path, split: str) -> dict[str, np.ndarray]:
+    """{"S1/Walking 1": (N, 17, 3) float32 world mm} for split "train" or "test"."""
+    with np.load(data_dir / f"poses_3d_{split}.npz") as npz:
+        return {key: npz[key] for key in npz.files}
+
+
+def load_detections(path: Path) -> dict[str, np.ndarray]:
+    """{"S1/Walking 1/54138969": (N, 16, 2) float32 px} in MPII-16 order."""
+    with np.load(path) as npz:
+        return {key: npz[key] for key in npz.files}
+
+
+def world_to_camera(x_world: np.ndarray, cam: Camera) -> np.ndarray:
+    """(..., 3) world mm -> (..., 3) camera mm (x right, y down, z forward)."""
+    return ((x_world - cam.T) @ cam.R.T).astype(np.float32)
+
+
+def project_to_pixels(x_world: np.ndarray, cam: Camera) -> np.ndarray:
+    """(..., 3) world mm -> (..., 2) distorted pixel coordinates (data README formula)."""
+    x_cam = (x_world - cam.T) @ cam.R.T
+    xy = x_cam[..., :2] / x_cam[..., 2:3]
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    k1, k2, k3 = cam.k
+    p1, p2 = cam.p
+    radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    tan = p1 * y + p2 * x
+    xd = x * (radial + tan) + p2 * r2
+    yd = y * (radial + tan) + p1 * r2
+    return np.stack([cam.f[0] * xd + cam.c[0], cam.f[1] * yd + cam.c[1]], axis=-1).astype(np.float32)
+
+
+def mpii_to_h36m(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 16, 2) MPII detections -> ((N, 17, 2) points, (N, 17) visibility); spine masked."""
+    index = np.asarray(MPII_TO_H36M)
+    out = points[:, np.maximum(index, 0)].astype(np.float32)
+    visible = np.broadcast_to((index >= 0).astype(np.float32), out.shape[:2]).copy()
+    out[:, index < 0] = 0.0
+    return out, visible
+
+
+def procrustes(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Similarity that best maps source onto target, per pose (Umeyama 1991).
+
+    source, target -- (N, K, 3) point sets; returns scale (N,), rotation (N, 3, 3) and
+    translation (N, 3) with target ~= scale * source @ R.T + t.
+    """
+    mu_s, mu_t = source.mean(axis=1, keepdims=True), target.mean(axis=1, keepdims=True)
+    s0, t0 = source - mu_s, target - mu_t
+    cov = np.einsum("nki,nkj->nij", t0, s0)  # (N, 3, 3)
+    u, sig, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt))
+    fix = np.ones_like(sig)
+    fix[:, -1] = d
+    rot = u @ (fix[:, :, None] * vt)
+    var_s = (s0**2).sum(axis=(1, 2))
+    scale = (sig * fix).sum(axis=1) / np.maximum(var_s, 1e-12)
+    trans = mu_t[:, 0] - scale[:, None] * np.einsum("nij,nj->ni", rot, mu_s[:, 0])
+    return scale, rot, trans
+
+
+def align_to_template(poses: np.ndarray) -> np.ndarray:
+    """(N, 17, 3) poses -> the same poses rotated and scaled onto the template torso.
+
+    The fit uses the shoulders and hips only (RepNet preprocessing); the pelvis ends at the
+    origin, so only the articulation of the body is left.
+    """
+    poses = poses.astype(np.float64)
+    torso = poses[:, skeleton.TORSO_JOINTS]
+    target = np.broadcast_to(skeleton.TEMPLATE_TORSO, torso.shape)
+    scale, rot, _ = procrustes(torso, target)
+    rooted = poses - poses[:, skeleton.ROOT : skeleton.ROOT + 1]
+    return (scale[:, None, None] * rooted @ rot.transpose(0, 2, 1)).astype(np.float32)
+
+
+def normalize_2d(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Centre (N, J, 2) points on their visible joints and divide by their standard deviation.
+
+    Missing joints come out as 0. The standard deviation is taken over all coordinates of
+    the visible joints, so the aspect ratio is kept.
+    """
+    w = visible[..., None].astype(np.float64)
+    count = np.maximum(w.sum(axis=(1, 2)), 1.0)  # (N,)
+    mean = (points * w).sum(axis=1) / count[:, None]  # (N, 2)
+    centred = (points - mean[:, None]) * w
+    std = np.sqrt((centred**2).sum(axis=(1, 2)) / (2 * count))
+    return (centred / np.maximum(std, 1e-6)[:, None, None]).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class LiftingSet:
+    """Arrays for training or validation; 2D and 3D are paired only in validation sets."""
+
+    poses_3d: np.ndarray  # (M, 17, 3) float32: template-aligned (training) or camera-frame (validation) mm
+    points_2d: np.ndarray  # (K, 17, 2) float32 pixels
+    visible: np.ndarray  # (K, 17) float32 in {0, 1}
+
+
+def _split(n: int, val_fraction: float) -> int:
+    return int(round(n * (1.0 - val_fraction)))
+
+
+def build_training_sets(
+    data_dir: Path, inputs: str, frame_step: int = 1, val_fraction: float = 0.1
+) -> tuple[LiftingSet, dict[str, LiftingSet]]:
+    """Training pools and validation sets from the training subjects S1 S5 S6 S7 S8.
+
+    The last `val_fraction` of every sequence is held out for validation (contiguous, so
+    neighbouring frames do not leak). Training 3D poses are template-aligned; training 2D
+    poses come from every camera, by ground-truth projection ("gt"), Stacked-Hourglass
+    detections ("sh") or both ("gt+sh"). Validation sets pair camera-frame 3D poses with
+    2D inputs, one set per input kind.
+    """
+    kinds = inputs.split("+")
+    if not kinds or any(kind not in ("gt", "sh") for kind in kinds):
+        raise ValueError(f"inputs must be gt, sh or gt+sh, got {inputs!r}")
+    cameras = load_cameras(data_dir)
+    poses = load_poses(data_dir, "train")
+    detections = load_detections(data_dir / "detections_sh_train.npz") if "sh" in kinds else {}
+    train_3d: list[np.ndarray] = []
+    train_2d: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"gt": [], "sh": []}
+    val: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {"gt": [], "sh": []}
+    for key, seq in sorted(poses.items()):
+        subject = key.split("/")[0]
+        split = _split(len(seq), val_fraction)
+        train_3d.append(seq[:split:frame_step])
+        for cam_id, cam in cameras[subject].items():
+            gt_cam = world_to_camera(seq, cam)
+            gt_px = project_to_pixels(seq, cam)
+            ones = np.ones(gt_px.shape[:2], dtype=np.float32)
+            if "gt" in kinds:
+                train_2d["gt"].append((gt_px[:split:frame_step], ones[:split:frame_step]))
+                val["gt"].append((gt_cam[split:], gt_px[split:], ones[split:]))
+            det = detections.get(f"{key}/{cam_id}")
+            if det is not None:
+                n = min(len(det), len(seq))
+                pts, vis = mpii_to_h36m(det[:n])
+                train_2d["sh"].append((pts[: min(split, n) : frame_step], vis[: min(split, n) : frame_step]))
+                val["sh"].append((gt_cam[split:n], pts[split:n], vis[split:n]))
+    pairs = train_2d["gt"] + train_2d["sh"]
+    train = LiftingSet(
+        poses_3d=align_to_template(np.concatenate(train_3d)),
+        points_2d=np.concatenate([p for p, _ in pairs]),
+        visible=np.concatenate([v for _, v in pairs]),
+    )
+    val_sets = {
+        kind: LiftingSet(*(np.concatenate(arrays) for arrays in zip(*items, strict=True)))
+        for kind, items in val.items()
+        if items
+    }
+    return train, val_sets

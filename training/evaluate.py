@@ -1,0 +1,327 @@
+"""Evaluation CLI: Protocol I/II, PCK3D, AUC, symmetry, noise and occlusion tables on Human3.6M S9/S11."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+from tqdm import tqdm
+
+from training import data, metrics, report, skeleton
+
+log = logging.getLogger(__name__)
+
+DATASET_LABEL = "S9/S11 without S9 Discussion 1"
+PAPER = {"mpjpe": 50.9, "pa_mpjpe": 38.2, "symmetry_mean": 8.2, "noise_10_pa_mpjpe": 74.9}
+NOISE_SIGMAS_PX: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0)
+OCCLUDED_COUNTS: tuple[int, ...] = (1, 2, 3)
+# Detections may miss a few frames at a sequence's end; more means the wrong frame rate.
+MAX_LENGTH_MISMATCH = 0.02
+
+Lift = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class TestSet:
+    """Test frames of all evaluated (subject, sequence, camera) triples, concatenated."""
+
+    points: np.ndarray  # (M, 17, 2) float32 px
+    visible: np.ndarray  # (M, 17) float32 in {0, 1}
+    gt: np.ndarray  # (M, 17, 3) float32 camera-frame mm
+    action: np.ndarray  # (M,) int index into actions
+    misaligned: np.ndarray  # (M,) bool: frame of a data.MISALIGNED sequence
+    actions: tuple[str, ...]
+    sequences: int  # camera sequences evaluated
+    skipped: tuple[str, ...]  # "<subject>/<sequence>/<camera>" without detections
+    notes: tuple[str, ...]  # length mismatches that were trimmed
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Per-frame errors of one pass over a TestSet."""
+
+    p1: np.ndarray  # (M, 17) Protocol I joint errors, mm
+    p2: np.ndarray  # (M, 17) Protocol II joint errors, mm
+    symmetry: np.ndarray  # (M,) symmetry error of the predicted pose, mm
+
+
+def action_name(sequence: str) -> str:
+    """'Walking 1' -> 'Walking': the two takes of an action are reported together."""
+    return re.sub(r"\s+\d+$", "", sequence)
+
+
+def _detections_2d(
+    det: np.ndarray, world: np.ndarray, name: str, frame_step: int, notes: list[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 16, 2) MPII detections of a camera sequence -> (world, points, visible), stepped."""
+    if len(det) != len(world):
+        if abs(len(det) - len(world)) > MAX_LENGTH_MISMATCH * len(world):
+            raise ValueError(
+                f"detections {name}: expected {len(world)} frames (50 Hz, as poses_3d_test.npz), "
+                f"got {len(det)}"
+            )
+        notes.append(f"{name}: {len(det)} detections for {len(world)} poses, trimmed")
+        n = min(len(det), len(world))
+        world, det = world[:n], det[:n]
+    points, visible = data.mpii_to_h36m(det[::frame_step])
+    finite = np.isfinite(points).all(axis=-1)  # a detector may leave NaN for a missed joint
+    visible *= finite
+    points[~finite] = 0.0
+    return world[::frame_step], points, visible
+
+
+def build_test_set(
+    poses: dict[str, np.ndarray],
+    cameras: dict[str, dict[str, data.Camera]],
+    detections: dict[str, np.ndarray] | None,
+    frame_step: int = 1,
+    cameras_used: tuple[str, ...] = data.CAMERAS,
+) -> TestSet:
+    """Frames of `poses` ({"S9/Walking 1": (N, 17, 3) world mm}) seen by each camera.
+
+    2D inputs are the distorted GT projections, or the MPII-16 `detections` mapped to the
+    17 joints (spine masked); camera sequences without detections are skipped.
+    """
+    actions = tuple(sorted({action_name(key.split("/", 1)[1]) for key in poses}))
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("points", "visible", "gt", "action", "misaligned")}
+    skipped: list[str] = []
+    notes: list[str] = []
+    for key in sorted(poses):
+        subject, sequence = key.split("/", 1)
+        for cam_id in cameras_used:
+            cam = cameras[subject][cam_id]
+            if detections is None:
+                world = poses[key][::frame_step]
+                points = data.project_to_pixels(world, cam)
+                visible = np.ones(points.shape[:2], dtype=np.float32)
+            elif f"{key}/{cam_id}" in detections:
+                det = detections[f"{key}/{cam_id}"]
+                world, points, visible = _detections_2d(det, poses[key], f"{key}/{cam_id}", frame_step, notes)
+            else:
+                skipped.append(f"{key}/{cam_id}")
+                continue
+            parts["points"].append(points)
+            parts["visible"].append(visible)
+            parts["gt"].append(data.world_to_camera(world, cam))
+            parts["action"].append(np.full(len(points), actions.index(action_name(sequence))))
+            parts["misaligned"].append(np.full(len(points), key in data.MISALIGNED))
+    if not parts["points"]:
+        raise ValueError(f"no test sequence to evaluate ({len(skipped)} camera sequences lack detections)")
+    arrays = {k: np.concatenate(v) for k, v in parts.items()}
+    return TestSet(
+        **arrays, actions=actions, sequences=len(parts["points"]), skipped=tuple(skipped), notes=tuple(notes)
+    )
+
+
+def open_model(path: Path, threads: int = 0) -> tuple[Lift, dict[str, str]]:
+    """An onnxruntime lifting function for a model with the ONNX contract, and its metadata."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    session = ort.InferenceSession(str(path), options, providers=ort.get_available_providers())
+    inputs = sorted(i.name for i in session.get_inputs())
+    outputs = {o.name for o in session.get_outputs()}
+    if inputs != ["keypoints_2d", "visibility"] or not {"pose_3d", "camera"} <= outputs:
+        raise ValueError(
+            f"{path}: expected inputs keypoints_2d, visibility and outputs pose_3d, camera; "
+            f"got inputs {inputs} and outputs {sorted(outputs)}"
+        )
+    meta = dict(session.get_modelmeta().custom_metadata_map)
+    if meta.get("skeleton", "h36m17") != "h36m17":
+        raise ValueError(f"{path}: expected skeleton h36m17, got {meta['skeleton']}")
+
+    def lift(points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pose, camera = session.run(["pose_3d", "camera"], {"keypoints_2d": points, "visibility": visible})
+        return pose, camera
+
+    return lift, meta
+
+
+def score(
+    lift: Lift, points: np.ndarray, visible: np.ndarray, gt: np.ndarray, batch_size: int, desc: str
+) -> Scores:
+    """Lift (M, 17, 2) points in batches and score them against (M, 17, 3) camera-frame GT."""
+    p1, p2, sym = [], [], []
+    with tqdm(total=len(points), desc=desc, unit="pose", unit_scale=True, leave=False) as bar:
+        for start in range(0, len(points), batch_size):
+            batch = slice(start, start + batch_size)
+            pose, camera = lift(points[batch], visible[batch])  # (B, 17, 3), (B, 2, 3)
+            pose_cam = metrics.to_camera_frame(pose, camera)  # Protocol I: the camera's rotation
+            p1.append(metrics.joint_errors(pose_cam, gt[batch]).astype(np.float32))
+            p2.append(metrics.procrustes_errors(pose, gt[batch]).astype(np.float32))
+            sym.append(metrics.symmetry_error(pose).astype(np.float32))
+            bar.update(len(pose))
+    return Scores(np.concatenate(p1), np.concatenate(p2), np.concatenate(sym))
+
+
+def select_sequences(
+    poses: dict[str, np.ndarray], subjects: list[str], actions: list[str]
+) -> dict[str, np.ndarray]:
+    """The sequences of `subjects` and, unless `actions` is empty, of those actions."""
+    chosen = {
+        key: world
+        for key, world in poses.items()
+        if key.split("/")[0] in subjects and (not actions or action_name(key.split("/", 1)[1]) in actions)
+    }
+    if not chosen:
+        raise ValueError(f"no test sequence of subjects {subjects} and actions {actions}")
+    return chosen
+
+
+def subset_masks(test: TestSet) -> dict[str, np.ndarray]:
+    """All test frames, and those outside the three misaligned S9 sequences."""
+    return {"all": np.ones(len(test.gt), dtype=bool), "without_misaligned": ~test.misaligned}
+
+
+def summarize_scores(scores: Scores, test: TestSet) -> dict[str, Any]:
+    """Overall (all frames), mean over actions and per-action figures for each subset."""
+    gt_symmetry = metrics.symmetry_error(test.gt)
+    out: dict[str, Any] = {}
+    for subset, mask in subset_masks(test).items():
+
+        def figures(m: np.ndarray) -> dict[str, float]:
+            return metrics.summarize(scores.p1[m], scores.p2[m], scores.symmetry[m], gt_symmetry[m])
+
+        per_action = {
+            name: figures(mask & (test.action == i))
+            for i, name in enumerate(test.actions)
+            if (mask & (test.action == i)).any()
+        }
+        out[subset] = {
+            "overall": figures(mask),
+            "mean_over_actions": {
+                key: float(np.mean([a[key] for a in per_action.values()])) for key in ("mpjpe", "pa_mpjpe")
+            },
+            "per_action": per_action,
+        }
+    return out
+
+
+def robustness_tables(
+    lift: Lift, test: TestSet, batch_size: int, seed: int
+) -> dict[str, list[dict[str, Any]]]:
+    """Noise (GT + N(0, sigma) px) and occlusion (k random non-root joints hidden) rows."""
+    masks = subset_masks(test)
+
+    def row(points: np.ndarray, visible: np.ndarray, desc: str) -> dict[str, Any]:
+        s = score(lift, points, visible, test.gt, batch_size, desc)
+        return {
+            name: {"mpjpe": float(s.p1[m].mean()), "pa_mpjpe": float(s.p2[m].mean())}
+            for name, m in masks.items()
+        }
+
+    noise = [{"sigma_px": 0.0, **row(test.points, test.visible, "noise 0px")}]
+    for i, sigma in enumerate(NOISE_SIGMAS_PX):
+        rng = np.random.default_rng([seed, 1, i])
+        noisy = (test.points + rng.normal(0.0, sigma, test.points.shape)).astype(np.float32)
+        noise.append({"sigma_px": sigma, **row(noisy, test.visible, f"noise {sigma:g}px")})
+    occlusion = [{"masked_joints": 0, **{k: v for k, v in noise[0].items() if k != "sigma_px"}}]
+    non_root = np.array([j for j in range(skeleton.NUM_JOINTS) if j != skeleton.ROOT])
+    for i, count in enumerate(OCCLUDED_COUNTS):
+        rng = np.random.default_rng([seed, 2, i])
+        hidden = non_root[np.argsort(rng.random((len(test.gt), len(non_root))), axis=1)[:, :count]]
+        visible, points = test.visible.copy(), test.points.copy()
+        rows = np.arange(len(test.gt))[:, None]
+        visible[rows, hidden] = 0.0
+        points[rows, hidden] = 0.0
+        occlusion.append({"masked_joints": count, **row(points, visible, f"occlusion {count}")})
+    return {"noise": noise, "occlusion": occlusion}
+
+
+def _restriction(args: argparse.Namespace) -> str:
+    """' (subset: ...)' when the CLI narrowed the test set, else ''."""
+    parts = [f"subjects {' '.join(args.subjects)}"] if set(args.subjects) != set(data.TEST_SUBJECTS) else []
+    parts += [f"actions {' '.join(args.actions)}"] if args.actions else []
+    parts += [f"cameras {' '.join(args.cameras)}"] if set(args.cameras) != set(data.CAMERAS) else []
+    return f" (subset: {'; '.join(parts)})" if parts else ""
+
+
+def evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    """Run the whole evaluation described by the CLI arguments; returns the results dict."""
+    started = time.perf_counter()
+    data_dir = data.resolve_data_dir(args.data_dir)
+    poses = select_sequences(data.load_poses(data_dir, "test"), args.subjects, args.actions)
+    cameras = data.load_cameras(data_dir)
+    unknown = sorted({c for c in args.cameras if any(c not in cameras[k.split("/")[0]] for k in poses)})
+    if unknown:
+        raise ValueError(f"--cameras: no calibration for {unknown} in {data_dir / 'cameras.json'}")
+    detections = None if args.inputs == "gt" else data.load_detections(Path(args.inputs))
+    lift, meta = open_model(args.model, args.threads)
+    test = build_test_set(poses, cameras, detections, args.frame_step, tuple(args.cameras))
+    log.info(
+        "%d poses from %d camera sequences (%d skipped)", len(test.gt), test.sequences, len(test.skipped)
+    )
+    scores = score(lift, test.points, test.visible, test.gt, args.batch_size, f"lift {args.inputs}")
+    result: dict[str, Any] = {
+        "dataset": f"Human3.6M {DATASET_LABEL}" + _restriction(args),
+        "model": Path(args.model).name,
+        "model_id": meta.get("model_id", ""),
+        "inputs": "gt" if args.inputs == "gt" else f"detections {Path(args.inputs).name}",
+        "subjects": list(args.subjects),
+        "actions": list(test.actions),
+        "cameras": list(args.cameras),
+        "frame_step": args.frame_step,
+        "seed": args.seed,
+        "sequences": test.sequences,
+        "skipped_sequences": list(test.skipped),
+        "notes": list(test.notes),
+        "misaligned_sequences": list(data.MISALIGNED),
+        "paper": PAPER,
+        **summarize_scores(scores, test),
+    }
+    if args.table_frame_step > 0:
+        step = max(args.table_frame_step, args.frame_step)  # never denser than the main figures
+        table_set = build_test_set(poses, cameras, None, step, tuple(args.cameras))
+        result["tables"] = {
+            "inputs": "gt",
+            "frame_step": step,
+            "poses": len(table_set.gt),
+            **robustness_tables(lift, table_set, args.batch_size, args.seed),
+        }
+    result["wall_time_s"] = round(time.perf_counter() - started, 1)
+    return result
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--model", type=Path, required=True, help="ONNX with the repnet contract")
+    parser.add_argument("--inputs", default="gt", help="'gt' (projected ground truth) or a detections .npz")
+    parser.add_argument("--data-dir", default=None, help=f"Human3.6M folder (default: ${data.DATA_ENV})")
+    parser.add_argument("--out-dir", type=Path, default=Path("runs/eval"))
+    parser.add_argument("--frame-step", type=int, default=1, help="evaluate every n-th test frame")
+    parser.add_argument("--table-frame-step", type=int, default=5, help="noise/occlusion tables; 0: none")
+    parser.add_argument("--threads", type=int, default=0, help="onnxruntime threads; 0: its default")
+    parser.add_argument("--batch-size", type=int, default=4096)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--subjects", nargs="+", default=list(data.TEST_SUBJECTS))
+    parser.add_argument("--actions", nargs="*", default=[], help="only these actions (default: all)")
+    parser.add_argument("--cameras", nargs="+", default=list(data.CAMERAS))
+    args = parser.parse_args(argv)
+    for flag in ("frame_step", "batch_size"):
+        if getattr(args, flag) < 1:
+            parser.error(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    if args.inputs != "gt" and not Path(args.inputs).is_file():
+        parser.error(f"--inputs must be 'gt' or a detections .npz file, got {args.inputs!r} (no such file)")
+    if args.table_frame_step < 0:
+        parser.error(f"--table-frame-step must be >= 0, got {args.table_frame_step}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    result = evaluate(args)
+    print(report.write_report(result, args.out_dir))
+    log.info("wrote evaluation.json, evaluation.md, per_action.png to %s", args.out_dir)
+    return result
+
+
+if __name__ == "__main__":
+    main()

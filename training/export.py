@@ -1,0 +1,138 @@
+"""Checkpoint -> ONNX (the service's only input from training), with metadata and a parity check."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import warnings
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from training import skeleton
+from training.config import RepNetConfig
+from training.model import LiftingGraph, RepNet
+
+log = logging.getLogger(__name__)
+
+OPSET = 17
+IR_VERSION = 8  # loadable by every onnxruntime >= 1.14
+LICENCE = (
+    "Weights trained on Human3.6M (Ionescu et al., TPAMI 2014): academic, non-commercial "
+    "research use only, under the Human3.6M licence. The code is Apache-2.0."
+)
+
+
+def load_generator(checkpoint: Path) -> tuple[RepNet, dict[str, Any]]:
+    """Rebuild the generator from a checkpoint written by training.train (no flags needed)."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    generator = RepNet(RepNetConfig(**state["model_config"]))
+    generator.load_state_dict(state["generator"])
+    return generator.eval(), state
+
+
+def export_onnx(generator: RepNet, path: Path, metadata: dict[str, str]) -> None:
+    """Write the LiftingGraph of `generator` to `path` with the ONNX contract of the service.
+
+    Inputs keypoints_2d (N, 17, 2) px and visibility (N, 17); outputs pose_3d (N, 17, 3) mm
+    and camera (N, 2, 3). N is dynamic.
+    """
+    import onnx
+
+    graph = LiftingGraph(generator.eval()).eval()
+    j = generator.config.num_joints
+    example = (torch.randn(2, j, 2) * 100 + 500, torch.ones(2, j))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad(), warnings.catch_warnings():
+        # The TorchScript exporter is deprecated but gives a plain, small opset-17 graph.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(
+            graph,
+            example,
+            str(path),
+            input_names=["keypoints_2d", "visibility"],
+            output_names=["pose_3d", "camera"],
+            dynamic_axes={name: {0: "N"} for name in ("keypoints_2d", "visibility", "pose_3d", "camera")},
+            opset_version=OPSET,
+            dynamo=False,
+        )
+    model = onnx.load(str(path))
+    model.ir_version = min(model.ir_version, IR_VERSION)
+    model.producer_name = "repnet"
+    model.doc_string = "RepNet 2D-to-3D human pose lifting (Wandt & Rosenhahn, CVPR 2019)"
+    del model.metadata_props[:]
+    for key, value in metadata.items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+
+
+def build_metadata(
+    config: RepNetConfig,
+    model_id: str,
+    train_command: str = "",
+    training_data: str = "",
+    evaluation: dict[str, Any] | None = None,
+) -> dict[str, str]:
+    """ONNX custom metadata: joints, skeleton, provenance, licence and evaluation figures."""
+    return {
+        "model_id": model_id,
+        "joint_names": json.dumps(list(skeleton.JOINT_NAMES)),
+        "parents": json.dumps(list(skeleton.PARENTS)),
+        "skeleton": "h36m17",
+        "units": "pose_3d in mm, pelvis at origin, template frame (x right, y down, z away from camera)",
+        "camera_contract": "camera K (2x3) maps pose_3d onto the input centred on its visible joints "
+        "and divided by their standard deviation, up to a translation",
+        "model_config": json.dumps(asdict(config)),
+        "training_data": training_data,
+        "licence": LICENCE,
+        "train_command": train_command,
+        "evaluation": json.dumps(evaluation or {}),
+    }
+
+
+def check_parity(generator: RepNet, path: Path, points: np.ndarray, visible: np.ndarray) -> float:
+    """Max abs difference (mm) of pose_3d between torch and onnxruntime on (N, 17, 2) points."""
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    pose_ort, _ = session.run(None, {"keypoints_2d": points, "visibility": visible})
+    with torch.no_grad():
+        pose_torch, _ = LiftingGraph(generator)(torch.from_numpy(points), torch.from_numpy(visible))
+    return float(np.abs(pose_ort - pose_torch.numpy()).max())
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--output", type=Path, required=True)
+    parser.add_argument("--model-id", default="")
+    parser.add_argument("--evaluation", type=Path, help="JSON of evaluation figures to embed")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+    generator, state = load_generator(args.checkpoint)
+    evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else None
+    train = state.get("train_config", {})
+    metadata = build_metadata(
+        generator.config,
+        model_id=args.model_id or args.output.stem,
+        train_command=state.get("command", ""),
+        training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
+        evaluation=evaluation,
+    )
+    export_onnx(generator, args.output, metadata)
+    rng = np.random.default_rng(0)
+    points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
+    visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
+    diff = check_parity(generator, args.output, points, visible)
+    log.info("wrote %s (%.1f MB); torch vs onnxruntime max |diff| = %.2e mm",
+             args.output, args.output.stat().st_size / 1e6, diff)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,59 @@
+"""RepNet losses: reprojection, camera, Wasserstein critic and gradient penalty."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from training.camera import masked_centre, project_weak_perspective
+
+
+def reprojection_loss(
+    points_2d: torch.Tensor, visible: torch.Tensor, pose: torch.Tensor, camera: torch.Tensor
+) -> torch.Tensor:
+    """Mean over the batch of ||W - K X||_F with missing joints' columns zeroed (Eq. 3).
+
+    points_2d -- (N, J, 2) normalised input W (centred on its visible joints);
+    visible -- (N, J); pose -- (N, J, 3); camera -- (N, 2, 3).
+    Weak perspective leaves the translation free, so K X is centred on the same visible
+    joints as W before the difference.
+    """
+    reprojected = masked_centre(project_weak_perspective(camera, pose), visible)  # (N, J, 2)
+    diff = (points_2d - reprojected) * visible.unsqueeze(-1)
+    return diff.pow(2).sum(dim=(1, 2)).add(1e-12).sqrt().mean()
+
+
+def camera_loss(camera: torch.Tensor) -> torch.Tensor:
+    """Mean of ||(2 / trace(K K^T)) K K^T - I_2||_F over (N, 2, 3) K (Eq. 6).
+
+    Zero exactly when K is a scaled orthographic projection (rows orthogonal, equal norm).
+    """
+    kkt = camera @ camera.transpose(1, 2)  # (N, 2, 2)
+    trace = kkt.diagonal(dim1=1, dim2=2).sum(dim=1).clamp_min(1e-12)  # (N,)
+    eye = torch.eye(2, dtype=camera.dtype, device=camera.device)
+    return ((2.0 / trace)[:, None, None] * kkt - eye).pow(2).sum(dim=(1, 2)).add(1e-12).sqrt().mean()
+
+
+def gradient_penalty(
+    critic: Callable[[torch.Tensor], torch.Tensor], real: torch.Tensor, fake: torch.Tensor
+) -> torch.Tensor:
+    """WGAN-GP term E[(||grad D(x_hat)||_2 - 1)^2] on random interpolates (Gulrajani et al. 2017).
+
+    real, fake -- (N, J, 3) poses.
+    """
+    alpha = torch.rand(real.shape[0], 1, 1, dtype=real.dtype, device=real.device)
+    mixed = (alpha * real + (1 - alpha) * fake).requires_grad_(True)
+    (grad,) = torch.autograd.grad(critic(mixed).sum(), mixed, create_graph=True)
+    return (grad.flatten(1).norm(dim=1) - 1).pow(2).mean()
+
+
+def critic_loss(
+    critic: Callable[[torch.Tensor], torch.Tensor],
+    real: torch.Tensor,
+    fake: torch.Tensor,
+    gp_weight: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """WGAN-GP critic loss D(fake) - D(real) + lambda * GP; also returns the Wasserstein estimate."""
+    wasserstein = critic(real).mean() - critic(fake).mean()
+    return -wasserstein + gp_weight * gradient_penalty(critic, real, fake), wasserstein.detach()

@@ -1,0 +1,106 @@
+"""Pose metrics: MPJPE (Protocol I and II), PCK3D, AUC, symmetry error, rotation from K."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from training import skeleton
+from training.data import procrustes
+
+
+def rotation_from_camera(camera: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) weak-perspective K -> (N, 3, 3) rotation: orthonormalised rows of K and their cross.
+
+    The two rows are the closest orthonormal pair to K's rows (polar decomposition), so the
+    result is a proper rotation even when K is not exactly scaled-orthographic.
+    """
+    u, _, vt = np.linalg.svd(camera.astype(np.float64), full_matrices=False)  # (N,2,2), (N,2,3)
+    rows = u @ vt  # (N, 2, 3)
+    third = np.cross(rows[:, 0], rows[:, 1])
+    return np.concatenate([rows, third[:, None]], axis=1)
+
+
+def to_camera_frame(pose: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """Rotate (N, J, 3) template-frame poses into the camera's orientation (Protocol I)."""
+    return np.einsum("nij,nkj->nki", rotation_from_camera(camera), pose)
+
+
+def root_align(pose: np.ndarray) -> np.ndarray:
+    """(N, J, 3) -> the same with the root (pelvis) at the origin."""
+    return pose - pose[:, skeleton.ROOT : skeleton.ROOT + 1]
+
+
+def joint_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """(N, J) Euclidean joint errors of root-aligned (N, J, 3) poses (Protocol I)."""
+    return np.linalg.norm(root_align(pred) - root_align(gt), axis=-1)
+
+
+def procrustes_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """(N, J) joint errors after aligning each prediction to its ground truth by a similarity."""
+    pred64, gt64 = pred.astype(np.float64), gt.astype(np.float64)
+    scale, rot, trans = procrustes(pred64, gt64)
+    aligned = scale[:, None, None] * pred64 @ rot.transpose(0, 2, 1) + trans[:, None]
+    return np.linalg.norm(aligned - gt64, axis=-1)
+
+
+def mpjpe(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean per-joint position error after root alignment, in the poses' unit."""
+    return float(joint_errors(pred, gt).mean())
+
+
+def pa_mpjpe(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean per-joint position error after Procrustes alignment (Protocol II)."""
+    return float(procrustes_errors(pred, gt).mean())
+
+
+def pck(errors: np.ndarray, threshold: float = 150.0) -> float:
+    """Percentage of joint errors within threshold (PCK3D, in %)."""
+    return float((errors <= threshold).mean() * 100.0)
+
+
+def auc(errors: np.ndarray, max_threshold: float = 150.0, steps: int = 31) -> float:
+    """Area under the PCK curve for thresholds 0..max_threshold, normalised to [0, 100]."""
+    thresholds = np.linspace(0.0, max_threshold, steps)
+    return float(np.mean([pck(errors, t) for t in thresholds]))
+
+
+def bone_lengths(pose: np.ndarray, bones: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """(N, J, 3) poses -> (N, len(bones)) lengths of (parent, child) bones."""
+    parents, children = np.asarray(bones).T
+    return np.linalg.norm(pose[:, children] - pose[:, parents], axis=-1)
+
+
+def symmetry_error(pose: np.ndarray) -> np.ndarray:
+    """(N,) RepNet symmetry error: sum over arm and leg bones of |left - right| length."""
+    left = bone_lengths(pose, tuple(pair[0] for pair in skeleton.SYMMETRIC_BONES))
+    right = bone_lengths(pose, tuple(pair[1] for pair in skeleton.SYMMETRIC_BONES))
+    return np.abs(left - right).sum(axis=1)
+
+
+def summarize(
+    errors_p1: np.ndarray, errors_p2: np.ndarray, symmetry: np.ndarray, gt_symmetry: np.ndarray
+) -> dict[str, float]:
+    """Figures of one group of poses, in mm and %.
+
+    errors_p1, errors_p2 -- (N, J) joint errors under Protocol I and II; symmetry,
+    gt_symmetry -- (N,) symmetry errors of the predictions and of the ground truth. Medians
+    are over the per-pose mean errors; PCK3D (150 mm) and AUC (0-150 mm) over all joints.
+    """
+    pose_p1, pose_p2 = errors_p1.mean(axis=1), errors_p2.mean(axis=1)
+    return {
+        "poses": int(len(errors_p1)),
+        "mpjpe": float(pose_p1.mean()),
+        "mpjpe_median": float(np.median(pose_p1)),
+        "pa_mpjpe": float(pose_p2.mean()),
+        "pa_mpjpe_median": float(np.median(pose_p2)),
+        "pck3d_150": pck(errors_p1),
+        "auc": auc(errors_p1),
+        "pa_pck3d_150": pck(errors_p2),
+        "pa_auc": auc(errors_p2),
+        "symmetry_mean": float(symmetry.mean()),
+        "symmetry_std": float(symmetry.std()),
+        "symmetry_max": float(symmetry.max()),
+        "gt_symmetry_mean": float(gt_symmetry.mean()),
+        "gt_symmetry_std": float(gt_symmetry.std()),
+        "gt_symmetry_max": float(gt_symmetry.max()),
+    }

@@ -1,0 +1,125 @@
+"""RepNet generator (pose and camera branches), critic with KCS path, and the exported graph."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from training import skeleton
+from training.camera import masked_centre
+from training.config import RepNetConfig
+
+# The generator works in metres so its outputs are O(1); the exported graph speaks mm.
+MM_PER_UNIT = 1000.0
+
+
+def normalize_keypoints(points: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """Centre (N, J, 2) pixel points on their visible joints and divide by their std.
+
+    visible -- (N, J) in {0, 1}. Missing joints come out as exactly 0, whatever their input
+    values (NaN included), so they cannot influence anything downstream.
+    """
+    mask = visible.unsqueeze(-1) > 0.5  # (N, J, 1)
+    points = torch.where(mask, points, torch.zeros_like(points))
+    centred = masked_centre(points, visible)  # (N, J, 2)
+    count = visible.sum(dim=1).clamp_min(1.0)  # (N,)
+    std = torch.sqrt(centred.pow(2).sum(dim=(1, 2)) / (2 * count))  # (N,)
+    return centred / std.clamp_min(1e-6)[:, None, None]
+
+
+class ResidualBlock(nn.Module):
+    """Two fully connected layers with leaky ReLU and an identity skip (Fig. 2)."""
+
+    def __init__(self, width: int, slope: float) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(width, width)
+        self.fc2 = nn.Linear(width, width)
+        self.act = nn.LeakyReLU(slope)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.act(self.fc2(self.act(self.fc1(x))))
+
+
+def _branch(in_dim: int, out_dim: int, width: int, blocks: int, slope: float) -> nn.Sequential:
+    layers: list[nn.Module] = [nn.Linear(in_dim, width), nn.LeakyReLU(slope)]
+    layers += [ResidualBlock(width, slope) for _ in range(blocks)]
+    layers.append(nn.Linear(width, out_dim))
+    return nn.Sequential(*layers)
+
+
+class RepNet(nn.Module):
+    """Generator: normalised 2D pose -> 3D pose (metres, pelvis at origin) and camera K."""
+
+    def __init__(self, config: RepNetConfig) -> None:
+        super().__init__()
+        self.config = config
+        j = config.num_joints
+        in_dim = 3 * j if config.visibility_input else 2 * j
+        self.pose_branch = _branch(in_dim, 3 * j, config.width, config.num_blocks, config.leaky_slope)
+        self.camera_branch = _branch(in_dim, 6, config.width, config.num_blocks, config.leaky_slope)
+
+    def forward(self, points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """points -- (N, J, 2) normalised (normalize_keypoints), visible -- (N, J).
+
+        Returns pose (N, J, 3) in metres with the pelvis at the origin, and camera (N, 2, 3)
+        mapping it onto the normalised input up to a translation.
+        """
+        n, j = visible.shape
+        x = points.reshape(n, 2 * j)
+        if self.config.visibility_input:
+            x = torch.cat([x, visible], dim=1)  # (N, 3J)
+        pose = self.pose_branch(x).reshape(n, j, 3)
+        pose = pose - pose[:, skeleton.ROOT : skeleton.ROOT + 1]
+        camera = self.camera_branch(x).reshape(n, 2, 3)
+        return pose, camera
+
+
+class KCS(nn.Module):
+    """Kinematic chain space layer: Psi = B^T B with bone vectors B = X C (Eq. 4-5)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("bones", torch.from_numpy(skeleton.bone_matrix()))
+
+    def forward(self, pose: torch.Tensor) -> torch.Tensor:
+        """(N, J, 3) pose -> (N, B, B) Psi; its diagonal holds the squared bone lengths."""
+        b = torch.einsum("njd,jb->nbd", pose, self.bones)  # (N, B, 3)
+        return b @ b.transpose(1, 2)
+
+
+class Critic(nn.Module):
+    """WGAN critic: a fully connected pose path and a KCS path merged before the output."""
+
+    def __init__(self, config: RepNetConfig) -> None:
+        super().__init__()
+        j, w, k, slope = config.num_joints, config.critic_width, config.kcs_width, config.leaky_slope
+        act = nn.LeakyReLU(slope)
+        self.pose_path = nn.Sequential(
+            nn.Linear(3 * j, w), act, ResidualBlock(w, slope), nn.Linear(w, 100), act
+        )
+        self.kcs = KCS()
+        nb = skeleton.NUM_BONES
+        self.kcs_path = nn.Sequential(nn.Linear(nb * nb, k), act, nn.Linear(k, k), act)
+        self.head = nn.Sequential(nn.Linear(100 + k, 100), act, nn.Linear(100, 1))
+
+    def forward(self, pose: torch.Tensor) -> torch.Tensor:
+        """(N, J, 3) pose in metres -> (N,) critic score (higher = more real)."""
+        n = pose.shape[0]
+        a = self.pose_path(pose.reshape(n, -1))  # (N, 100)
+        b = self.kcs_path(self.kcs(pose).reshape(n, -1))  # (N, k)
+        return self.head(torch.cat([a, b], dim=1)).squeeze(1)
+
+
+class LiftingGraph(nn.Module):
+    """What is exported: pixels and visibility in, pose_3d (mm) and camera out (ONNX contract)."""
+
+    def __init__(self, generator: RepNet) -> None:
+        super().__init__()
+        self.generator = generator
+
+    def forward(
+        self, keypoints_2d: torch.Tensor, visibility: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        visible = (visibility > 0.5).to(keypoints_2d.dtype)
+        pose, camera = self.generator(normalize_keypoints(keypoints_2d, visible), visible)
+        return pose * MM_PER_UNIT, camera / MM_PER_UNIT

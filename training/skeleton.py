@@ -1,0 +1,71 @@
+"""Human3.6M 17-joint skeleton: joint names, parents, bones and the KCS bone matrix."""
+
+from __future__ import annotations
+
+import numpy as np
+
+JOINT_NAMES: tuple[str, ...] = (
+    "pelvis",
+    "right_hip",
+    "right_knee",
+    "right_ankle",
+    "left_hip",
+    "left_knee",
+    "left_ankle",
+    "spine",
+    "thorax",
+    "neck",
+    "head",
+    "left_shoulder",
+    "left_elbow",
+    "left_wrist",
+    "right_shoulder",
+    "right_elbow",
+    "right_wrist",
+)
+NUM_JOINTS = len(JOINT_NAMES)
+PARENTS: tuple[int, ...] = (-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
+ROOT = 0
+SPINE = 7
+
+# Joints that fix the body frame: the Procrustes fit onto the template uses them.
+RIGHT_HIP, LEFT_HIP, LEFT_SHOULDER, RIGHT_SHOULDER = 1, 4, 11, 14
+TORSO_JOINTS: tuple[int, ...] = (RIGHT_HIP, LEFT_HIP, LEFT_SHOULDER, RIGHT_SHOULDER)
+
+# One bone per non-root joint, from its parent to itself.
+BONES: tuple[tuple[int, int], ...] = tuple((p, j) for j, p in enumerate(PARENTS) if p >= 0)
+NUM_BONES = len(BONES)
+
+# Left/right bone pairs for the symmetry error (RepNet, Sec. 5): upper/lower arm and leg.
+SYMMETRIC_BONES: tuple[tuple[tuple[int, int], tuple[int, int]], ...] = (
+    ((4, 5), (1, 2)),  # thigh
+    ((5, 6), (2, 3)),  # shin
+    ((11, 12), (14, 15)),  # upper arm
+    ((12, 13), (15, 16)),  # forearm
+)
+
+# Template torso in the template frame (mm). The frame is that of a camera looking at the
+# subject from the front: x to the image's right, y down, z away from the camera; the
+# subject faces the camera, so its right side lies at negative x. The sizes are the
+# averages over the Human3.6M training subjects; pelvis at the origin.
+TEMPLATE_TORSO = np.array(
+    [
+        [-134.5, 0.0, 0.0],  # right hip
+        [134.5, 0.0, 0.0],  # left hip
+        [137.0, -431.0, 0.0],  # left shoulder
+        [-137.0, -431.0, 0.0],  # right shoulder
+    ],
+    dtype=np.float64,
+)
+
+
+def bone_matrix() -> np.ndarray:
+    """The KCS bone matrix C (J, B): B = X C gives bone vectors for X (3, J).
+
+    Column b has +1 at the bone's child joint and -1 at its parent (Wandt et al. 2019, Eq. 4).
+    """
+    c = np.zeros((NUM_JOINTS, NUM_BONES), dtype=np.float32)
+    for b, (parent, child) in enumerate(BONES):
+        c[child, b] = 1.0
+        c[parent, b] = -1.0
+    return c
