@@ -1,0 +1,215 @@
+"""Composition root: Settings -> Lifter -> Metrics -> Engine -> HTTP app + gRPC server; python -m service."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Generator, Sequence
+from dataclasses import dataclass, field
+from types import FrameType
+
+import grpc
+import uvicorn
+from fastapi import FastAPI
+from grpc_health.v1 import health
+from prometheus_client import CollectorRegistry
+from pydantic import ValidationError
+
+from service.config import Settings
+from service.engine import Engine
+from service.errors import ModelLoadError
+from service.formats import MODEL_JOINTS
+from service.grpc_api import create_server
+from service.http_api import create_app
+from service.keypoints import Limits
+from service.lifter import Lifter
+from service.metrics import Metrics
+
+log = logging.getLogger("service")
+
+
+class _HttpServer(uvicorn.Server):
+    """uvicorn without its own signal handlers: main() owns SIGTERM and SIGINT."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Generator[None, None, None]:
+        yield
+
+
+def load_lifter(settings: Settings) -> Lifter:
+    """The model from settings.model_path; ModelLoadError if it is not the h36m17 model formats expect."""
+    lifter = Lifter.load(settings.model_path, settings.intra_op_threads, settings.inter_op_threads)
+    if lifter.info.joint_names != MODEL_JOINTS:
+        raise ModelLoadError(
+            f"{settings.model_path}: joints {list(lifter.info.joint_names)} are not the h36m17 joints "
+            f"{list(MODEL_JOINTS)} that the keypoint formats map onto"
+        )
+    return lifter
+
+
+def limits_of(settings: Settings) -> Limits:
+    return Limits(
+        max_request_poses=settings.max_request_poses,
+        min_visible_joints=settings.min_visible_joints,
+        confidence_threshold=settings.confidence_threshold,
+        max_coordinate=settings.max_coordinate,
+    )
+
+
+@dataclass
+class Service:
+    """Both servers on one Engine (one onnxruntime session), and their orderly shutdown."""
+
+    settings: Settings
+    engine: Engine
+    metrics: Metrics
+    app: FastAPI
+    health_servicer: health.HealthServicer
+    grpc_server: grpc.Server
+    grpc_port: int
+    http: uvicorn.Server
+    _stopping: threading.Event = field(default_factory=threading.Event)
+    _grpc_stopped: threading.Event | None = None
+    _delay: threading.Timer | None = None
+
+    def begin_shutdown(self) -> None:
+        """Report not ready (HTTP /readyz 503, gRPC health NOT_SERVING); after shutdown_delay_s
+        (time for load balancers to notice) stop accepting and drain."""
+        if self._stopping.is_set():
+            return
+        self._stopping.set()
+        log.info("shutting down: draining in-flight requests (grace %.1f s)", self.settings.shutdown_grace_s)
+        self.engine.stop_serving()
+        self.health_servicer.enter_graceful_shutdown()
+        if self.settings.shutdown_delay_s > 0:
+            self._delay = threading.Timer(self.settings.shutdown_delay_s, self.stop_accepting)
+            self._delay.daemon = True
+            self._delay.start()
+        else:
+            self.stop_accepting()
+
+    def stop_accepting(self) -> None:
+        """Refuse new calls and connections; in-flight ones get shutdown_grace_s to finish."""
+        if self._delay is not None:
+            self._delay.cancel()
+        if self._grpc_stopped is None:
+            self._grpc_stopped = self.grpc_server.stop(self.settings.shutdown_grace_s)
+        self.http.should_exit = True
+
+    def run(self) -> int:
+        """Serve until begin_shutdown, drain, then return the exit status."""
+        self.grpc_server.start()
+        log.info(
+            "model %s: HTTP on %s:%d, gRPC on %s:%d",
+            self.engine.lifter.info.model_id,
+            self.settings.host,
+            self.settings.http_port,
+            self.settings.host,
+            self.grpc_port,
+        )
+        status = 0
+        try:
+            self.http.run()  # returns once should_exit is set and HTTP requests have drained
+        except SystemExit as exit_:  # uvicorn exits when it cannot bind its port
+            status = exit_.code if isinstance(exit_.code, int) and exit_.code else 1
+        if not self._stopping.is_set():  # uvicorn stopped on its own
+            status = status or 1
+            self.begin_shutdown()
+        self.stop_accepting()  # in case uvicorn failed before the shutdown delay ran out
+        if self._grpc_stopped is not None:
+            self._grpc_stopped.wait(self.settings.shutdown_grace_s + 1)
+        self.engine.close(self.settings.shutdown_grace_s)
+        log.info("stopped")
+        return status
+
+
+def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
+    """Load the model (unless given) and wire both servers; nothing is started yet."""
+    lifter = lifter or load_lifter(settings)
+    metrics = Metrics(CollectorRegistry())
+    metrics.set_model(lifter.info.model_id, lifter.info.skeleton)
+    engine = Engine(
+        lifter,
+        metrics,
+        max_batch=settings.max_batch,
+        max_wait_s=settings.max_wait_ms / 1000,
+        queue_size=settings.queue_size,
+    )
+    limits = limits_of(settings)
+    app = create_app(engine, metrics, limits, settings.max_body_bytes)
+    health_servicer = health.HealthServicer()
+    grpc_server, grpc_port = create_server(
+        engine,
+        metrics,
+        limits,
+        f"{settings.host}:{settings.grpc_port}",
+        health_servicer=health_servicer,
+        workers=settings.grpc_workers,
+        max_message_bytes=settings.max_body_bytes,
+        stream_window=settings.stream_window,
+    )
+    config = uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.http_port,
+        log_level=settings.log_level,
+        access_log=settings.log_level == "debug",  # one line per request costs more than a lift
+        timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
+        lifespan="off",
+    )
+    return Service(
+        settings, engine, metrics, app, health_servicer, grpc_server, grpc_port, _HttpServer(config)
+    )
+
+
+def parse_settings(argv: Sequence[str] | None) -> Settings:
+    """Flags override REPNET_* variables, which override the defaults; one flag per field."""
+    parser = argparse.ArgumentParser(
+        prog="python -m service",
+        description="RepNet pose-lifting server "
+        "(HTTP and gRPC). Every flag can also be set as REPNET_<FIELD>.",
+    )
+    for name, info in Settings.model_fields.items():
+        parser.add_argument(
+            f"--{name.replace('_', '-')}",
+            dest=name,
+            metavar=name.upper(),
+            help=f"{info.description or name} (default: {info.default})",
+        )
+    args = parser.parse_args(argv)
+    return Settings(**{k: v for k, v in vars(args).items() if v is not None})
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        settings = parse_settings(argv)
+    except ValidationError as err:
+        print(f"invalid settings:\n{err}", file=sys.stderr)
+        return 2
+    logging.basicConfig(
+        level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        service = build_service(settings)
+    except ModelLoadError as err:
+        log.error("cannot start: %s", err)
+        return 1
+    except OSError as err:
+        log.error("cannot start: %s", err)
+        return 1
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("received %s", signal.Signals(signum).name)
+        service.begin_shutdown()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    return service.run()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,109 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class Pose2D(_message.Message):
+    __slots__ = ("keypoints", "confidence", "missing", "format")
+    KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    MISSING_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    keypoints: _containers.RepeatedScalarFieldContainer[float]
+    confidence: _containers.RepeatedScalarFieldContainer[float]
+    missing: _containers.RepeatedScalarFieldContainer[bool]
+    format: str
+    def __init__(self, keypoints: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., missing: _Optional[_Iterable[bool]] = ..., format: _Optional[str] = ...) -> None: ...
+
+class LiftRequest(_message.Message):
+    __slots__ = ("poses", "format", "confidence_threshold")
+    POSES_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
+    poses: _containers.RepeatedCompositeFieldContainer[Pose2D]
+    format: str
+    confidence_threshold: float
+    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ...) -> None: ...
+
+class PoseResult(_message.Message):
+    __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived")
+    POSE_3D_FIELD_NUMBER: _ClassVar[int]
+    POSE_3D_CAMERA_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_FIELD_NUMBER: _ClassVar[int]
+    SCALE_FIELD_NUMBER: _ClassVar[int]
+    ROTATION_FIELD_NUMBER: _ClassVar[int]
+    REPROJECTION_FIELD_NUMBER: _ClassVar[int]
+    REPROJECTION_ERROR_PX_FIELD_NUMBER: _ClassVar[int]
+    VISIBLE_FIELD_NUMBER: _ClassVar[int]
+    IMPUTED_FIELD_NUMBER: _ClassVar[int]
+    DERIVED_FIELD_NUMBER: _ClassVar[int]
+    pose_3d: _containers.RepeatedScalarFieldContainer[float]
+    pose_3d_camera: _containers.RepeatedScalarFieldContainer[float]
+    camera: _containers.RepeatedScalarFieldContainer[float]
+    scale: float
+    rotation: _containers.RepeatedScalarFieldContainer[float]
+    reprojection: _containers.RepeatedScalarFieldContainer[float]
+    reprojection_error_px: float
+    visible: _containers.RepeatedScalarFieldContainer[bool]
+    imputed: _containers.RepeatedScalarFieldContainer[bool]
+    derived: _containers.RepeatedScalarFieldContainer[bool]
+    def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ...) -> None: ...
+
+class LiftResponse(_message.Message):
+    __slots__ = ("model_id", "joints", "poses")
+    MODEL_ID_FIELD_NUMBER: _ClassVar[int]
+    JOINTS_FIELD_NUMBER: _ClassVar[int]
+    POSES_FIELD_NUMBER: _ClassVar[int]
+    model_id: str
+    joints: _containers.RepeatedScalarFieldContainer[str]
+    poses: _containers.RepeatedCompositeFieldContainer[PoseResult]
+    def __init__(self, model_id: _Optional[str] = ..., joints: _Optional[_Iterable[str]] = ..., poses: _Optional[_Iterable[_Union[PoseResult, _Mapping]]] = ...) -> None: ...
+
+class LiftFrame(_message.Message):
+    __slots__ = ("frame_id", "pose", "confidence_threshold")
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
+    frame_id: int
+    pose: Pose2D
+    confidence_threshold: float
+    def __init__(self, frame_id: _Optional[int] = ..., pose: _Optional[_Union[Pose2D, _Mapping]] = ..., confidence_threshold: _Optional[float] = ...) -> None: ...
+
+class FieldViolation(_message.Message):
+    __slots__ = ("field", "reason", "code", "joint_name", "joint")
+    FIELD_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    JOINT_NAME_FIELD_NUMBER: _ClassVar[int]
+    JOINT_FIELD_NUMBER: _ClassVar[int]
+    field: str
+    reason: str
+    code: str
+    joint_name: str
+    joint: int
+    def __init__(self, field: _Optional[str] = ..., reason: _Optional[str] = ..., code: _Optional[str] = ..., joint_name: _Optional[str] = ..., joint: _Optional[int] = ...) -> None: ...
+
+class FrameError(_message.Message):
+    __slots__ = ("code", "message", "violations")
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    VIOLATIONS_FIELD_NUMBER: _ClassVar[int]
+    code: int
+    message: str
+    violations: _containers.RepeatedCompositeFieldContainer[FieldViolation]
+    def __init__(self, code: _Optional[int] = ..., message: _Optional[str] = ..., violations: _Optional[_Iterable[_Union[FieldViolation, _Mapping]]] = ...) -> None: ...
+
+class LiftFrameResult(_message.Message):
+    __slots__ = ("frame_id", "model_id", "pose", "error")
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    MODEL_ID_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    frame_id: int
+    model_id: str
+    pose: PoseResult
+    error: FrameError
+    def __init__(self, frame_id: _Optional[int] = ..., model_id: _Optional[str] = ..., pose: _Optional[_Union[PoseResult, _Mapping]] = ..., error: _Optional[_Union[FrameError, _Mapping]] = ...) -> None: ...

@@ -1,0 +1,264 @@
+"""Python HTTP clients of the lifting service (sync and async, httpx) and their result types."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float32]
+BoolArray = npt.NDArray[np.bool_]
+ArrayLike = npt.ArrayLike
+
+DEFAULT_URL = "http://localhost:8000"
+DEFAULT_BATCH = 256  # poses per request; the server's default limit is 1024
+
+
+class LiftClientError(Exception):
+    """The service refused a request or could not be reached.
+
+    `status`: the HTTP status (int) or gRPC status name (str); None when no answer came.
+    `details`: the server's per-field items (field, reason, code, ...) for rejected input.
+    """
+
+    def __init__(self, message: str, status: int | str | None = None, details: Sequence[dict[str, Any]] = ()):
+        super().__init__(message if status is None else f"{status}: {message}")
+        self.message = message
+        self.status = status
+        self.details = tuple(details)
+
+
+_SHAPES = {"pose_3d": (-1, 3), "pose_3d_camera": (-1, 3), "camera": (2, 3), "rotation": (3, 3),
+           "reprojection": (-1, 2)}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class LiftResult:
+    """One lifted pose; joint arrays follow `joints` (the model's 17 joints)."""
+
+    pose_3d: FloatArray  # (17, 3) mm, pelvis at origin, template frame
+    pose_3d_camera: FloatArray  # (17, 3) mm, rotated into the camera's orientation
+    camera: FloatArray  # (2, 3) weak-perspective K
+    scale: float
+    rotation: FloatArray  # (3, 3)
+    reprojection: FloatArray  # (17, 2) px in the input image
+    reprojection_error_px: float
+    visible: BoolArray  # (17,) the model saw the joint
+    imputed: BoolArray  # (17,) no visible source: the model filled it in
+    derived: BoolArray  # (17,) midpoint of two detector joints
+    joints: tuple[str, ...]
+    model_id: str
+
+    @classmethod
+    def from_fields(cls, get: Callable[[str], Any], joints: Sequence[str], model_id: str) -> LiftResult:
+        """Build from one pose of an answer: `get(name)` gives a field as JSON lists (HTTP) or a
+        flat repeated field (gRPC)."""
+        arrays: dict[str, Any] = {k: np.asarray(get(k), np.float32).reshape(s) for k, s in _SHAPES.items()}
+        flags: dict[str, Any] = {k: np.asarray(get(k), bool) for k in ("visible", "imputed", "derived")}
+        return cls(**arrays, **flags, scale=float(get("scale")), joints=tuple(joints), model_id=model_id,
+                   reprojection_error_px=float(get("reprojection_error_px")))  # fmt: skip
+
+
+def as_poses(
+    keypoints: ArrayLike, confidence: ArrayLike | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N, J, 2) float points (NaN = missing joint) and (N, J) confidence or None."""
+    points = np.asarray(keypoints, dtype=np.float64)
+    if points.ndim != 3 or points.shape[-1] != 2:
+        raise ValueError(f"expected keypoints of shape (N, J, 2), got {points.shape}")
+    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64)
+    if conf is not None and conf.shape != points.shape[:2]:
+        raise ValueError(f"expected confidence of shape {points.shape[:2]}, got {conf.shape}")
+    return points, conf
+
+
+def build_request(points: np.ndarray, conf: np.ndarray | None, format: str,
+                  confidence_threshold: float | None = None) -> dict[str, Any]:  # fmt: skip
+    """The POST /lift body for (N, J, 2) points; a joint with a NaN coordinate becomes null."""
+    poses = []
+    for i, pose in enumerate(points):
+        item: dict[str, Any] = {"keypoints": [None if np.isnan(p).any() else p.tolist() for p in pose]}
+        if conf is not None:
+            item["confidence"] = conf[i].tolist()
+        poses.append(item)
+    body: dict[str, Any] = {"format": format, "poses": poses}
+    if confidence_threshold is not None:
+        body["confidence_threshold"] = confidence_threshold
+    return body
+
+
+def http_error(response: httpx.Response) -> LiftClientError:
+    """The server's error answer as a LiftClientError with its message and field details."""
+    try:
+        detail = response.json().get("detail", response.text)
+    except ValueError:
+        detail = response.text or response.reason_phrase
+    if isinstance(detail, list):
+        items = [d for d in detail if isinstance(d, dict)]
+        message = "; ".join(str(d.get("message") or d.get("reason") or d) for d in items) or str(detail)
+        return LiftClientError(message, response.status_code, items)
+    return LiftClientError(str(detail), response.status_code)
+
+
+def parse_response(response: httpx.Response) -> list[LiftResult]:
+    """The results of a POST /lift answer, or LiftClientError with the server's message."""
+    if response.status_code != 200:
+        raise http_error(response)
+    body = response.json()
+    return [LiftResult.from_fields(p.__getitem__, body["joints"], body["model_id"]) for p in body["poses"]]
+
+
+class _HttpBase:
+    """Settings and request building shared by the sync and async clients."""
+
+    def __init__(self, url: str, timeout: float, retries: int, backoff: float, batch_size: int) -> None:
+        self.url, self.timeout, self.retries, self.backoff = url, timeout, retries, backoff
+        self.batch_size = batch_size
+
+    def _bodies(self, keypoints: ArrayLike, format: str, confidence: ArrayLike | None,
+                confidence_threshold: float | None) -> list[dict[str, Any]]:  # fmt: skip
+        points, conf = as_poses(keypoints, confidence)
+        parts = [slice(a, a + self.batch_size) for a in range(0, len(points), self.batch_size)]
+        return [build_request(points[p], None if conf is None else conf[p], format, confidence_threshold)
+                for p in parts]  # fmt: skip
+
+    def _delay(self, response: httpx.Response | None, attempt: int) -> float | None:
+        """Seconds before the next try (Retry-After, else exponential), None to give up."""
+        if attempt >= self.retries:
+            return None
+        header = response.headers.get("retry-after", "") if response is not None else ""
+        return min(float(header), 30.0) if header.replace(".", "", 1).isdigit() else self.backoff * 2**attempt
+
+    def _unreachable(self, err: Exception) -> LiftClientError:
+        return LiftClientError(f"cannot reach {self.url}: {err}")
+
+
+class LiftClient(_HttpBase):
+    """Synchronous HTTP client: `LiftClient(url).lift(keypoints, format="coco17")`.
+
+    503 answers (queue full, model not ready) and refused connections are retried `retries` times
+    with exponential backoff; every other failure raises LiftClientError at once.
+    """
+
+    def __init__(self, url: str = DEFAULT_URL, *, timeout: float = 10.0, retries: int = 3,
+                 backoff: float = 0.1, batch_size: int = DEFAULT_BATCH,
+                 transport: httpx.BaseTransport | None = None) -> None:  # fmt: skip
+        super().__init__(url, timeout, retries, backoff, batch_size)
+        self._http = httpx.Client(base_url=url, timeout=timeout, transport=transport)
+
+    def __enter__(self) -> LiftClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def _send(self, method: str, path: str, body: dict[str, Any] | None = None) -> httpx.Response:
+        attempt = 0
+        while True:
+            try:
+                response = self._http.request(method, path, json=body)
+            except httpx.ConnectError as err:
+                if (delay := self._delay(None, attempt)) is None:
+                    raise self._unreachable(err) from err
+            except httpx.HTTPError as err:
+                raise LiftClientError(f"{method} {path} failed: {err!r}") from err
+            else:
+                if response.status_code != 503 or (delay := self._delay(response, attempt)) is None:
+                    return response
+            time.sleep(delay)
+            attempt += 1
+
+    def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
+             confidence_threshold: float | None = None) -> LiftResult:  # fmt: skip
+        """Lift one (J, 2) pose; NaN marks a missing joint, `confidence` is (J,) in [0, 1]."""
+        conf = None if confidence is None else np.asarray(confidence)[None]
+        return self.lift_batch(np.asarray(keypoints)[None], format=format, confidence=conf,
+                               confidence_threshold=confidence_threshold)[0]  # fmt: skip
+
+    def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
+                   confidence_threshold: float | None = None) -> list[LiftResult]:  # fmt: skip
+        """Lift (N, J, 2) poses in requests of at most `batch_size`; results in input order."""
+        bodies = self._bodies(keypoints, format, confidence, confidence_threshold)
+        return [r for body in bodies for r in parse_response(self._send("POST", "/lift", body))]
+
+    def model(self) -> dict[str, Any]:
+        """GET /v1/model: joints, formats, limits and the model's metadata."""
+        response = self._send("GET", "/v1/model")
+        if response.status_code != 200:
+            raise http_error(response)
+        result: dict[str, Any] = response.json()
+        return result
+
+    def ready(self) -> bool:
+        """True when /readyz answers 200; never retries, never raises."""
+        try:
+            return self._http.get("/readyz").status_code == 200
+        except httpx.HTTPError:
+            return False
+
+
+class AsyncLiftClient(_HttpBase):
+    """The asyncio twin of LiftClient: `await client.lift(...)`; batches run concurrently."""
+
+    def __init__(self, url: str = DEFAULT_URL, *, timeout: float = 10.0, retries: int = 3,
+                 backoff: float = 0.1, batch_size: int = DEFAULT_BATCH, max_concurrency: int = 8,
+                 transport: httpx.AsyncBaseTransport | None = None) -> None:  # fmt: skip
+        super().__init__(url, timeout, retries, backoff, batch_size)
+        self.max_concurrency = max_concurrency
+        self._http = httpx.AsyncClient(base_url=url, timeout=timeout, transport=transport)
+
+    async def __aenter__(self) -> AsyncLiftClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def _send(self, method: str, path: str, body: dict[str, Any] | None = None) -> httpx.Response:
+        attempt = 0
+        while True:
+            try:
+                response = await self._http.request(method, path, json=body)
+            except httpx.ConnectError as err:
+                if (delay := self._delay(None, attempt)) is None:
+                    raise self._unreachable(err) from err
+            except httpx.HTTPError as err:
+                raise LiftClientError(f"{method} {path} failed: {err!r}") from err
+            else:
+                if response.status_code != 503 or (delay := self._delay(response, attempt)) is None:
+                    return response
+            await asyncio.sleep(delay)
+            attempt += 1
+
+    async def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
+                   confidence_threshold: float | None = None) -> LiftResult:  # fmt: skip
+        """Lift one (J, 2) pose; see LiftClient.lift."""
+        conf = None if confidence is None else np.asarray(confidence)[None]
+        results = await self.lift_batch(np.asarray(keypoints)[None], format=format, confidence=conf,
+                                        confidence_threshold=confidence_threshold)  # fmt: skip
+        return results[0]
+
+    async def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17",
+                         confidence: ArrayLike | None = None,
+                         confidence_threshold: float | None = None) -> list[LiftResult]:  # fmt: skip
+        """Lift (N, J, 2) poses in requests of at most `batch_size`, `max_concurrency` at a time."""
+        bodies = self._bodies(keypoints, format, confidence, confidence_threshold)
+        slots = asyncio.Semaphore(self.max_concurrency)
+
+        async def post(body: dict[str, Any]) -> httpx.Response:
+            async with slots:
+                return await self._send("POST", "/lift", body)
+
+        responses = await asyncio.gather(*(post(b) for b in bodies))
+        return [r for response in responses for r in parse_response(response)]

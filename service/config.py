@@ -1,0 +1,62 @@
+"""Settings of the service: environment variables with the REPNET_ prefix, then flags."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "repnet-h36m.onnx"
+
+
+class Settings(BaseSettings):
+    """Everything an operator can set. Create it once in __main__ and pass it down."""
+
+    model_config = SettingsConfigDict(env_prefix="REPNET_", extra="ignore", frozen=True)
+
+    model_path: Path = Field(
+        default=BUNDLED_MODEL, description="ONNX model file (the bundled model by default)"
+    )
+    host: str = Field(default="0.0.0.0", description="address both servers bind to")
+    http_port: int = Field(default=8000, ge=0, le=65535, description="HTTP port (0: any free port)")
+    grpc_port: int = Field(default=50051, ge=0, le=65535, description="gRPC port (0: any free port)")
+    intra_op_threads: int = Field(
+        default=0, ge=0, description="onnxruntime threads per run (0: one per core)"
+    )
+    inter_op_threads: int = Field(default=1, ge=0, description="onnxruntime inter-op threads")
+    grpc_workers: int = Field(default=32, ge=1, description="gRPC handler threads (one per open stream)")
+    max_batch: int = Field(default=256, ge=1, description="most poses in one onnxruntime run")
+    max_wait_ms: float = Field(
+        default=0.5, ge=0, description="longest an idle batcher waits for more poses to join a batch"
+    )
+    queue_size: int = Field(default=4096, ge=1, description="most poses waiting for a run; beyond: 503")
+    max_request_poses: int = Field(default=1024, ge=1, description="most poses in one request")
+    max_body_bytes: int = Field(
+        default=4 * 1024 * 1024, ge=1024, description="largest HTTP body / gRPC message"
+    )
+    min_visible_joints: int = Field(
+        default=6, ge=2, le=17, description="fewest visible model joints per pose"
+    )
+    confidence_threshold: float = Field(
+        default=0.2, ge=0, le=1, description="default: a joint with confidence below it counts as missing"
+    )
+    max_coordinate: float = Field(default=1e6, gt=0, description="largest accepted |x| or |y| in pixels")
+    stream_window: int = Field(default=256, ge=1, description="frames of one stream in flight at once")
+    shutdown_grace_s: float = Field(
+        default=10.0, ge=0, description="time to drain in-flight work at shutdown"
+    )
+    shutdown_delay_s: float = Field(
+        default=0.0, ge=0, description="time between reporting not ready and refusing new requests"
+    )
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @model_validator(mode="after")
+    def _check_queue(self) -> Settings:
+        if self.queue_size < self.max_request_poses:
+            raise ValueError(
+                f"queue_size ({self.queue_size}) must be at least max_request_poses "
+                f"({self.max_request_poses}), or the largest request could never be queued"
+            )
+        return self

@@ -1,0 +1,220 @@
+"""HTTP adapter: create_app(engine, metrics, limits) with /lift, health, model info and /metrics."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.exceptions import HTTPException
+
+from service.engine import Engine
+from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Overloaded, Violation
+from service.formats import FORMATS
+from service.http_middleware import OUTCOME_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
+from service.keypoints import Limits, ModelInput, PoseInput, prepare_poses
+from service.lifter import ModelInfo, Prediction
+from service.metrics import INVALID, Metrics, outcome_of
+from service.schemas import (
+    FRAME_DOC,
+    ErrorResponse,
+    FormatInfo,
+    LiftRequest,
+    LiftResponse,
+    LimitsInfo,
+    ModelDescription,
+    PoseIn,
+)
+
+log = logging.getLogger(__name__)
+
+ERRORS: dict[int | str, dict[str, Any]] = {
+    413: {"model": ErrorResponse, "description": "The body is larger than the limit."},
+    422: {"model": ErrorResponse, "description": "A field breaks an input rule; `detail` names it."},
+    503: {"model": ErrorResponse, "description": "Queue full or shutting down; retry later."},
+}
+
+
+def to_pose_input(pose: PoseIn, default_format: str) -> PoseInput:
+    """The wire-independent form of one JSON pose; null joints are marked not present."""
+    present = np.array([p is not None for p in pose.keypoints], dtype=bool)
+    points = np.array([p if p is not None else (np.nan, np.nan) for p in pose.keypoints], dtype=np.float64)
+    confidence = None if pose.confidence is None else np.array(pose.confidence, dtype=np.float64)
+    return PoseInput(points.reshape(-1, 2), present, confidence, pose.format or default_format)
+
+
+def to_pose_results(inputs: ModelInput, prediction: Prediction) -> list[dict[str, Any]]:
+    """One JSON-ready dict per pose (ndarray.tolist is far faster than pydantic per value)."""
+    arrays = {
+        name: getattr(prediction, name).astype(np.float64).tolist()
+        for name in (
+            "pose_3d",
+            "pose_3d_camera",
+            "camera",
+            "scale",
+            "rotation",
+            "reprojection",
+            "reprojection_error_px",
+        )
+    }
+    flags = {
+        "visible": inputs.visible.tolist(),
+        "imputed": inputs.imputed.tolist(),
+        "derived": inputs.derived.tolist(),
+    }
+    columns = {**arrays, **flags}
+    return [{name: values[i] for name, values in columns.items()} for i in range(len(prediction))]
+
+
+def error_item(v: Violation) -> dict[str, Any]:
+    return {
+        "field": v.field,
+        "reason": v.reason,
+        "message": v.message,
+        "code": v.code,
+        "pose": v.pose,
+        "joint": v.joint,
+        "joint_name": v.joint_name,
+    }
+
+
+def violations_of(errors: Sequence[Any]) -> list[Violation]:
+    """Pydantic's errors as Violations, naming the field like the core does: poses[0].keypoints[3]."""
+    found = []
+    for error in errors:
+        loc = [p for p in error.get("loc", ()) if p != "body"]
+        if error.get("type") == "json_invalid":
+            loc = []
+        field = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".") or "body"
+        pose = loc[1] if len(loc) > 1 and loc[0] == "poses" and isinstance(loc[1], int) else None
+        joint = None
+        if (
+            pose is not None
+            and len(loc) > 3
+            and loc[2] in ("keypoints", "confidence")
+            and isinstance(loc[3], int)
+        ):
+            joint = loc[3]
+        reason = str(error.get("msg", "invalid"))
+        if ctx_error := (error.get("ctx") or {}).get("error"):
+            reason = f"{reason}: {ctx_error}"
+        code = "malformed_json" if error.get("type") == "json_invalid" else "malformed"
+        found.append(Violation(field, reason, code, pose=pose, joint=joint))
+    return found
+
+
+def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
+    formats = [
+        FormatInfo(
+            name=f.name,
+            description=f.description,
+            joint_names=list(f.joint_names),
+            sources=[list(s) for s in f.sources],
+        )
+        for f in FORMATS.values()
+    ]
+    return ModelDescription(
+        model_id=info.model_id,
+        skeleton=info.skeleton,
+        joints=list(info.joint_names),
+        parents=list(info.parents),
+        formats=formats,
+        limits=LimitsInfo(
+            max_request_poses=limits.max_request_poses,
+            max_body_bytes=max_body_bytes,
+            min_visible_joints=limits.min_visible_joints,
+            confidence_threshold=limits.confidence_threshold,
+            max_coordinate_px=limits.max_coordinate,
+            max_batch=engine.max_batch,
+            max_wait_ms=engine.max_wait_s * 1000,
+            queue_size=engine.queue_size,
+        ),
+        evaluation=info.evaluation,
+        metadata=info.metadata,
+    )
+
+
+def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes: int = 4 << 20) -> FastAPI:
+    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server."""
+    info = engine.lifter.info
+    app = FastAPI(
+        title="RepNet pose lifting",
+        version="1.0.0",
+        description="Lifts 2D human keypoints to a 3D pose and a weak-perspective camera "
+        "(RepNet, Wandt & Rosenhahn, CVPR 2019).\n\n" + FRAME_DOC,
+    )
+    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
+    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)  # added last: outermost
+
+    @app.exception_handler(LiftError)
+    async def handle_lift_error(request: Request, err: Exception) -> JSONResponse:
+        setattr(request.state, OUTCOME_KEY, outcome_of(err))
+        if isinstance(err, InvalidKeypoints):
+            metrics.reject("http", err.violations)
+            return JSONResponse({"detail": [error_item(v) for v in err.violations]}, status_code=422)
+        if isinstance(err, Overloaded | ModelNotReady):
+            return JSONResponse({"detail": str(err)}, status_code=503, headers={"Retry-After": "1"})
+        raise err  # any other LiftError is a server fault: the 500 handler logs it
+
+    @app.exception_handler(RequestValidationError)
+    async def handle_validation_error(request: Request, err: Exception) -> JSONResponse:
+        violations = violations_of(err.errors() if isinstance(err, RequestValidationError) else [])
+        setattr(request.state, OUTCOME_KEY, INVALID)
+        metrics.reject("http", violations)
+        return JSONResponse({"detail": [error_item(v) for v in violations]}, status_code=422)
+
+    @app.exception_handler(HTTPException)
+    async def handle_http_error(request: Request, err: Exception) -> Response:
+        """FastAPI answers 400 to a body it cannot decode (not UTF-8, nested too deep): name it."""
+        if not isinstance(err, HTTPException):
+            raise err
+        if err.status_code != 400 or request.url.path != "/lift":
+            return await http_exception_handler(request, err)
+        reason = "the body cannot be decoded as JSON (invalid UTF-8 or nested too deeply)"
+        violation = Violation("body", reason, "malformed_json")
+        setattr(request.state, OUTCOME_KEY, INVALID)
+        metrics.reject("http", [violation])
+        return JSONResponse({"detail": [error_item(violation)]}, status_code=400)
+
+    @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
+    def lift(request: LiftRequest) -> Response:
+        """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
+        poses = [to_pose_input(p, request.format) for p in request.poses]
+        inputs = prepare_poses(poses, limits, request.confidence_threshold)
+        prediction = engine.lift(inputs, "http")
+        body = {
+            "model_id": info.model_id,
+            "joints": list(info.joint_names),
+            "poses": to_pose_results(inputs, prediction),
+        }
+        return JSONResponse(body)
+
+    @app.get("/healthz", summary="The process is up")
+    async def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get(
+        "/readyz",
+        summary="The model is loaded and the server accepts work",
+        responses={503: {"model": ErrorResponse}},
+    )
+    async def readyz() -> Response:
+        if not engine.ready:
+            return JSONResponse({"detail": "shutting down"}, status_code=503)
+        return JSONResponse({"status": "ready", "model_id": info.model_id})
+
+    @app.get("/v1/model", response_model=ModelDescription, summary="Model, joints, formats and limits")
+    async def model() -> ModelDescription:
+        return describe_model(info, limits, engine, max_body_bytes)
+
+    @app.get("/metrics", summary="Prometheus metrics", response_class=Response)
+    async def prometheus() -> Response:
+        return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+    return app

@@ -1,0 +1,141 @@
+"""ASGI middleware of the HTTP API: the request body size limit and request metrics."""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.errors import Violation
+from service.metrics import ERROR, INVALID, OK, UNAVAILABLE, Metrics
+
+# Key in the ASGI scope's state where exception handlers leave the outcome of a request.
+OUTCOME_KEY = "repnet_outcome"
+LIFT_PATH = "/lift"
+
+
+class _BodyTooLarge(Exception):
+    pass
+
+
+def body_violation(size: int, limit: int) -> Violation:
+    return Violation(
+        "body", f"the request body has {size} bytes or more, the limit is {limit}", "body_too_large"
+    )
+
+
+class BodyLimitMiddleware:
+    """Answer 413 once a request body passes max_bytes, by its Content-Length or while streaming."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = _content_length(scope)
+        if declared is not None and declared > self.max_bytes:
+            await self._reject(scope, send, declared)
+            return
+        received = 0
+        exceeded = False
+
+        async def limited_receive() -> Message:
+            nonlocal received, exceeded
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    exceeded = True
+                    raise _BodyTooLarge
+            return message
+
+        async def guarded_send(message: Message) -> None:
+            if not exceeded:  # the app's answer to a truncated body is replaced by the 413
+                await send(message)
+
+        try:
+            await self.app(scope, limited_receive, guarded_send)
+        except _BodyTooLarge:
+            pass
+        if exceeded:
+            await self._reject(scope, send, received)
+
+    async def _reject(self, scope: Scope, send: Send, size: int) -> None:
+        violation = body_violation(size, self.max_bytes)
+        self.metrics.reject("http", [violation])
+        scope.setdefault("state", {})[OUTCOME_KEY] = INVALID
+        item = {
+            "field": violation.field,
+            "reason": violation.reason,
+            "message": violation.message,
+            "code": violation.code,
+            "pose": None,
+            "joint": None,
+            "joint_name": None,
+        }
+        body = json.dumps({"detail": [item]}).encode()
+        headers = [
+            (b"content-type", b"application/json"),
+            (b"content-length", str(len(body)).encode()),
+            (b"connection", b"close"),
+        ]
+        await send({"type": "http.response.start", "status": 413, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+
+
+def _content_length(scope: Scope) -> int | None:
+    for name, value in scope.get("headers", []):
+        if name == b"content-length":
+            try:
+                return int(value)
+            except ValueError:
+                return None
+    return None
+
+
+def outcome_of_status(status: int, state: dict[str, Any]) -> str:
+    """The outcome label of an HTTP answer; exception handlers may have said it precisely."""
+    if OUTCOME_KEY in state:
+        return str(state[OUTCOME_KEY])
+    if status < 400:
+        return OK
+    if status < 500:
+        return INVALID
+    return UNAVAILABLE if status == 503 else ERROR
+
+
+class LiftMetricsMiddleware:
+    """Count, time and classify POST /lift requests, rejections before the route included."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"] != LIFT_PATH or scope["method"] != "POST":
+            await self.app(scope, receive, send)
+            return
+        state: dict[str, Any] = scope.setdefault("state", {})
+        status = 500  # if the app fails before answering
+
+        async def recording_send(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+            await send(message)
+
+        gauge = self.metrics.in_flight.labels(transport="http")
+        gauge.inc()
+        start = time.perf_counter()
+        try:
+            await self.app(scope, receive, recording_send)
+        finally:
+            gauge.dec()
+            outcome = outcome_of_status(status, state)
+            self.metrics.finish("http", "Lift", outcome, time.perf_counter() - start)

@@ -1,0 +1,172 @@
+"""Lifter: owns the onnxruntime session; model-joint ndarrays in, Prediction out."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from service import geometry
+from service.errors import InvalidKeypoints, ModelLoadError, Violation
+from service.geometry import FloatArray
+
+log = logging.getLogger(__name__)
+
+INPUTS = ("keypoints_2d", "visibility")
+OUTPUTS = ("pose_3d", "camera")
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What the ONNX metadata says about the model."""
+
+    model_id: str
+    skeleton: str
+    joint_names: tuple[str, ...]
+    parents: tuple[int, ...]
+    metadata: dict[str, str]  # every custom metadata entry, verbatim
+
+    @property
+    def evaluation(self) -> dict[str, Any]:
+        """The evaluation figures embedded at export (empty for an untrained model)."""
+        try:
+            value = json.loads(self.metadata.get("evaluation", "{}") or "{}")
+        except json.JSONDecodeError:
+            return {}
+        return value if isinstance(value, dict) else {}
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The model's outputs for N poses and the camera quantities derived from them."""
+
+    pose_3d: FloatArray  # (N, J, 3) mm, pelvis at origin, template frame
+    camera: FloatArray  # (N, 2, 3) weak-perspective K
+    scale: FloatArray  # (N,) s = sqrt(trace(K K^T) / 2)
+    rotation: FloatArray  # (N, 3, 3) camera orientation, det 1
+    pose_3d_camera: FloatArray  # (N, J, 3) mm, pose_3d rotated into the camera's orientation
+    reprojection: FloatArray  # (N, J, 2) px, K X mapped back into the input's pixels
+    reprojection_error_px: FloatArray  # (N,) mean pixel distance over the visible joints
+
+    def __len__(self) -> int:
+        return int(self.pose_3d.shape[0])
+
+    def slice(self, start: int, stop: int) -> Prediction:
+        """Poses start..stop-1 of this prediction (views, no copy)."""
+        return replace(self, **{f.name: getattr(self, f.name)[start:stop] for f in fields(self)})
+
+
+def _read_info(session: ort.InferenceSession, path: Path) -> ModelInfo:
+    meta = dict(session.get_modelmeta().custom_metadata_map)
+    try:
+        joint_names = tuple(str(n) for n in json.loads(meta["joint_names"]))
+        parents = tuple(int(p) for p in json.loads(meta.get("parents", "[]")))
+    except (KeyError, ValueError, TypeError) as err:
+        raise ModelLoadError(f"{path}: metadata 'joint_names' must be a JSON list of names ({err})") from err
+    return ModelInfo(
+        model_id=meta.get("model_id") or path.stem,
+        skeleton=meta.get("skeleton", ""),
+        joint_names=joint_names,
+        parents=parents,
+        metadata=meta,
+    )
+
+
+def _check_names(session: ort.InferenceSession, path: Path) -> None:
+    """Checked before the metadata, so that a model of another kind is named as such."""
+    inputs = [i.name for i in session.get_inputs()]
+    outputs = [o.name for o in session.get_outputs()]
+    if set(inputs) != set(INPUTS) or not set(OUTPUTS) <= set(outputs):
+        raise ModelLoadError(
+            f"{path}: expected inputs {list(INPUTS)} and outputs {list(OUTPUTS)}, "
+            f"got inputs {inputs} and outputs {outputs}"
+        )
+
+
+def _check_contract(session: ort.InferenceSession, info: ModelInfo, path: Path) -> None:
+    inputs = {i.name: i.shape for i in session.get_inputs()}
+    outputs = {o.name: o.shape for o in session.get_outputs()}
+    joints = len(info.joint_names)
+    if inputs["keypoints_2d"][1:] != [joints, 2] or outputs["pose_3d"][1:] != [joints, 3]:
+        raise ModelLoadError(
+            f"{path}: expected keypoints_2d (N, {joints}, 2) and pose_3d (N, {joints}, 3) for the "
+            f"{joints} joints in its metadata, got {inputs['keypoints_2d']} and {outputs['pose_3d']}"
+        )
+
+
+class Lifter:
+    """Runs the RepNet ONNX model; safe to call from many threads at once."""
+
+    def __init__(self, session: ort.InferenceSession, path: Path) -> None:
+        self.session = session
+        self.path = path
+        _check_names(session, path)
+        self.info = _read_info(session, path)
+        _check_contract(session, self.info, path)
+
+    @classmethod
+    def load(cls, path: Path, intra_op_threads: int = 0, inter_op_threads: int = 1) -> Lifter:
+        """Open the model at `path`; raise ModelLoadError saying what is wrong with it."""
+        if not path.is_file():
+            raise ModelLoadError(f"model file not found: {path}")
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = intra_op_threads
+        options.inter_op_num_threads = inter_op_threads
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        try:
+            session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        except Exception as err:  # onnxruntime raises its own untyped errors for bad files
+            raise ModelLoadError(f"cannot load model {path}: {err}") from err
+        lifter = cls(session, path)
+        log.info("loaded model %s (%s) from %s", lifter.info.model_id, lifter.info.skeleton, path)
+        return lifter
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.info.joint_names)
+
+    def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
+        """Lift (N, J, 2) pixel keypoints with (N, J) visibility (bool or 0/1) to a Prediction.
+
+        Coordinates of joints that are not visible are ignored, whatever they hold.
+        """
+        j = self.num_joints
+        if keypoints_2d.ndim != 3 or keypoints_2d.shape[1:] != (j, 2) or keypoints_2d.shape[0] == 0:
+            raise InvalidKeypoints(
+                [Violation("keypoints_2d", f"expected shape (N, {j}, 2), got {keypoints_2d.shape}", "shape")]
+            )
+        if visibility.shape != keypoints_2d.shape[:2]:
+            raise InvalidKeypoints(
+                [
+                    Violation(
+                        "visibility",
+                        f"expected shape {keypoints_2d.shape[:2]}, got {visibility.shape}",
+                        "shape",
+                    )
+                ]
+            )
+        visible = visibility.astype(bool)
+        points = np.where(visible[..., None], keypoints_2d, 0.0).astype(np.float32)  # (N, J, 2)
+        if not np.isfinite(points).all():
+            raise InvalidKeypoints(
+                [Violation("keypoints_2d", "visible coordinates must be finite", "non_finite")]
+            )
+        pose_3d, camera = self.session.run(
+            list(OUTPUTS), {"keypoints_2d": points, "visibility": visible.astype(np.float32)}
+        )
+        rotation = geometry.camera_rotation(camera)
+        reprojection = geometry.reproject(camera, pose_3d, points, visible)
+        return Prediction(
+            pose_3d=pose_3d,
+            camera=camera,
+            scale=geometry.camera_scale(camera),
+            rotation=rotation,
+            pose_3d_camera=geometry.rotate_to_camera(pose_3d, rotation),
+            reprojection=reprojection,
+            reprojection_error_px=geometry.reprojection_error(reprojection, points, visible),
+        )

@@ -1,0 +1,138 @@
+"""Metrics: every Prometheus metric of the service, built on a registry it is given."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from service.errors import InvalidKeypoints, ModelNotReady, Overloaded, Violation
+
+# Latency buckets (s): fine below 10 ms where a single pose should land, coarse above.
+LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0,
+                   2.5, 5.0, 10.0)  # fmt: skip
+BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048)
+
+OK, INVALID, OVERLOADED, UNAVAILABLE, ERROR = "ok", "invalid", "overloaded", "unavailable", "error"
+
+
+def outcome_of(error: BaseException | None) -> str:
+    """The `outcome` label for a request that ended with `error` (None: it succeeded)."""
+    if error is None:
+        return OK
+    if isinstance(error, InvalidKeypoints):
+        return INVALID
+    if isinstance(error, Overloaded):
+        return OVERLOADED
+    if isinstance(error, ModelNotReady):
+        return UNAVAILABLE
+    return ERROR
+
+
+@dataclass
+class Tracked:
+    """A request being measured; an adapter may set the outcome when it handles an error itself."""
+
+    outcome: str | None = None
+
+
+class Metrics:
+    """The service's metrics; documented in README.md, section Metrics."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.registry = registry
+        labels = ["transport", "method", "outcome"]
+        self.requests = Counter(
+            "repnet_requests",
+            "Lift requests (HTTP requests, unary RPCs, stream frames) by outcome.",
+            labels,
+            registry=registry,
+        )
+        self.request_seconds = Histogram(
+            "repnet_request_duration_seconds",
+            "Time from receiving a lift request to its answer.",
+            labels,
+            buckets=LATENCY_BUCKETS,
+            registry=registry,
+        )
+        self.rejected = Counter(
+            "repnet_rejected_inputs",
+            "Rejected inputs by reason (one count per reason per request).",
+            ["transport", "reason"],
+            registry=registry,
+        )
+        self.in_flight = Gauge(
+            "repnet_in_flight_requests",
+            "Lift requests and stream frames being handled now.",
+            ["transport"],
+            registry=registry,
+        )
+        self.open_streams = Gauge("repnet_open_streams", "LiftStream calls open now.", registry=registry)
+        self.queue_wait_seconds = Histogram(
+            "repnet_batch_queue_wait_seconds",
+            "Time a chunk of poses waited in the batch queue.",
+            ["transport"],
+            buckets=LATENCY_BUCKETS,
+            registry=registry,
+        )
+        self.inference_seconds = Histogram(
+            "repnet_inference_seconds",
+            "Time of one onnxruntime run (a whole batch), derived geometry included.",
+            buckets=LATENCY_BUCKETS,
+            registry=registry,
+        )
+        self.batch_size = Histogram(
+            "repnet_batch_size_poses",
+            "Poses per onnxruntime run, after dynamic batching.",
+            buckets=BATCH_BUCKETS,
+            registry=registry,
+        )
+        self.queue_depth = Gauge(
+            "repnet_batch_queue_poses", "Poses waiting in the batch queue now.", registry=registry
+        )
+        self.model_info = Gauge(
+            "repnet_model_info",
+            "The loaded model (value 1), labelled by its id and skeleton.",
+            ["model_id", "skeleton"],
+            registry=registry,
+        )
+
+    def set_model(self, model_id: str, skeleton: str) -> None:
+        self.model_info.clear()
+        self.model_info.labels(model_id=model_id, skeleton=skeleton).set(1)
+
+    def reject(self, transport: str, violations: Sequence[Violation]) -> None:
+        for code in sorted({v.code for v in violations}):
+            self.rejected.labels(transport=transport, reason=code).inc()
+
+    def finish(self, transport: str, method: str, outcome: str, seconds: float) -> None:
+        """Count one finished request and its latency."""
+        self.requests.labels(transport=transport, method=method, outcome=outcome).inc()
+        self.request_seconds.labels(transport=transport, method=method, outcome=outcome).observe(seconds)
+
+    @contextmanager
+    def track(self, transport: str, method: str) -> Iterator[Tracked]:
+        """Measure one request: in-flight while inside, then count, time and classify it.
+
+        The outcome comes from the exception that leaves the block (re-raised), or from
+        `Tracked.outcome` when the adapter set it; rejected inputs are counted by reason.
+        """
+        tracked = Tracked()
+        gauge = self.in_flight.labels(transport=transport)
+        gauge.inc()
+        start = time.perf_counter()
+        error: BaseException | None = None
+        try:
+            yield tracked
+        except BaseException as err:
+            error = err
+            raise
+        finally:
+            gauge.dec()
+            if isinstance(error, InvalidKeypoints):
+                self.reject(transport, error.violations)
+            outcome = tracked.outcome or outcome_of(error)
+            self.finish(transport, method, outcome, time.perf_counter() - start)

@@ -1,0 +1,161 @@
+"""Pydantic request and response models of the HTTP API; their descriptions are the OpenAPI docs."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
+
+from service.formats import FORMATS
+
+# Strict: a JSON string such as "12" or a boolean is not a coordinate.
+Number = Annotated[float, Strict()]
+Point = tuple[Number, Number]
+Matrix = list[list[float]]
+
+FRAME_DOC = (
+    "Coordinate contract: `pose_3d` is in millimetres with the pelvis at the origin, in the model's "
+    "template frame (x to the subject's image right, y down, z away from the camera, the subject "
+    "facing the camera). `pose_3d_camera` is the same pose rotated into the camera's orientation "
+    "(`pose_3d @ rotation.T`). `camera` K is a weak-perspective 2x3 matrix: K @ pose_3d.T equals "
+    "the input normalised (centred on the mean of its visible joints, divided by the standard "
+    "deviation of their coordinates) up to a translation. `reprojection` maps K @ pose_3d back "
+    "into input pixels (x right, y down)."
+)
+
+
+class PoseIn(BaseModel):
+    """One 2D pose from a detector."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    keypoints: list[Point | None] = Field(
+        description="One [x, y] per joint of the format, in pixels (x right, y down), in the "
+        "format's joint order; null for a joint the detector did not find.",
+        examples=[[[512.0, 400.0], None]],
+    )
+    confidence: list[Number] | None = Field(
+        None,
+        description="Optional detector confidence per joint in [0, 1]; a joint below the "
+        "confidence threshold counts as missing.",
+    )
+    format: str | None = Field(
+        None,
+        description="Keypoint format of this pose; defaults to the request's `format`.",
+        json_schema_extra={"enum": list(FORMATS)},
+    )
+
+
+class LiftRequest(BaseModel):
+    """A batch of poses. A bare pose object ({"keypoints": ...}) is accepted as a batch of one."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    poses: list[PoseIn] = Field(description="The poses to lift, answered in the same order.")
+    format: str = Field(
+        "h36m17",
+        description="Keypoint format of poses that do not name their own: " + ", ".join(FORMATS) + ".",
+        json_schema_extra={"enum": list(FORMATS)},
+    )
+    confidence_threshold: Number | None = Field(
+        None, description="Joints with a confidence below this count as missing (default: server setting)."
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _accept_single_pose(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "poses" not in data and "keypoints" in data:
+            pose = {k: v for k, v in data.items() if k not in ("confidence_threshold",)}
+            batch = {"poses": [pose]}
+            if "confidence_threshold" in data:
+                batch["confidence_threshold"] = data["confidence_threshold"]
+            return batch
+        return data
+
+
+class PoseResult(BaseModel):
+    """The 3D pose and camera for one input pose. Joint arrays follow `joints` (17 model joints)."""
+
+    pose_3d: Matrix = Field(description="17 x [x, y, z] in mm, pelvis at origin, template frame.")
+    pose_3d_camera: Matrix = Field(
+        description="17 x [x, y, z] in mm: pose_3d rotated into the camera's "
+        "orientation (pose_3d @ rotation.T)."
+    )
+    camera: Matrix = Field(description="Weak-perspective camera K, 2 x 3.")
+    scale: float = Field(description="Camera scale s = sqrt(trace(K K^T) / 2).")
+    rotation: Matrix = Field(
+        description="Camera rotation R, 3 x 3 orthonormal with det 1: rows 1-2 "
+        "are K / s made orthonormal, row 3 their cross product."
+    )
+    reprojection: Matrix = Field(description="17 x [x, y]: K @ pose_3d mapped back into input pixels.")
+    reprojection_error_px: float = Field(
+        description="Mean distance in pixels between `reprojection` and the input over the visible joints."
+    )
+    visible: list[bool] = Field(description="Per joint: the model saw this joint.")
+    imputed: list[bool] = Field(
+        description="Per joint: the input had no visible source for it; the model filled it in."
+    )
+    derived: list[bool] = Field(
+        description="Per joint: the input point is the midpoint of two detector "
+        "joints (e.g. pelvis = mid-hips for COCO)."
+    )
+
+
+class LiftResponse(BaseModel):
+    """The lifted poses, in request order."""
+
+    model_id: str = Field(description="Id of the model that answered.")
+    joints: list[str] = Field(description="Names of the 17 model joints, the order of every joint array.")
+    poses: list[PoseResult]
+
+
+class ErrorItem(BaseModel):
+    """One rejected field."""
+
+    field: str = Field(description='Where, e.g. "poses[2].keypoints[5]".')
+    reason: str = Field(description="Why it was rejected.")
+    message: str = Field(description="Field, joint name and reason in one line (the gRPC message).")
+    code: str = Field(description='Short reason code, e.g. "non_finite" (the metrics label).')
+    pose: int | None = Field(None, description="Index of the pose in the request.")
+    joint: int | None = Field(None, description="Index of the joint in the pose's format.")
+    joint_name: str | None = Field(None, description="Name of the joint in the pose's format.")
+
+
+class ErrorResponse(BaseModel):
+    """A 4xx/503 answer: `detail` lists the rejected fields, or says why the server cannot serve."""
+
+    detail: list[ErrorItem] | str
+
+
+class FormatInfo(BaseModel):
+    name: str
+    description: str
+    joint_names: list[str] = Field(description="The format's joints in the detector's order.")
+    sources: list[list[int]] = Field(
+        description="Per model joint: the format joints it comes from (none: imputed; two: their midpoint)."
+    )
+
+
+class LimitsInfo(BaseModel):
+    max_request_poses: int
+    max_body_bytes: int
+    min_visible_joints: int
+    confidence_threshold: float
+    max_coordinate_px: float
+    max_batch: int
+    max_wait_ms: float
+    queue_size: int
+
+
+class ModelDescription(BaseModel):
+    """What `GET /v1/model` returns."""
+
+    model_id: str
+    skeleton: str
+    joints: list[str]
+    parents: list[int]
+    coordinate_contract: str = FRAME_DOC
+    formats: list[FormatInfo]
+    limits: LimitsInfo
+    evaluation: dict[str, Any] = Field(description="Evaluation figures embedded in the model.")
+    metadata: dict[str, str] = Field(description="Every ONNX metadata entry, verbatim.")

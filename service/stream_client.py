@@ -1,0 +1,129 @@
+"""gRPC client of the lifting service: LiftStream frame by frame, and the unary Lift."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Generator, Iterable, Iterator
+from dataclasses import dataclass
+from functools import partial
+
+import grpc
+import numpy as np
+
+from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.client import ArrayLike, LiftClientError, LiftResult, as_poses
+from service.formats import MODEL_JOINTS
+
+DEFAULT_TARGET = "localhost:50051"
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One stream frame: (J, 2) keypoints (NaN = missing) with optional (J,) confidence."""
+
+    keypoints: ArrayLike
+    confidence: ArrayLike | None = None
+    frame_id: int | None = None  # default: the frame's position in the stream
+    format: str | None = None  # default: the stream's format
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """The answer to one frame: its result, or the error it got (the stream goes on)."""
+
+    frame_id: int
+    result: LiftResult | None
+    error: LiftClientError | None
+
+
+_STATUS_NAMES = {code.value[0]: code.name for code in grpc.StatusCode}
+_RETRY_CODES = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.RESOURCE_EXHAUSTED)
+
+
+def _pose_proto(points: np.ndarray, conf: np.ndarray | None, format: str) -> lifter_pb2.Pose2D:
+    missing = np.isnan(points).any(axis=1)  # (J,)
+    flat = np.where(missing[:, None], 0.0, points).ravel().tolist()
+    return lifter_pb2.Pose2D(keypoints=flat, confidence=[] if conf is None else conf.tolist(),
+                             missing=missing.tolist() if missing.any() else [], format=format)  # fmt: skip
+
+
+def _rpc_error(err: grpc.RpcError) -> LiftClientError:
+    if isinstance(err, grpc.Call):
+        return LiftClientError(err.details() or str(err), err.code().name)
+    return LiftClientError(str(err))
+
+
+class StreamClient:
+    """gRPC client: `for r in StreamClient("host:50051").stream(frames): ...` over LiftStream."""
+
+    def __init__(self, target: str = DEFAULT_TARGET, *, timeout: float | None = None, retries: int = 3,
+                 backoff: float = 0.1, max_message_bytes: int = 4 << 20) -> None:  # fmt: skip
+        self.target, self.timeout, self.retries, self.backoff = target, timeout, retries, backoff
+        options = [("grpc.max_receive_message_length", max_message_bytes)]
+        self._channel = grpc.insecure_channel(target, options=options)
+        self._stub = lifter_pb2_grpc.PoseLifterStub(self._channel)  # type: ignore[no-untyped-call]
+
+    def __enter__(self) -> StreamClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._channel.close()
+
+    def stream(self, frames: Iterable[ArrayLike | Frame], *, format: str = "h36m17",
+               confidence_threshold: float | None = None) -> Generator[FrameResult, None, None]:  # fmt: skip
+        """Send frames as they come and yield one FrameResult per frame, in order.
+
+        A bad frame yields a FrameResult with `error` set; a failed call raises LiftClientError.
+        Frame results carry the model's joint names (LiftFrameResult has none on the wire).
+        """
+
+        def requests() -> Iterator[lifter_pb2.LiftFrame]:
+            for i, frame in enumerate(frames):
+                f = frame if isinstance(frame, Frame) else Frame(frame)
+                points = np.asarray(f.keypoints, dtype=np.float64)
+                conf = None if f.confidence is None else np.asarray(f.confidence, dtype=np.float64)
+                pose = _pose_proto(points, conf, f.format or format)
+                frame_id = i if f.frame_id is None else f.frame_id
+                yield lifter_pb2.LiftFrame(frame_id=frame_id, pose=pose,
+                                           confidence_threshold=confidence_threshold)  # fmt: skip
+
+        call = self._stub.LiftStream(requests(), timeout=self.timeout)
+        try:
+            for answer in call:
+                if answer.WhichOneof("result") == "pose":
+                    result = LiftResult.from_fields(
+                        partial(getattr, answer.pose), MODEL_JOINTS, answer.model_id
+                    )
+                    yield FrameResult(answer.frame_id, result, None)
+                    continue
+                e = answer.error
+                details = [{"field": v.field, "reason": v.reason, "code": v.code, "joint_name": v.joint_name}
+                           for v in e.violations]  # fmt: skip
+                error = LiftClientError(e.message, _STATUS_NAMES.get(e.code, str(e.code)), details)
+                yield FrameResult(answer.frame_id, None, error)
+        except grpc.RpcError as err:
+            raise _rpc_error(err) from err
+        finally:
+            call.cancel()  # a no-op once the call ended; stops it when the caller breaks off early
+
+    def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
+                   confidence_threshold: float | None = None) -> list[LiftResult]:  # fmt: skip
+        """Lift (N, J, 2) poses with the unary Lift, retrying UNAVAILABLE and RESOURCE_EXHAUSTED."""
+        points, conf = as_poses(keypoints, confidence)
+        poses = [_pose_proto(p, None if conf is None else conf[i], format) for i, p in enumerate(points)]
+        request = lifter_pb2.LiftRequest(poses=poses, format=format,
+                                         confidence_threshold=confidence_threshold)  # fmt: skip
+        for attempt in range(self.retries + 1):
+            try:
+                response = self._stub.Lift(request, timeout=self.timeout)
+                joints, model_id = response.joints, response.model_id
+                return [LiftResult.from_fields(partial(getattr, p), joints, model_id) for p in response.poses]
+            except grpc.RpcError as err:
+                retry = isinstance(err, grpc.Call) and err.code() in _RETRY_CODES
+                if not retry or attempt == self.retries:
+                    raise _rpc_error(err) from err
+                time.sleep(self.backoff * 2**attempt)
+        raise AssertionError("unreachable: the last attempt returns or raises")

@@ -1,0 +1,207 @@
+"""Shared fixtures: the bundled model, a fresh metrics registry, the HTTP app and a live gRPC server."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+from grpc_health.v1 import health
+from prometheus_client import CollectorRegistry
+
+with warnings.catch_warnings():  # starlette's note about httpx2 is not ours to act on
+    warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
+    from fastapi.testclient import TestClient
+
+from service._proto.repnet.v1 import lifter_pb2_grpc
+from service.config import BUNDLED_MODEL, Settings
+from service.engine import Engine
+from service.grpc_api import create_server
+from service.http_api import create_app
+from service.keypoints import Limits
+from service.lifter import Lifter, Prediction
+from service.metrics import Metrics
+
+# A person in mid-stride, template frame (mm; x right in the image, y down, z away from the
+# camera, facing it), Human3.6M 17-joint order; the pelvis at the origin.
+POSE_3D = np.array(
+    [[0, 0, 0], [-130, 5, 10], [-150, 430, -60], [-145, 860, 20], [130, -5, -10], [135, 445, 70],
+     [150, 880, 150], [5, -235, 15], [10, -490, 20], [15, -590, -40], [20, -710, 0], [150, -440, 30],
+     [215, -190, 80], [250, 40, 20], [-135, -435, 10], [-210, -180, -50], [-240, 50, -30]],
+    dtype=np.float64,
+)  # fmt: skip
+FOCAL_PX = 1145.0
+CENTRE_PX = np.array([512.0, 515.0])
+
+
+def project(pose_3d: np.ndarray, yaw_deg: float = 25.0, distance_mm: float = 4500.0) -> np.ndarray:
+    """(17, 3) template-frame pose turned by `yaw_deg` about the vertical and seen by a pinhole
+    camera `distance_mm` away -> (17, 2) pixels."""
+    a = np.deg2rad(yaw_deg)
+    turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    camera = pose_3d @ turn.T + [0, 0, distance_mm]  # (17, 3)
+    return np.asarray(FOCAL_PX * camera[:, :2] / camera[:, 2:] + CENTRE_PX)
+
+
+POSE_2D = project(POSE_3D)  # (17, 2) px
+
+
+def expected_reprojection(
+    camera: np.ndarray, pose_3d: np.ndarray, points: np.ndarray, visible: np.ndarray
+) -> np.ndarray:
+    """K X (2x3 @ 17x3) mapped into pixels by the input normalisation, written out independently:
+    centre K X and the input on their visible joints, scale by the input's std, add its mean."""
+    kx = pose_3d @ camera.T  # (17, 2)
+    vis_points = points[visible]
+    mean = vis_points.mean(axis=0)
+    std = np.sqrt(((vis_points - mean) ** 2).sum() / (2 * len(vis_points)))
+    return np.asarray((kx - kx[visible].mean(axis=0)) * std + mean)
+
+
+@pytest.fixture(scope="session")
+def lifter() -> Lifter:
+    """The bundled model, or the one REPNET_MODEL_PATH names (to test another export)."""
+    return Lifter.load(Path(os.environ.get("REPNET_MODEL_PATH", BUNDLED_MODEL)), intra_op_threads=1)
+
+
+@pytest.fixture
+def trained(lifter: Lifter) -> Lifter:
+    """The lifter, or a skip while the bundled model is the untrained placeholder."""
+    if lifter.info.model_id.startswith("untrained"):
+        pytest.skip(f"bundled model {lifter.info.model_id!r} is untrained")
+    return lifter
+
+
+@pytest.fixture
+def limits() -> Limits:
+    return Limits(max_request_poses=16)
+
+
+@pytest.fixture
+def registry() -> CollectorRegistry:
+    return CollectorRegistry()
+
+
+@pytest.fixture
+def metrics(registry: CollectorRegistry, lifter: Lifter) -> Metrics:
+    metrics = Metrics(registry)
+    metrics.set_model(lifter.info.model_id, lifter.info.skeleton)
+    return metrics
+
+
+class GatedLifter(Lifter):
+    """The real lifter, except that a run waits while the gate is closed (deterministic batching)."""
+
+    def __init__(self, inner: Lifter) -> None:
+        super().__init__(inner.session, inner.path)
+        self.gate = threading.Event()
+        self.gate.set()
+        self.entered = threading.Event()  # set when a run reached the gate
+        self.batches: list[int] = []
+
+    def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
+        self.entered.set()
+        self.gate.wait(timeout=30)
+        self.batches.append(int(keypoints_2d.shape[0]))
+        return super().lift(keypoints_2d, visibility)
+
+
+@pytest.fixture
+def gated(lifter: Lifter) -> Iterator[GatedLifter]:
+    gated = GatedLifter(lifter)
+    yield gated
+    gated.gate.set()
+
+
+@pytest.fixture
+def engine_factory(metrics: Metrics) -> Iterator[Callable[..., Engine]]:
+    """Build Engines on the shared metrics; all are closed at teardown."""
+    engines: list[Engine] = []
+
+    def build(lifter: Lifter, max_batch: int = 64, max_wait_s: float = 0.001, queue_size: int = 64) -> Engine:
+        engine = Engine(lifter, metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size)
+        engines.append(engine)
+        return engine
+
+    yield build
+    for engine in engines:
+        engine.close(timeout=10)
+
+
+@pytest.fixture
+def engine(engine_factory: Callable[..., Engine], lifter: Lifter) -> Engine:
+    return engine_factory(lifter)
+
+
+@pytest.fixture
+def client(engine: Engine, metrics: Metrics, limits: Limits) -> Iterator[TestClient]:
+    with TestClient(create_app(engine, metrics, limits, max_body_bytes=64 * 1024)) as client:
+        yield client
+
+
+@dataclass
+class GrpcHandle:
+    stub: lifter_pb2_grpc.PoseLifterStub
+    channel: grpc.Channel
+    health: health.HealthServicer
+    port: int
+
+
+@pytest.fixture
+def grpc_handle(engine: Engine, metrics: Metrics, limits: Limits) -> Iterator[GrpcHandle]:
+    """A real gRPC server on a free localhost port, sharing `engine` with `client`."""
+    servicer = health.HealthServicer()
+    server, port = create_server(
+        engine,
+        metrics,
+        limits,
+        "localhost:0",
+        health_servicer=servicer,
+        workers=8,
+        max_message_bytes=64 * 1024,
+    )
+    server.start()
+    channel = grpc.insecure_channel(f"localhost:{port}")
+    try:
+        yield GrpcHandle(lifter_pb2_grpc.PoseLifterStub(channel), channel, servicer, port)  # type: ignore[no-untyped-call]
+    finally:
+        channel.close()
+        server.stop(0).wait()
+
+
+@pytest.fixture
+def stub(grpc_handle: GrpcHandle) -> lifter_pb2_grpc.PoseLifterStub:
+    return grpc_handle.stub
+
+
+@dataclass(frozen=True)
+class LiveService:
+    http_url: str
+    grpc_target: str
+
+
+@pytest.fixture(scope="module")
+def live_service(lifter: Lifter) -> Iterator[LiveService]:
+    """`python -m service` in-process: uvicorn and gRPC on free localhost ports (for clients)."""
+    from service.__main__ import build_service
+
+    settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1, shutdown_grace_s=1)
+    service = build_service(settings, lifter)
+    thread = threading.Thread(target=service.run, name="live-service", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not service.http.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("the live service did not start")
+        time.sleep(0.02)
+    port = service.http.servers[0].sockets[0].getsockname()[1]
+    yield LiveService(f"http://127.0.0.1:{port}", f"127.0.0.1:{service.grpc_port}")
+    service.begin_shutdown()
+    thread.join(timeout=15)

@@ -1,0 +1,196 @@
+"""Tests for the Python clients against a live service (HTTP and gRPC) and a scripted transport."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+from collections.abc import Iterator
+
+import httpx
+import numpy as np
+import pytest
+
+from service.client import AsyncLiftClient, LiftClient, LiftClientError, LiftResult
+from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
+from service.lifter import Lifter
+from service.stream_client import Frame, StreamClient
+from tests.conftest import POSE_2D, LiveService
+
+
+def _poses(n: int) -> np.ndarray:
+    shifts = np.arange(n, dtype=np.float64)[:, None, None] * [7.0, -3.0]
+    return POSE_2D[None] + shifts  # (n, 17, 2)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _assert_matches_lifter(result: LiftResult, lifter: Lifter, points: np.ndarray) -> None:
+    expected = lifter.lift(points[None].astype(np.float32), np.ones((1, 17), bool))
+    np.testing.assert_allclose(result.pose_3d, expected.pose_3d[0], rtol=1e-4, atol=1e-2)
+    np.testing.assert_allclose(result.camera, expected.camera[0], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(result.reprojection, expected.reprojection[0], rtol=1e-4, atol=1e-2)
+    np.testing.assert_allclose(result.rotation, expected.rotation[0], atol=1e-5)
+    assert result.scale == pytest.approx(float(expected.scale[0]), rel=1e-5)
+
+
+def test_http_lift_returns_typed_result_matching_the_model(live_service: LiveService, lifter: Lifter) -> None:
+    with LiftClient(live_service.http_url) as client:
+        result = client.lift(POSE_2D)
+    assert result.joints == MODEL_JOINTS and result.model_id == lifter.info.model_id
+    assert result.pose_3d.shape == (17, 3) and result.pose_3d.dtype == np.float32
+    assert result.camera.shape == (2, 3) and result.reprojection.shape == (17, 2)
+    assert result.visible.all() and not result.imputed.any() and not result.derived.any()
+    _assert_matches_lifter(result, lifter, POSE_2D)
+
+
+def test_http_batch_is_split_into_requests_and_kept_in_order(
+    live_service: LiveService, lifter: Lifter
+) -> None:
+    poses = _poses(7)
+    with LiftClient(live_service.http_url, batch_size=3) as client:
+        results = client.lift_batch(poses)
+    assert len(results) == 7
+    for result, pose in zip(results, poses, strict=True):
+        _assert_matches_lifter(result, lifter, pose)
+
+
+def test_http_coco_pose_with_missing_joint_reports_flags(live_service: LiveService) -> None:
+    points, visible = from_model_joints(FORMATS["coco17"], POSE_2D[None])
+    points[0, FORMATS["coco17"].joint_names.index("left_wrist")] = np.nan  # the detector missed it
+    confidence = np.where(visible[0], 0.9, 0.0)
+    confidence[FORMATS["coco17"].joint_names.index("right_knee")] = 0.1  # below the default 0.2
+    with LiftClient(live_service.http_url) as client:
+        result = client.lift(points[0], format="coco17", confidence=confidence)
+    imputed = {MODEL_JOINTS[j] for j in np.flatnonzero(result.imputed)}
+    assert imputed == {"spine", "head", "left_wrist", "right_knee"}
+    assert {MODEL_JOINTS[j] for j in np.flatnonzero(result.derived)} == {"pelvis", "thorax"}
+    np.testing.assert_array_equal(result.visible, ~result.imputed)
+
+
+def test_http_rejection_carries_the_server_message(live_service: LiveService) -> None:
+    bad = POSE_2D.copy()
+    with LiftClient(live_service.http_url) as client, pytest.raises(LiftClientError) as info:
+        client.lift(bad[:16])  # 16 joints in the h36m17 format
+    assert info.value.status == 422
+    assert "h36m17 has 17 joints, got 16" in info.value.message
+    assert info.value.details[0]["field"] == "poses[0].keypoints"
+
+
+def test_http_model_and_ready(live_service: LiveService) -> None:
+    with LiftClient(live_service.http_url) as client:
+        assert client.ready()
+        model = client.model()
+    assert {f["name"] for f in model["formats"]} == set(FORMATS)
+
+
+def test_async_client_lifts_batches_concurrently(live_service: LiveService, lifter: Lifter) -> None:
+    async def run() -> list[LiftResult]:
+        async with AsyncLiftClient(live_service.http_url, batch_size=2) as client:
+            return await client.lift_batch(_poses(5))
+
+    results = asyncio.run(run())
+    for result, pose in zip(results, _poses(5), strict=True):
+        _assert_matches_lifter(result, lifter, pose)
+
+
+def test_unreachable_server_raises_after_retries() -> None:
+    with LiftClient(f"http://127.0.0.1:{_free_port()}", retries=1, backoff=0.01) as client:
+        with pytest.raises(LiftClientError, match="cannot reach") as info:
+            client.lift(POSE_2D)
+        assert info.value.status is None
+        assert not client.ready()
+
+
+def _scripted(statuses: list[int], seen: list[int]) -> httpx.MockTransport:
+    """A transport answering with `statuses` in turn (then 200 with a real-looking body)."""
+    pose = {"pose_3d": [[0.0] * 3] * 17, "pose_3d_camera": [[0.0] * 3] * 17,
+            "camera": [[1.0, 0, 0], [0, 1, 0]], "scale": 1.0, "rotation": np.eye(3).tolist(),
+            "reprojection": POSE_2D.tolist(), "reprojection_error_px": 0.5, "visible": [True] * 17,
+            "imputed": [False] * 17, "derived": [False] * 17}  # fmt: skip
+
+    def handle(request: httpx.Request) -> httpx.Response:
+        seen.append(len(json.loads(request.content)["poses"]))
+        status = statuses.pop(0) if statuses else 200
+        if status == 503:
+            return httpx.Response(503, json={"detail": "the batch queue is full; retry later"})
+        return httpx.Response(200, json={"model_id": "m", "joints": list(MODEL_JOINTS), "poses": [pose]})
+
+    return httpx.MockTransport(handle)
+
+
+def test_503_is_retried_with_backoff() -> None:
+    seen: list[int] = []
+    with LiftClient("http://test", retries=2, backoff=0.001, transport=_scripted([503, 503], seen)) as client:
+        result = client.lift(POSE_2D)
+    assert len(seen) == 3 and result.model_id == "m" and result.reprojection_error_px == 0.5
+
+
+def test_503_gives_up_after_the_last_retry() -> None:
+    seen: list[int] = []
+    with LiftClient("http://test", retries=1, backoff=0.001, transport=_scripted([503] * 5, seen)) as client:
+        with pytest.raises(LiftClientError, match="queue is full") as info:
+            client.lift(POSE_2D)
+    assert info.value.status == 503 and len(seen) == 2
+
+
+def test_keypoints_of_the_wrong_rank_are_refused_before_sending() -> None:
+    with LiftClient("http://test", transport=_scripted([], [])) as client, pytest.raises(ValueError):
+        client.lift_batch(POSE_2D)  # (17, 2) is one pose, not a batch
+
+
+def test_stream_answers_every_frame_in_order(live_service: LiveService, lifter: Lifter) -> None:
+    poses = _poses(20)
+    with StreamClient(live_service.grpc_target, timeout=30) as client:
+        results = list(client.stream(Frame(p, frame_id=100 + i) for i, p in enumerate(poses)))
+    assert [r.frame_id for r in results] == list(range(100, 120))
+    for r, pose in zip(results, poses, strict=True):
+        assert r.error is None and r.result is not None
+        _assert_matches_lifter(r.result, lifter, pose)
+
+
+def test_stream_bad_frame_gets_an_error_and_the_stream_goes_on(live_service: LiveService) -> None:
+    frames: list[np.ndarray | Frame] = [POSE_2D, Frame(POSE_2D, format="coco18"), POSE_2D]
+    with StreamClient(live_service.grpc_target, timeout=30) as client:
+        results = list(client.stream(frames))
+    assert [r.frame_id for r in results] == [0, 1, 2]
+    assert results[0].result is not None and results[2].result is not None
+    error = results[1].error
+    assert results[1].result is None and error is not None
+    assert error.status == "INVALID_ARGUMENT" and "unknown format 'coco18'" in error.message
+    assert error.details[0]["field"] == "pose.format"
+
+
+def test_grpc_unary_lift_matches_http(live_service: LiveService) -> None:
+    points = POSE_2D.copy()
+    points[13] = np.nan  # left wrist missing
+    with StreamClient(live_service.grpc_target, timeout=30) as grpc_client:
+        (via_grpc,) = grpc_client.lift_batch(points[None])
+    with LiftClient(live_service.http_url) as http_client:
+        via_http = http_client.lift(points)
+    assert via_grpc.imputed[13] and via_http.imputed[13]
+    np.testing.assert_allclose(via_grpc.pose_3d, via_http.pose_3d, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(via_grpc.reprojection, via_http.reprojection, rtol=1e-5, atol=1e-3)
+
+
+def test_grpc_rejection_raises_with_status(live_service: LiveService) -> None:
+    with StreamClient(live_service.grpc_target, timeout=30) as client, pytest.raises(LiftClientError) as info:
+        client.lift_batch(np.zeros((1, 17, 2)))  # every joint at one point
+    assert info.value.status == "INVALID_ARGUMENT" and "one point" in info.value.message
+
+
+def test_stream_can_be_left_early(live_service: LiveService) -> None:
+    def endless() -> Iterator[np.ndarray]:
+        while True:
+            yield POSE_2D
+
+    with StreamClient(live_service.grpc_target, timeout=30) as client:
+        results = client.stream(endless())
+        first = [next(results) for _ in range(3)]
+        results.close()  # cancels the call; the endless request iterator is no longer read
+    assert [r.frame_id for r in first] == [0, 1, 2]
+    assert all(r.result is not None for r in first)

@@ -1,0 +1,167 @@
+"""Dynamic batching: runs shared across transports, own answers, chunking, overload, drain."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import grpc
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from prometheus_client import CollectorRegistry
+
+from service.engine import Engine
+from service.errors import ModelNotReady, Overloaded
+from service.keypoints import Limits, ModelInput, PoseInput, prepare_poses
+from service.lifter import Lifter, Prediction
+from tests.conftest import POSE_2D, GatedLifter, GrpcHandle
+from tests.service.invalid_inputs import to_proto_pose
+
+
+@pytest.fixture
+def engine(engine_factory: Callable[..., Engine], gated: GatedLifter) -> Engine:
+    """Shared by `client` and `grpc_handle`: real runs, held back while the gate is closed."""
+    return engine_factory(gated, max_batch=64, max_wait_s=0.0, queue_size=8)
+
+
+def variant(i: int) -> np.ndarray:
+    """A distinct valid pose per caller."""
+    return POSE_2D * (1 + 0.05 * i) + [7 * i, -3 * i]
+
+
+def model_input(*poses: np.ndarray) -> ModelInput:
+    return prepare_poses([PoseInput(p, np.ones(17, bool)) for p in poses], Limits())
+
+
+def wait_until(condition: Callable[[], bool], what: str) -> None:
+    deadline = time.monotonic() + 10
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.005)
+
+
+def queued(registry: CollectorRegistry) -> float:
+    return registry.get_sample_value("repnet_batch_queue_poses") or 0.0
+
+
+def test_concurrent_http_and_grpc_requests_share_one_run(
+    client: TestClient,
+    grpc_handle: GrpcHandle,
+    gated: GatedLifter,
+    lifter: Lifter,
+    registry: CollectorRegistry,
+) -> None:
+    gated.gate.clear()
+    with ThreadPoolExecutor(max_workers=7) as pool:
+        first = pool.submit(client.post, "/lift", json={"keypoints": variant(0).tolist()})
+        wait_until(gated.entered.is_set, "the first run")  # the worker is busy: the rest queue up
+        http = [pool.submit(client.post, "/lift", json={"keypoints": variant(i).tolist()}) for i in (1, 2, 3)]
+        rpc = [pool.submit(grpc_handle.stub.Lift, _request(variant(i)), timeout=20) for i in (4, 5, 6)]
+        wait_until(lambda: queued(registry) == 6, "six queued poses")
+        gated.gate.set()
+        answers: list[Any] = [first.result().json()["poses"][0]["pose_3d"]]
+        answers += [f.result().json()["poses"][0]["pose_3d"] for f in http]
+        answers += [np.reshape(f.result().poses[0].pose_3d, (17, 3)) for f in rpc]
+    assert gated.batches == [1, 6]
+    assert registry.get_sample_value("repnet_batch_size_poses_bucket", {"le": "4.0"}) == 1  # one batch > 4
+    assert registry.get_sample_value("repnet_batch_size_poses_count") == 2
+    for i, answer in enumerate(answers):  # each caller gets the answer to its own pose
+        alone = lifter.lift(model_input(variant(i)).keypoints_2d, np.ones((1, 17), bool)).pose_3d[0]
+        np.testing.assert_allclose(answer, alone, rtol=1e-4, atol=1e-2)
+    for transport in ("http", "grpc"):
+        assert registry.get_sample_value("repnet_batch_queue_wait_seconds_count", {"transport": transport})
+
+
+def _request(points: np.ndarray) -> Any:
+    from service._proto.repnet.v1 import lifter_pb2
+
+    return lifter_pb2.LiftRequest(poses=[to_proto_pose({"keypoints": points.tolist()})])
+
+
+def test_full_queue_answers_503_and_resource_exhausted_at_once(
+    client: TestClient,
+    grpc_handle: GrpcHandle,
+    gated: GatedLifter,
+    registry: CollectorRegistry,
+) -> None:
+    gated.gate.clear()
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        first = pool.submit(client.post, "/lift", json={"keypoints": variant(0).tolist()})
+        wait_until(gated.entered.is_set, "the first run")
+        filler = pool.submit(client.post, "/lift", json={"poses": [{"keypoints": variant(1).tolist()}] * 8})
+        wait_until(lambda: queued(registry) == 8, "a full queue")
+        start = time.monotonic()
+        refused = client.post("/lift", json={"keypoints": variant(2).tolist()})
+        with pytest.raises(grpc.RpcError) as rpc_error:
+            grpc_handle.stub.Lift(_request(variant(3)), timeout=10)
+        assert time.monotonic() - start < 5  # refused at once, not after a timeout
+        gated.gate.set()
+        assert first.result().status_code == 200 and filler.result().status_code == 200
+    assert refused.status_code == 503 and "queue is full" in refused.json()["detail"]
+    assert refused.headers["retry-after"] == "1"
+    assert rpc_error.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert "queue is full" in (rpc_error.value.details() or "")
+    for transport in ("http", "grpc"):
+        labels = {"transport": transport, "method": "Lift", "outcome": "overloaded"}
+        assert registry.get_sample_value("repnet_requests_total", labels) == 1
+    assert client.post("/lift", json={"keypoints": variant(4).tolist()}).status_code == 200  # recovered
+
+
+def test_large_request_is_run_in_chunks_and_answered_in_order(
+    engine_factory: Callable[..., Engine],
+    gated: GatedLifter,
+    lifter: Lifter,
+) -> None:
+    engine = engine_factory(gated, max_batch=4, queue_size=16)
+    inputs = model_input(*(variant(i) for i in range(10)))
+    prediction = engine.lift(inputs, "test")
+    assert max(gated.batches) == 4 and sum(gated.batches) == 10
+    alone = lifter.lift(inputs.keypoints_2d, inputs.visible)
+    np.testing.assert_allclose(prediction.pose_3d, alone.pose_3d, rtol=1e-4, atol=1e-2)
+
+
+def test_close_finishes_queued_work_then_refuses_new(engine: Engine, gated: GatedLifter) -> None:
+    gated.gate.clear()
+    futures = engine.submit(model_input(variant(0)), "test")
+    wait_until(gated.entered.is_set, "the first run")
+    queued_futures = engine.submit(model_input(variant(1), variant(2)), "test")
+    closing = threading.Thread(target=engine.close, kwargs={"timeout": 10})
+    closing.start()
+    wait_until(lambda: not engine.ready, "closing")
+    with pytest.raises(ModelNotReady):
+        engine.submit(model_input(variant(3)), "test")
+    gated.gate.set()
+    closing.join(10)
+    assert len(futures[0].result(timeout=5)) == 1 and len(queued_futures[0].result(timeout=5)) == 2
+
+
+def test_queue_overflow_raises_before_queueing(engine: Engine, gated: GatedLifter) -> None:
+    gated.gate.clear()
+    engine.submit(model_input(variant(0)), "test")
+    wait_until(gated.entered.is_set, "the first run")
+    engine.submit(model_input(*(variant(i) for i in range(8))), "test")
+    with pytest.raises(Overloaded, match=r"8 of 8 poses waiting, 1 more requested"):
+        engine.submit(model_input(variant(9)), "test")
+
+
+class FailingLifter(Lifter):
+    def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
+        raise RuntimeError("session failed")
+
+
+def test_a_failed_run_reaches_every_caller_and_the_worker_goes_on(
+    engine_factory: Callable[..., Engine],
+    lifter: Lifter,
+) -> None:
+    engine = engine_factory(FailingLifter(lifter.session, lifter.path), max_wait_s=0.05)
+    futures = engine.submit(model_input(variant(0)), "test") + engine.submit(model_input(variant(1)), "test")
+    for future in futures:
+        with pytest.raises(RuntimeError, match="session failed"):
+            future.result(timeout=10)
+    with pytest.raises(RuntimeError):
+        engine.lift(model_input(variant(2)), "test")

@@ -1,0 +1,196 @@
+"""HTTP API against the real app and the bundled model: fields, geometry, masking, health, metrics."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from prometheus_client import CollectorRegistry
+
+from service.engine import Engine
+from service.formats import FORMATS, from_model_joints
+from service.lifter import Lifter
+from tests.conftest import POSE_2D, expected_reprojection
+
+JOINTS = 17
+
+
+def lift_one(client: TestClient, keypoints: Any, **fields: Any) -> dict[str, Any]:
+    response = client.post("/lift", json={"keypoints": keypoints, **fields})
+    assert response.status_code == 200, response.text
+    body: dict[str, Any] = response.json()
+    assert len(body["poses"]) == 1
+    return body
+
+
+def test_lift_single_pose_returns_documented_fields(client: TestClient, lifter: Lifter) -> None:
+    body = lift_one(client, POSE_2D.tolist())
+    assert body["model_id"] == lifter.info.model_id
+    assert body["joints"] == list(lifter.info.joint_names)
+    pose = body["poses"][0]
+    shapes = {
+        "pose_3d": (JOINTS, 3),
+        "pose_3d_camera": (JOINTS, 3),
+        "camera": (2, 3),
+        "rotation": (3, 3),
+        "reprojection": (JOINTS, 2),
+        "visible": (JOINTS,),
+        "imputed": (JOINTS,),
+        "derived": (JOINTS,),
+    }
+    for name, shape in shapes.items():
+        assert np.asarray(pose[name]).shape == shape, name
+    assert isinstance(pose["scale"], float) and isinstance(pose["reprojection_error_px"], float)
+    np.testing.assert_allclose(pose["pose_3d"][0], [0, 0, 0], atol=1e-3)  # pelvis at the origin
+    assert not any(pose["imputed"]) and not any(pose["derived"]) and all(pose["visible"])
+
+
+def test_reprojection_follows_camera_pose_and_input_normalisation(client: TestClient) -> None:
+    keypoints: list[Any] = POSE_2D.tolist()
+    keypoints[13] = None  # a masked joint is reprojected but not part of the normalisation
+    pose = lift_one(client, keypoints)["poses"][0]
+    visible = np.array([k is not None for k in keypoints])
+    points = np.array([k if k is not None else [0.0, 0.0] for k in keypoints])
+    camera, pose_3d = np.array(pose["camera"]), np.array(pose["pose_3d"])
+    expected = expected_reprojection(camera, pose_3d, points, visible)
+    np.testing.assert_allclose(pose["reprojection"], expected, rtol=1e-4, atol=1e-2)
+    error = np.linalg.norm(expected - points, axis=1)[visible].mean()
+    assert pose["reprojection_error_px"] == pytest.approx(error, rel=1e-4, abs=1e-3)
+
+
+def test_camera_quantities_are_consistent(client: TestClient) -> None:
+    pose = lift_one(client, POSE_2D.tolist())["poses"][0]
+    camera, rotation = np.array(pose["camera"]), np.array(pose["rotation"])
+    assert pose["scale"] == pytest.approx(np.sqrt(np.trace(camera @ camera.T) / 2), rel=1e-5)
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-5)
+    assert np.linalg.det(rotation) == pytest.approx(1.0, abs=1e-5)
+    np.testing.assert_allclose(pose["pose_3d_camera"], np.array(pose["pose_3d"]) @ rotation.T, atol=1e-2)
+
+
+@pytest.mark.parametrize("masking", ["null", "low_confidence_nan", "low_confidence_huge"])
+def test_masked_joint_coordinates_do_not_change_the_reply(client: TestClient, masking: str) -> None:
+    joint = 5
+    reference: list[Any] = POSE_2D.tolist()
+    reference[joint] = None
+    expected = lift_one(client, reference)["poses"][0]
+    keypoints: list[Any] = POSE_2D.tolist()
+    confidence = [0.9] * JOINTS
+    if masking == "null":
+        keypoints[joint] = None
+        confidence[joint] = 0.9
+    else:
+        keypoints[joint] = [float("nan")] * 2 if masking == "low_confidence_nan" else [1e300, -1e300]
+        confidence[joint] = 0.05  # below the default threshold 0.2
+    body = json.dumps({"keypoints": keypoints, "confidence": confidence})  # NaN as the JSON literal
+    response = client.post("/lift", content=body, headers={"content-type": "application/json"})
+    assert response.status_code == 200, response.text
+    pose = response.json()["poses"][0]
+    assert pose["imputed"] == [j == joint for j in range(JOINTS)]
+    assert pose["visible"] == [j != joint for j in range(JOINTS)]
+    for name in ("pose_3d", "camera", "reprojection"):
+        np.testing.assert_allclose(pose[name], expected[name], rtol=1e-6, atol=1e-4)
+
+
+def test_request_threshold_decides_which_joints_count(client: TestClient) -> None:
+    confidence = [0.9] * JOINTS
+    confidence[3] = 0.5
+    strict = lift_one(client, POSE_2D.tolist(), confidence=confidence, confidence_threshold=0.6)["poses"][0]
+    lenient = lift_one(client, POSE_2D.tolist(), confidence=confidence, confidence_threshold=0.4)["poses"][0]
+    assert strict["imputed"][3] and not lenient["imputed"][3]
+
+
+def test_mpii16_input_imputes_the_spine(client: TestClient) -> None:
+    points, visible = from_model_joints(FORMATS["mpii16"], POSE_2D[None])
+    keypoints = [p.tolist() if v else None for p, v in zip(points[0], visible[0], strict=True)]
+    pose = lift_one(client, keypoints, format="mpii16")["poses"][0]
+    assert pose["imputed"] == [j == 7 for j in range(JOINTS)]  # 7: spine, no MPII source
+
+
+def test_coco17_input_reports_derived_joints(client: TestClient) -> None:
+    points, visible = from_model_joints(FORMATS["coco17"], POSE_2D[None])
+    keypoints = [p.tolist() if v else None for p, v in zip(points[0], visible[0], strict=True)]
+    keypoints[0] = POSE_2D[9].tolist()  # nose -> neck
+    for k in (1, 2, 3, 4):  # eyes and ears: the model does not use them
+        keypoints[k] = [0.0, 0.0]
+    pose = lift_one(client, keypoints, format="coco17")["poses"][0]
+    derived = [j in (0, 8) for j in range(JOINTS)]  # pelvis = mid-hips, thorax = mid-shoulders
+    assert pose["derived"] == derived
+    assert [j for j in range(JOINTS) if pose["imputed"][j]] == [7, 10]  # spine, head top
+
+
+def test_batch_is_answered_in_request_order(client: TestClient) -> None:
+    variants = [POSE_2D, POSE_2D * 0.5 + 100, POSE_2D[:, ::-1] * [1.2, 0.8]]
+    batch = client.post("/lift", json={"poses": [{"keypoints": v.tolist()} for v in variants]})
+    assert batch.status_code == 200
+    for got, variant in zip(batch.json()["poses"], variants, strict=True):
+        single = lift_one(client, variant.tolist())["poses"][0]
+        np.testing.assert_allclose(got["pose_3d"], single["pose_3d"], rtol=1e-4, atol=1e-2)
+
+
+def test_trained_model_reprojects_a_plausible_pose(client: TestClient, trained: Lifter) -> None:
+    """POSE_2D is a pinhole view of POSE_3D; the best weak-perspective fit is within ~1 px of it."""
+    pose = lift_one(client, POSE_2D.tolist())["poses"][0]
+    assert pose["reprojection_error_px"] < 15.0
+    # K X matches the normalised input up to a translation: within 15 px once scaled back.
+    centred = POSE_2D - POSE_2D.mean(0)
+    std = np.sqrt((centred**2).sum() / (2 * JOINTS))
+    kx = np.array(pose["pose_3d"]) @ np.array(pose["camera"]).T
+    assert np.linalg.norm((kx - kx.mean(0)) - centred / std, axis=1).mean() * std < 15.0
+    np.testing.assert_allclose(pose["pose_3d"][0], [0, 0, 0], atol=1e-3)
+
+
+def test_health_readiness_and_shutdown(client: TestClient, engine: Engine) -> None:
+    assert client.get("/healthz").json() == {"status": "ok"}
+    assert client.get("/readyz").status_code == 200
+    engine.stop_serving()
+    assert client.get("/readyz").status_code == 503
+    assert client.get("/healthz").status_code == 200  # the process is still up
+
+
+def test_model_endpoint_lists_joints_formats_limits_and_metadata(client: TestClient, lifter: Lifter) -> None:
+    info = client.get("/v1/model").json()
+    assert info["model_id"] == lifter.info.model_id and info["skeleton"] == "h36m17"
+    assert info["joints"] == list(lifter.info.joint_names) and len(info["parents"]) == JOINTS
+    formats = {f["name"]: f for f in info["formats"]}
+    assert set(formats) == set(FORMATS)
+    assert len(formats["mpii16"]["joint_names"]) == 16 and formats["mpii16"]["sources"][7] == []
+    assert info["limits"]["max_request_poses"] == 16 and info["limits"]["max_body_bytes"] == 64 * 1024
+    assert info["limits"]["min_visible_joints"] == 6
+    assert info["metadata"]["model_id"] == lifter.info.model_id and isinstance(info["evaluation"], dict)
+    assert "millimetres" in info["coordinate_contract"]
+
+
+def test_openapi_documents_the_coordinate_contract(client: TestClient) -> None:
+    spec = client.get("/openapi.json").json()
+    assert "template frame" in spec["info"]["description"]
+    result = spec["components"]["schemas"]["PoseResult"]["properties"]
+    assert "mm" in result["pose_3d"]["description"]
+    assert "422" in spec["paths"]["/lift"]["post"]["responses"]
+
+
+def test_metrics_count_requests_rejections_and_batches(
+    client: TestClient, registry: CollectorRegistry
+) -> None:
+    lift_one(client, POSE_2D.tolist())
+    bad = json.dumps({"keypoints": [[float("nan"), 1.0]] + POSE_2D[1:].tolist()})
+    assert client.post("/lift", content=bad, headers={"content-type": "application/json"}).status_code == 422
+    assert client.post("/lift", json={"poses": []}).status_code == 422
+
+    def value(name: str, **labels: str) -> float | None:
+        return registry.get_sample_value(name, labels)
+
+    assert value("repnet_requests_total", transport="http", method="Lift", outcome="ok") == 1
+    assert value("repnet_requests_total", transport="http", method="Lift", outcome="invalid") == 2
+    assert value("repnet_request_duration_seconds_count", transport="http", method="Lift", outcome="ok") == 1
+    assert value("repnet_rejected_inputs_total", transport="http", reason="non_finite") == 1
+    assert value("repnet_rejected_inputs_total", transport="http", reason="empty_batch") == 1
+    assert value("repnet_batch_size_poses_count") == 1 and value("repnet_batch_size_poses_sum") == 1
+    assert value("repnet_inference_seconds_count") == 1
+    assert value("repnet_batch_queue_wait_seconds_count", transport="http") == 1
+    assert value("repnet_in_flight_requests", transport="http") == 0
+    text = client.get("/metrics").text
+    assert 'repnet_requests_total{method="Lift",outcome="ok",transport="http"} 1.0' in text
+    assert 'repnet_model_info{model_id="' in text and "repnet_batch_queue_poses 0.0" in text

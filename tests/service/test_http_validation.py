@@ -1,0 +1,102 @@
+"""Every HTTP input rule: a 4xx whose JSON body names the field (pose and joint) and the reason."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from tests.conftest import POSE_2D
+from tests.service.invalid_inputs import CASES, Case, good
+
+
+def post_raw(client: TestClient, body: str | bytes) -> Any:
+    return client.post("/lift", content=body, headers={"content-type": "application/json"})
+
+
+def only_item(response: Any, status: int = 422) -> dict[str, Any]:
+    assert response.status_code == status, response.text
+    detail = response.json()["detail"]
+    assert isinstance(detail, list) and len(detail) == 1, detail
+    item: dict[str, Any] = detail[0]
+    assert item["message"].endswith(item["reason"]) and item["message"].startswith(item["field"])
+    return item
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_lift_rejects_input_naming_field_and_reason(client: TestClient, case: Case) -> None:
+    item = only_item(post_raw(client, json.dumps(case.request)))  # NaN / Infinity as JSON literals
+    assert item["field"] == case.field
+    assert item["code"] == case.code
+    assert case.reason in item["reason"]
+    assert (item["pose"], item["joint"], item["joint_name"]) == (case.pose, case.joint, case.joint_name)
+
+
+def test_lift_reports_every_broken_joint(client: TestClient) -> None:
+    keypoints: list[Any] = POSE_2D.tolist()
+    keypoints[2], keypoints[11] = [float("nan"), 0.0], [0.0, float("-inf")]
+    response = post_raw(client, json.dumps({"poses": [good(), good(keypoints=keypoints)]}))
+    assert response.status_code == 422
+    fields = [(d["field"], d["joint_name"]) for d in response.json()["detail"]]
+    assert fields == [("poses[1].keypoints[2]", "right_knee"), ("poses[1].keypoints[11]", "left_shoulder")]
+
+
+@pytest.mark.parametrize("value", ['"12"', '"abc"', "true", "[1]", "{}"])
+def test_lift_rejects_non_numbers(client: TestClient, value: str) -> None:
+    keypoints = [json.dumps(p) for p in POSE_2D.tolist()]
+    keypoints[6] = f"[{value}, 2.0]"
+    item = only_item(post_raw(client, '{"poses": [{"keypoints": [' + ", ".join(keypoints) + "]}]}"))
+    assert item["field"] == "poses[0].keypoints[6][0]"
+    assert (item["pose"], item["joint"]) == (0, 6)
+    assert "valid number" in item["reason"]
+
+
+def test_lift_rejects_a_point_without_two_values(client: TestClient) -> None:
+    keypoints: list[Any] = POSE_2D.tolist()
+    keypoints[3] = [1.0, 2.0, 3.0]
+    item = only_item(client.post("/lift", json={"keypoints": keypoints}))
+    assert item["field"] == "poses[0].keypoints[3]" and "at most 2 items" in item["reason"]
+
+
+def test_lift_rejects_unknown_fields(client: TestClient) -> None:
+    item = only_item(client.post("/lift", json={"poses": [good(keypoint=[])]}))
+    assert item["field"] == "poses[0].keypoint" and "not permitted" in item["reason"]
+
+
+def test_lift_rejects_invalid_json(client: TestClient) -> None:
+    item = only_item(post_raw(client, '{"keypoints": [[1, 2],'))
+    assert item["field"] == "body" and "JSON" in item["reason"]
+
+
+def test_lift_rejects_a_body_over_the_limit(client: TestClient) -> None:
+    body = json.dumps({"poses": [good()] * 200})  # ~90 kB, limit 64 KiB
+    item = only_item(post_raw(client, body), status=413)
+    assert item["field"] == "body" and "the limit is 65536" in item["reason"]
+
+
+def test_lift_rejects_a_streamed_body_over_the_limit(client: TestClient) -> None:
+    def chunks() -> Iterator[bytes]:  # no Content-Length: the limit applies while reading
+        yield b'{"poses": ['
+        for _ in range(200):
+            yield json.dumps(good()).encode() + b","
+        yield b"]}"
+
+    item = only_item(
+        client.post("/lift", content=chunks(), headers={"content-type": "application/json"}), status=413
+    )
+    assert item["code"] == "body_too_large"
+
+
+@pytest.mark.parametrize("body", [
+    b"", b"null", b"[]", b'"pose"', b"{}", b'{"poses": null}', b'{"poses": [null]}', b'{"keypoints": 5}',
+    b'{"keypoints": [[1e400, 1]]}', b'{"keypoints": [[' + b"9" * 400 + b", 1]]}", b"\xff\xfe\x00",
+    b"[" * 5000 + b"]" * 5000, b'{"poses": [{"keypoints": []}]}', b'{"keypoints": [null, null]}',
+    b'{"poses": [{"keypoints": ' + json.dumps(POSE_2D.tolist()).encode() + b', "format": 7}]}',
+])  # fmt: skip
+def test_lift_never_answers_5xx(client: TestClient, body: bytes) -> None:
+    response = post_raw(client, body)
+    assert 400 <= response.status_code < 500, response.text
+    assert response.json()["detail"]
