@@ -1,0 +1,150 @@
+"""Kubernetes manifests in deploy/k8s: schema-valid (offline schemas) and consistent with the service."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+yaml = pytest.importorskip("yaml", reason="PyYAML is in the dev extra: pip install -e '.[dev]'")
+kubernetes_validate = pytest.importorskip(
+    "kubernetes_validate", reason="kubernetes-validate is in the dev extra: pip install -e '.[dev]'"
+)
+
+from service.config import Settings  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+K8S = ROOT / "deploy" / "k8s"
+# The oldest and the newest Kubernetes whose schemas we check (all bundled with kubernetes-validate).
+VERSIONS = ["1.29.0", "1.37.0"]
+CRD_KINDS = {"ServiceMonitor"}
+NOT_API_OBJECTS = {"kustomization.yaml"}
+
+
+def load_resources() -> list[tuple[str, dict[str, Any]]]:
+    docs = []
+    for path in sorted(K8S.glob("*.yaml")):
+        if path.name in NOT_API_OBJECTS:
+            continue
+        docs += [(path.name, doc) for doc in yaml.safe_load_all(path.read_text()) if doc]
+    return docs
+
+
+RESOURCES = load_resources()
+
+
+def one(kind: str, name: str = "repnet") -> dict[str, Any]:
+    found = [d for _, d in RESOURCES if d["kind"] == kind and d["metadata"]["name"] == name]
+    assert len(found) == 1, f"expected one {kind}/{name}, found {len(found)}"
+    return found[0]
+
+
+def default(setting: str) -> Any:
+    """The service's default for a setting (not Settings(), which would read this process's env)."""
+    return Settings.model_fields[setting].default
+
+
+def container() -> dict[str, Any]:
+    containers = one("Deployment")["spec"]["template"]["spec"]["containers"]
+    assert len(containers) == 1
+    return containers[0]
+
+
+def ports() -> dict[str, int]:
+    return {p["name"]: p["containerPort"] for p in container()["ports"]}
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+@pytest.mark.parametrize(
+    ("filename", "resource"),
+    [r for r in RESOURCES if r[1]["kind"] not in CRD_KINDS],
+    ids=lambda v: v if isinstance(v, str) else f"{v['kind']}/{v['metadata']['name']}",
+)
+def test_manifest_is_valid_against_kubernetes_schema(
+    filename: str, resource: dict[str, Any], version: str
+) -> None:
+    kubernetes_validate.validate(resource, version, strict=True)
+
+
+def test_validator_rejects_an_unknown_field() -> None:
+    broken = yaml.safe_load((K8S / "deployment.yaml").read_text())
+    broken["spec"]["template"]["spec"]["containers"][0]["readinessprobe"] = {}
+    with pytest.raises(kubernetes_validate.ValidationError):
+        kubernetes_validate.validate(broken, VERSIONS[-1], strict=True)
+
+
+def test_every_manifest_is_listed_in_kustomization() -> None:
+    listed = set(yaml.safe_load((K8S / "kustomization.yaml").read_text())["resources"])
+    assert listed == {p.name for p in K8S.glob("*.yaml")} - NOT_API_OBJECTS
+
+
+def test_ports_match_service_defaults_and_dockerfile() -> None:
+    assert ports() == {"http": default("http_port"), "grpc": default("grpc_port")}
+    exposed = re.search(r"^EXPOSE (.+)$", (ROOT / "Dockerfile").read_text(), re.MULTILINE)
+    assert exposed is not None
+    assert sorted(int(p) for p in exposed.group(1).split()) == sorted(ports().values())
+
+
+def test_probes_use_health_endpoints() -> None:
+    c = container()
+    assert c["readinessProbe"]["httpGet"] == {"path": "/readyz", "port": "http"}
+    assert c["livenessProbe"]["httpGet"] == {"path": "/healthz", "port": "http"}
+    assert c["startupProbe"]["httpGet"]["path"] == "/healthz"
+
+
+def test_pod_runs_non_root_with_the_image_user_and_bounded_resources() -> None:
+    pod = one("Deployment")["spec"]["template"]["spec"]
+    user = re.search(r"^USER (\d+):(\d+)$", (ROOT / "Dockerfile").read_text(), re.MULTILINE)
+    assert user is not None
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    assert pod["securityContext"]["runAsUser"] == int(user.group(1))
+    assert pod["securityContext"]["runAsGroup"] == int(user.group(2))
+    sc = container()["securityContext"]
+    assert sc["allowPrivilegeEscalation"] is False and sc["capabilities"]["drop"] == ["ALL"]
+    resources = container()["resources"]
+    assert {"cpu", "memory"} <= set(resources["requests"]) and {"cpu", "memory"} <= set(resources["limits"])
+
+
+def test_graceful_termination_fits_in_the_grace_period() -> None:
+    pod = one("Deployment")["spec"]["template"]["spec"]
+    pre_stop = container()["lifecycle"]["preStop"]["exec"]["command"]
+    assert pre_stop[0] == "sleep"
+    env = {e["name"]: e["value"] for e in container()["env"]}
+    drain = float(env.get("REPNET_SHUTDOWN_GRACE_S", default("shutdown_grace_s")))
+    assert float(pre_stop[1]) + drain < pod["terminationGracePeriodSeconds"]
+
+
+def test_env_names_are_real_settings() -> None:
+    fields = {f"REPNET_{name.upper()}" for name in Settings.model_fields}
+    assert {e["name"] for e in container()["env"]} <= fields
+
+
+def test_selectors_match_pod_labels() -> None:
+    deployment = one("Deployment")
+    labels = deployment["spec"]["template"]["metadata"]["labels"]
+    assert deployment["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    for _, doc in RESOURCES:
+        if doc["kind"] == "Service":
+            assert doc["spec"]["selector"].items() <= labels.items()
+            for port in doc["spec"]["ports"]:
+                assert port["targetPort"] in ports(), f"{doc['metadata']['name']}: {port}"
+    assert one("PodDisruptionBudget")["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    target = one("HorizontalPodAutoscaler")["spec"]["scaleTargetRef"]
+    assert (target["kind"], target["name"]) == ("Deployment", deployment["metadata"]["name"])
+
+
+def test_scrape_annotations_and_service_monitor_point_at_metrics() -> None:
+    annotations = one("Deployment")["spec"]["template"]["metadata"]["annotations"]
+    assert annotations["prometheus.io/scrape"] == "true"
+    assert int(annotations["prometheus.io/port"]) == ports()["http"]
+    assert annotations["prometheus.io/path"] == "/metrics"
+    # ServiceMonitor is a CRD (Prometheus Operator): no bundled schema, so check its structure.
+    monitor = one("ServiceMonitor")
+    assert monitor["apiVersion"] == "monitoring.coreos.com/v1"
+    service = one("Service")
+    assert monitor["spec"]["selector"]["matchLabels"].items() <= service["metadata"]["labels"].items()
+    [endpoint] = monitor["spec"]["endpoints"]
+    assert endpoint["port"] in {p["name"] for p in service["spec"]["ports"]}
+    assert endpoint["path"] == "/metrics"
