@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import contextlib
+import ctypes
 import logging
 import signal
+import socket
+import struct
 import sys
 import threading
 from collections.abc import Generator, Sequence
@@ -32,17 +36,69 @@ from service.metrics import Metrics
 log = logging.getLogger("service")
 
 
+# How long shutdown waits for a connection accepted just before it to send its request.
+FIRST_REQUEST_WAIT_S = 2.0
+SO_ATTACH_FILTER = 26  # Linux <asm-generic/socket.h>; the socket module does not name it
+
+
+def stop_handshakes(listener: socket.socket) -> None:
+    """Make a listening socket drop every packet from now on (a classic BPF program "return 0"):
+    no handshake completes any more, so its backlog can be drained before it closes without a
+    connection slipping in to be reset. Clients whose SYN is dropped resend it and find the port
+    closed. Linux only; elsewhere nothing changes."""
+    if sys.platform != "linux":
+        return
+    drop_all = ctypes.create_string_buffer(struct.pack("HBBI", 0x06, 0, 0, 0))  # BPF_RET | BPF_K, k = 0
+    program = struct.pack("HL", 1, ctypes.addressof(drop_all))  # struct sock_fprog
+    with contextlib.suppress(OSError):
+        listener.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, program)
+
+
 class _HttpServer(uvicorn.Server):
-    """uvicorn without its own signal handlers: main() owns SIGTERM and SIGINT."""
+    """uvicorn without its own signal handlers (main() owns SIGTERM and SIGINT), whose shutdown
+    answers every connection the kernel accepted."""
 
     @contextlib.contextmanager
     def capture_signals(self) -> Generator[None, None, None]:
         yield
 
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        """uvicorn's shutdown would reset connections still in the listen backlog when it closes
+        the listener, and close accepted connections whose request it has not read yet: their
+        clients saw the connection accepted and lose the request. Stop handshakes, accept the
+        backlog, close the listener, and wait for the first request of fresh connections."""
+        loop = asyncio.get_running_loop()
+        backlog: list[socket.socket] = []
+        for server in self.servers:
+            for listener in server.sockets:
+                with listener.dup() as sock:  # the same listening socket, already non-blocking
+                    stop_handshakes(sock)
+                    with contextlib.suppress(OSError):  # EAGAIN: the backlog is empty
+                        while True:
+                            backlog.append(sock.accept()[0])
+            server.close()
+        for sock in backlog:
+            await loop.connect_accepted_socket(self._create_protocol, sock, ssl=self.config.ssl)
+        deadline = loop.time() + min(FIRST_REQUEST_WAIT_S, self.config.timeout_graceful_shutdown or 0)
+        # `cycle` is None until a connection's first request arrives (h11 and httptools alike).
+        while any(getattr(c, "cycle", 0) is None for c in self.server_state.connections):
+            if loop.time() > deadline:
+                break
+            await asyncio.sleep(0.005)
+        await super().shutdown(sockets)
+
+    def _create_protocol(self) -> asyncio.Protocol:
+        """The protocol uvicorn's startup() gives each connection it accepts."""
+        return self.config.http_protocol_class(  # type: ignore[call-arg]
+            config=self.config, server_state=self.server_state, app_state=self.lifespan.state
+        )
+
 
 def load_lifter(settings: Settings) -> Lifter:
     """The model from settings.model_path; ModelLoadError if it is not the h36m17 model formats expect."""
-    lifter = Lifter.load(settings.model_path, settings.intra_op_threads, settings.inter_op_threads)
+    lifter = Lifter.load(
+        settings.model_path, settings.intra_op_threads, settings.inter_op_threads, settings.intra_op_spinning
+    )
     if lifter.info.joint_names != MODEL_JOINTS:
         raise ModelLoadError(
             f"{settings.model_path}: joints {list(lifter.info.joint_names)} are not the h36m17 joints "
@@ -123,8 +179,20 @@ class Service:
         if self._grpc_stopped is not None:
             self._grpc_stopped.wait(self.settings.shutdown_grace_s + 1)
         self.engine.close(self.settings.shutdown_grace_s)
-        log.info("stopped")
+        log.info("stopped; requests answered: %s", answered_requests(self.metrics))
         return status
+
+
+def answered_requests(metrics: Metrics) -> str:
+    """'transport method outcome=count' for every lift request counted since start."""
+    counts = [
+        f"{s.labels['transport']} {s.labels['method']} {s.labels['outcome']}={s.value:.0f}"
+        for family in metrics.registry.collect()
+        if family.name == "repnet_requests"
+        for s in family.samples
+        if s.name == "repnet_requests_total"
+    ]
+    return ", ".join(counts) or "none"
 
 
 def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:

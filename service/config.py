@@ -26,6 +26,11 @@ class Settings(BaseSettings):
         default=0, ge=0, description="onnxruntime threads per run (0: one per core)"
     )
     inter_op_threads: int = Field(default=1, ge=0, description="onnxruntime inter-op threads")
+    intra_op_spinning: bool = Field(
+        default=False,
+        description="onnxruntime threads spin between runs (faster single runs on idle cores; off "
+        "leaves the CPU to the server's own threads, +30 % throughput on 2 cores: docs/BENCHMARKS.md)",
+    )
     grpc_workers: int = Field(default=32, ge=1, description="gRPC handler threads (one per open stream)")
     max_batch: int = Field(default=256, ge=1, description="most poses in one onnxruntime run")
     max_wait_ms: float = Field(

@@ -80,8 +80,13 @@ class Engine:
         """Report not ready from now on; requests already arriving are still served."""
         self._serving = False
 
-    def submit(self, inputs: ModelInput, transport: str) -> list[Future[Prediction]]:
-        """Queue `inputs` (all or nothing); one future per chunk of at most max_batch poses."""
+    def submit(self, inputs: ModelInput, transport: str, wait_s: float = 0.0) -> list[Future[Prediction]]:
+        """Queue `inputs` (all or nothing); one future per chunk of at most max_batch poses.
+
+        A full queue raises Overloaded at once, or after waiting up to `wait_s` for room (streams
+        wait: their own window already bounds what they hold, so a busy moment slows them down
+        instead of failing their frames).
+        """
         n = len(inputs)
         chunks = [
             _Chunk(
@@ -94,6 +99,12 @@ class Engine:
             for a in range(0, n, self.max_batch)
         ]
         with self._cond:
+            deadline = time.monotonic() + wait_s
+            while self._queued + n > self.queue_size and n <= self.queue_size and not self._closed:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._cond.wait(remaining)
             if self._closed:
                 raise ModelNotReady("the server is shutting down and accepts no new requests")
             if self._queued + n > self.queue_size:
@@ -147,6 +158,7 @@ class Engine:
                 batch.append(self._queue.popleft())
             self._queued -= total
             self._set_depth()
+            self._cond.notify_all()  # submitters waiting for room
         return batch
 
     def _run(self) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 import numpy.typing as npt
@@ -122,6 +123,16 @@ def _check_points(fmt: KeypointFormat, points: np.ndarray, visible: np.ndarray, 
         raise ValueError(f"expected visible of shape {points.shape[:2]}, got {visible.shape}")
 
 
+@cache
+def _gather(fmt: KeypointFormat) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per model joint: first and second source index (equal for one source), has a source, is a midpoint."""
+    first = np.array([src[0] if src else 0 for src in fmt.sources])
+    second = np.array([src[-1] if src else 0 for src in fmt.sources])
+    has_source = np.array([bool(src) for src in fmt.sources])
+    midpoint = np.array([len(src) == 2 for src in fmt.sources])
+    return first, second, has_source, midpoint
+
+
 def to_model_joints(
     fmt: KeypointFormat, points: np.ndarray, visible: np.ndarray
 ) -> tuple[FloatArray, BoolArray, BoolArray, BoolArray]:
@@ -133,20 +144,14 @@ def to_model_joints(
     get coordinates 0 so the model input stays finite.
     """
     _check_points(fmt, points, visible, len(fmt.joint_names))
-    n = points.shape[0]
+    first, second, has_source, midpoint = _gather(fmt)
     src_visible = visible.astype(bool)
-    out = np.zeros((n, len(MODEL_JOINTS), 2), dtype=np.float32)  # (N, 17, 2)
-    out_visible = np.zeros((n, len(MODEL_JOINTS)), dtype=bool)
-    derived = np.zeros((n, len(MODEL_JOINTS)), dtype=bool)
-    for j, src in enumerate(fmt.sources):
-        if not src:
-            continue
-        idx = list(src)
-        ok = src_visible[:, idx].all(axis=1)  # (N,)
-        # Only visible rows are read, so missing joints may hold NaN without poisoning the mean.
-        out[ok, j] = points[ok][:, idx].astype(np.float64).mean(axis=1)
-        out_visible[:, j] = ok
-        derived[:, j] = len(src) > 1
+    out_visible = src_visible[:, first] & src_visible[:, second] & has_source  # (N, 17)
+    pairs = points[:, first].astype(np.float64) + points[:, second]  # (N, 17, 2); a single source: 2 p
+    # Missing joints may hold NaN or inf: their sums are replaced by 0, never read.
+    with np.errstate(invalid="ignore", over="ignore"):
+        out = np.where(out_visible[..., None], pairs / 2, 0.0).astype(np.float32)  # (N, 17, 2)
+    derived = np.broadcast_to(midpoint, out_visible.shape).copy()
     return out, out_visible, derived, ~out_visible
 
 

@@ -26,6 +26,8 @@ from service.metrics import ERROR, Metrics, outcome_of
 log = logging.getLogger(__name__)
 
 TRANSPORT = "grpc"
+# A stream frame that finds the batch queue full waits this long for room before its error result.
+STREAM_QUEUE_WAIT_S = 5.0
 SERVICE_NAME = lifter_pb2.DESCRIPTOR.services_by_name["PoseLifter"].full_name
 
 
@@ -200,7 +202,7 @@ class PoseLifterServicer:
         try:
             poses = to_pose_inputs([frame.pose], frame.pose.format or DEFAULT_FORMAT, "pose")
             item.inputs = prepare_poses(poses, self.limits, threshold, prefix="pose")
-            item.future = self.engine.submit(item.inputs, TRANSPORT)[0]
+            item.future = self.engine.submit(item.inputs, TRANSPORT, wait_s=STREAM_QUEUE_WAIT_S)[0]
         except LiftError as err:
             item.error = err
         return item

@@ -35,6 +35,7 @@ from service.schemas import (
 log = logging.getLogger(__name__)
 
 ERRORS: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorResponse, "description": "The body is not UTF-8 JSON, or is nested too deeply."},
     413: {"model": ErrorResponse, "description": "The body is larger than the limit."},
     422: {"model": ErrorResponse, "description": "A field breaks an input rule; `detail` names it."},
     503: {"model": ErrorResponse, "description": "Queue full or shutting down; retry later."},

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 import numpy.typing as npt
@@ -111,7 +112,7 @@ def _value_violations(
     found: list[Violation] = []
     with np.errstate(invalid="ignore"):
         bad_conf = ~((confidence >= 0.0) & (confidence <= 1.0))  # NaN fails both
-    for p, j in np.argwhere(bad_conf):
+    for p, j in np.argwhere(bad_conf) if bad_conf.any() else ():  # argwhere costs more than any()
         found.append(
             Violation(
                 f"{pose_field(prefix, index[p])}.confidence[{j}]",
@@ -125,7 +126,8 @@ def _value_violations(
     finite = np.isfinite(points).all(axis=-1)  # (n, K)
     with np.errstate(invalid="ignore"):
         in_range = (np.abs(points) <= limits.max_coordinate).all(axis=-1)
-    for p, j in np.argwhere(used & ~(finite & in_range)):
+    bad_points = used & ~(finite & in_range)
+    for p, j in np.argwhere(bad_points) if bad_points.any() else ():
         xy = f"[{points[p, j, 0]:g}, {points[p, j, 1]:g}]"
         if finite[p, j]:
             reason, code = (
@@ -173,6 +175,14 @@ def _model_violations(
     return found
 
 
+@cache
+def _used(fmt: KeypointFormat) -> np.ndarray:
+    """(K,) the format's joints that feed a model joint; the others (face joints etc.) are ignored."""
+    used = np.zeros(len(fmt.joint_names), bool)
+    used[[k for src in fmt.sources for k in src]] = True
+    return used
+
+
 def _stack(fmt: KeypointFormat, poses: Sequence[PoseInput], cut: float) -> tuple[np.ndarray, ...]:
     """Points (n, K, 2), confidences (n, K) (1 where none given) and visibility (n, K) of poses."""
     points = np.stack([p.points for p in poses]).astype(np.float64)
@@ -211,15 +221,15 @@ def prepare_poses(
     for name, index in groups.items():
         fmt = FORMATS[name]
         points, confidence, visible = _stack(fmt, [poses[i] for i in index], cut)
-        used = np.zeros(len(fmt.joint_names), bool)
-        used[[k for src in fmt.sources for k in src]] = True  # face joints etc. are ignored
-        if found := _value_violations(fmt, index, points, visible & used, confidence, limits, prefix):
+        if found := _value_violations(fmt, index, points, visible & _used(fmt), confidence, limits, prefix):
             violations.extend(found)
             continue
         converted = to_model_joints(fmt, points, visible)
         if found := _model_violations(index, converted[0].astype(np.float64), converted[1], limits, prefix):
             violations.extend(found)
             continue
+        if len(index) == n and not violations:  # one format for the whole request: no scatter
+            return ModelInput(*converted)
         for target, value in zip(
             (out.keypoints_2d, out.visible, out.derived, out.imputed), converted, strict=True
         ):

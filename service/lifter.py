@@ -110,13 +110,16 @@ class Lifter:
         _check_contract(session, self.info, path)
 
     @classmethod
-    def load(cls, path: Path, intra_op_threads: int = 0, inter_op_threads: int = 1) -> Lifter:
+    def load(
+        cls, path: Path, intra_op_threads: int = 0, inter_op_threads: int = 1, spinning: bool = True
+    ) -> Lifter:
         """Open the model at `path`; raise ModelLoadError saying what is wrong with it."""
         if not path.is_file():
             raise ModelLoadError(f"model file not found: {path}")
         options = ort.SessionOptions()
         options.intra_op_num_threads = intra_op_threads
         options.inter_op_num_threads = inter_op_threads
+        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         try:
             session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])

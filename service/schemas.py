@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, Strict, model_validator
 
 from service.formats import FORMATS
 
@@ -46,10 +46,21 @@ class PoseIn(BaseModel):
     )
 
 
+# A person in mid-stride seen from 4.5 m (h36m17 joint order, px): the OpenAPI example request.
+EXAMPLE_KEYPOINTS: list[JsonValue] = [
+    [512.0, 515.0], [483.5, 516.3], [471.0, 624.2], [481.3, 730.0], [541.3, 513.7], [550.6, 628.1],
+    [561.9, 735.4], [514.8, 455.4], [516.4, 390.7], [511.1, 363.4], [516.6, 334.0], [550.1, 402.1],
+    [570.4, 466.5], [573.0, 525.4], [482.4, 405.9], [458.7, 469.6], [454.4, 527.5],
+]  # fmt: skip
+
+
 class LiftRequest(BaseModel):
     """A batch of poses. A bare pose object ({"keypoints": ...}) is accepted as a batch of one."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"poses": [{"keypoints": EXAMPLE_KEYPOINTS}], "format": "h36m17"}]},
+    )
 
     poses: list[PoseIn] = Field(description="The poses to lift, answered in the same order.")
     format: str = Field(

@@ -16,8 +16,10 @@ def read_validations(history: Path) -> list[dict[str, float]]:
 def markdown_table(records: list[dict[str, float]]) -> str:
     """One row per validation: step, minutes, then every val_* figure (mm)."""
     keys = sorted({k for r in records for k in r if k.startswith("val_")})
-    lines = ["| step | minutes | " + " | ".join(k.removeprefix("val_") for k in keys) + " |",
-             "|---:|---:|" + "---:|" * len(keys)]
+    lines = [
+        "| step | minutes | " + " | ".join(k.removeprefix("val_") for k in keys) + " |",
+        "|---:|---:|" + "---:|" * len(keys),
+    ]
     for r in records:
         cells = [f"{r[k]:.1f}" if k in r else "" for k in keys]
         lines.append(f"| {r['step']} | {r['minutes']:.1f} | " + " | ".join(cells) + " |")
@@ -34,7 +36,8 @@ def plot(records: list[dict[str, float]], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     minutes = [r["minutes"] for r in records]
     for key in sorted({k for r in records for k in r if k.startswith("val_") and "symmetry" not in k}):
-        ax.plot(minutes, [r.get(key, float("nan")) for r in records], marker="o", label=key.removeprefix("val_"))
+        values = [r.get(key, float("nan")) for r in records]
+        ax.plot(minutes, values, marker="o", label=key.removeprefix("val_"))
     ax.set_xlabel("training wall time (min)")
     ax.set_ylabel("validation error (mm)")
     ax.set_title("RepNet validation on held-out training-subject frames")

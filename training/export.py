@@ -130,8 +130,12 @@ def main(argv: list[str] | None = None) -> None:
     points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
     visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
     diff = check_parity(generator, args.output, points, visible)
-    log.info("wrote %s (%.1f MB); torch vs onnxruntime max |diff| = %.2e mm",
-             args.output, args.output.stat().st_size / 1e6, diff)
+    log.info(
+        "wrote %s (%.1f MB); torch vs onnxruntime max |diff| = %.2e mm",
+        args.output,
+        args.output.stat().st_size / 1e6,
+        diff,
+    )
 
 
 if __name__ == "__main__":

@@ -105,8 +105,13 @@ def train(
     rng = np.random.default_rng(config.seed)
     val_sets = {k: _subsample(v, config.val_size, rng) for k, v in val_sets.items()}
     real_pool = torch.from_numpy(pool.poses_3d / MM_PER_UNIT).to(device)  # (M, J, 3) metres
-    log.info("training on %s: %d 3D poses, %d 2D poses, device %s", config.inputs,
-             len(real_pool), len(pool.points_2d), device)
+    log.info(
+        "training on %s: %d 3D poses, %d 2D poses, device %s",
+        config.inputs,
+        len(real_pool),
+        len(pool.points_2d),
+        device,
+    )
 
     generator, critic = RepNet(model_config).to(device), Critic(model_config).to(device)
     betas = (config.beta1, config.beta2)
@@ -125,12 +130,22 @@ def train(
         log.info("resumed from %s at step %d (%.1f min)", resume, step, elapsed / 60)
 
     def save(path: Path) -> None:
-        torch.save({
-            "generator": generator.state_dict(), "critic": critic.state_dict(),
-            "opt_g": opt_g.state_dict(), "opt_c": opt_c.state_dict(), "rng": gen.get_state(),
-            "step": step, "elapsed_s": elapsed, "best": best, "command": command,
-            "model_config": asdict(model_config), "train_config": asdict(config),
-        }, path)
+        torch.save(
+            {
+                "generator": generator.state_dict(),
+                "critic": critic.state_dict(),
+                "opt_g": opt_g.state_dict(),
+                "opt_c": opt_c.state_dict(),
+                "rng": gen.get_state(),
+                "step": step,
+                "elapsed_s": elapsed,
+                "best": best,
+                "command": command,
+                "model_config": asdict(model_config),
+                "train_config": asdict(config),
+            },
+            path,
+        )
 
     history = (out / "history.jsonl").open("a")
     bar = tqdm(total=config.iterations, initial=step, desc="train", mininterval=10, file=sys.stderr)
@@ -157,8 +172,11 @@ def train(
         loss_rep = reprojection_loss(points, visible, pose, camera)
         loss_cam = camera_loss(camera)
         loss_adv = -critic(pose).mean()
-        loss_g = (config.reprojection_weight * loss_rep + config.camera_weight * loss_cam
-                  + config.adversarial_weight * loss_adv)
+        loss_g = (
+            config.reprojection_weight * loss_rep
+            + config.camera_weight * loss_cam
+            + config.adversarial_weight * loss_adv
+        )
         opt_g.zero_grad(set_to_none=True)
         loss_g.backward()
         opt_g.step()
@@ -168,9 +186,15 @@ def train(
         elapsed = time.monotonic() - start
         bar.update(1)
         if step % config.log_every == 0:
-            record: dict[str, Any] = {"step": step, "minutes": round(elapsed / 60, 2), "lr": lr,
-                                      "rep": loss_rep.item(), "cam": loss_cam.item(),
-                                      "adv": loss_adv.item(), "w_dist": wasserstein.item()}
+            record: dict[str, Any] = {
+                "step": step,
+                "minutes": round(elapsed / 60, 2),
+                "lr": lr,
+                "rep": loss_rep.item(),
+                "cam": loss_cam.item(),
+                "adv": loss_adv.item(),
+                "w_dist": wasserstein.item(),
+            }
             bar.set_postfix({k: f"{record[k]:.3f}" for k in ("rep", "cam", "w_dist")})
             if step % config.val_every == 0:
                 for kind, val in val_sets.items():
@@ -219,8 +243,11 @@ def main(argv: list[str] | None = None) -> None:
     config = TrainConfig(**{f.name: values[f.name] for f in dataclasses.fields(TrainConfig)})
     model_config = RepNetConfig(**{f.name: values[f.name] for f in dataclasses.fields(RepNetConfig)})
     Path(config.out_dir).mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", handlers=[
-        logging.StreamHandler(), logging.FileHandler(Path(config.out_dir) / "train.log")])
+    logging.basicConfig(
+        level=logging.INFO,
+        format="%(asctime)s %(message)s",
+        handlers=[logging.StreamHandler(), logging.FileHandler(Path(config.out_dir) / "train.log")],
+    )
     command = "python -m training.train " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     best = train(config, model_config, resume=args.resume, command=command)
     log.info("best checkpoint: %s", best)

@@ -17,6 +17,7 @@ from tests.deploy.helpers import RunningService, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 
+
 @pytest.fixture(scope="module")
 def running_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningService]:
     """`python -m service` with the bundled model; stopped with SIGTERM, which must exit 0."""

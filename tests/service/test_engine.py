@@ -149,6 +149,33 @@ def test_queue_overflow_raises_before_queueing(engine: Engine, gated: GatedLifte
         engine.submit(model_input(variant(9)), "test")
 
 
+def test_a_waiting_submit_gets_in_once_the_queue_has_room(engine: Engine, gated: GatedLifter) -> None:
+    gated.gate.clear()
+    engine.submit(model_input(variant(0)), "test")
+    wait_until(gated.entered.is_set, "the first run")
+    engine.submit(model_input(*(variant(i) for i in range(8))), "test")
+    with ThreadPoolExecutor(1) as pool:
+        waiting = pool.submit(engine.submit, model_input(variant(9)), "test", 10.0)
+        time.sleep(0.2)
+        assert not waiting.done()  # the queue is still full: it waits instead of failing
+        gated.gate.set()
+        prediction = waiting.result(timeout=10)[0].result(timeout=10)
+    alone = model_input(variant(9))
+    expected = engine.lifter.lift(alone.keypoints_2d, alone.visible)
+    np.testing.assert_allclose(prediction.pose_3d, expected.pose_3d, atol=1e-3)
+
+
+def test_a_waiting_submit_still_fails_when_no_room_comes(engine: Engine, gated: GatedLifter) -> None:
+    gated.gate.clear()
+    engine.submit(model_input(variant(0)), "test")
+    wait_until(gated.entered.is_set, "the first run")
+    engine.submit(model_input(*(variant(i) for i in range(8))), "test")
+    start = time.monotonic()
+    with pytest.raises(Overloaded, match=r"8 of 8 poses waiting"):
+        engine.submit(model_input(variant(9)), "test", wait_s=0.3)
+    assert 0.25 < time.monotonic() - start < 5
+
+
 class FailingLifter(Lifter):
     def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
         raise RuntimeError("session failed")

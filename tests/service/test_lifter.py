@@ -91,3 +91,10 @@ def test_load_reports_a_model_with_another_contract(tmp_path: Path) -> None:
     onnx.save(model, str(path))
     with pytest.raises(ModelLoadError, match=r"expected inputs \['keypoints_2d', 'visibility'\]"):
         Lifter.load(path)
+
+
+@pytest.mark.parametrize("spinning", [True, False])
+def test_load_sets_whether_onnxruntime_threads_spin(spinning: bool) -> None:
+    lifter = Lifter.load(BUNDLED_MODEL, intra_op_threads=1, spinning=spinning)
+    entry = lifter.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning")
+    assert entry == ("1" if spinning else "0")

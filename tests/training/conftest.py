@@ -10,9 +10,25 @@ import pytest
 
 # A standing pose in the template frame (mm; x right, y down, z away from the camera).
 STANDING = np.array(
-    [[0, 0, 0], [-134, 0, 0], [-140, 440, 20], [-140, 870, 60], [134, 0, 0], [140, 440, 20],
-     [140, 870, 60], [0, -230, 10], [0, -480, 0], [0, -580, -60], [0, -700, -10], [137, -431, 0],
-     [200, -170, 0], [230, 70, -40], [-137, -431, 0], [-200, -170, 0], [-230, 70, -40]],
+    [
+        [0, 0, 0],
+        [-134, 0, 0],
+        [-140, 440, 20],
+        [-140, 870, 60],
+        [134, 0, 0],
+        [140, 440, 20],
+        [140, 870, 60],
+        [0, -230, 10],
+        [0, -480, 0],
+        [0, -580, -60],
+        [0, -700, -10],
+        [137, -431, 0],
+        [200, -170, 0],
+        [230, 70, -40],
+        [-137, -431, 0],
+        [-200, -170, 0],
+        [-230, 70, -40],
+    ],
     dtype=np.float64,
 )
 
@@ -52,13 +68,20 @@ def write_synthetic_h36m(folder: Path, seed: int = 0, frames: int = 120) -> Path
             a = np.pi / 4 + i * np.pi / 2
             centre = np.array([4000 * np.cos(a), 4000 * np.sin(a), 1500.0])
             cameras[subject][cam] = {
-                "R": look_at(centre, np.array([0.0, 0.0, 900.0])).tolist(), "T": centre.tolist(),
-                "f": [1145.0, 1144.0], "c": [512.0, 515.0], "k": [0.0, 0.0, 0.0], "p": [0.0, 0.0],
+                "R": look_at(centre, np.array([0.0, 0.0, 900.0])).tolist(),
+                "T": centre.tolist(),
+                "f": [1145.0, 1144.0],
+                "c": [512.0, 515.0],
+                "k": [0.0, 0.0, 0.0],
+                "p": [0.0, 0.0],
             }
     (folder / "cameras.json").write_text(json.dumps(cameras))
     train = {f"{s}/Walking": synthetic_sequence(rng, frames) for s in data.TRAIN_SUBJECTS}
-    test = {f"{s}/{a}": synthetic_sequence(rng, frames // 2) for s in data.TEST_SUBJECTS
-            for a in ("Walking", "Greeting")}
+    test = {
+        f"{s}/{a}": synthetic_sequence(rng, frames // 2)
+        for s in data.TEST_SUBJECTS
+        for a in ("Walking", "Greeting")
+    }
     np.savez(folder / "poses_3d_train.npz", **train)
     np.savez(folder / "poses_3d_test.npz", **test)
     detections = {}

@@ -21,8 +21,9 @@ def tiny_onnx(tmp_path_factory: pytest.TempPathFactory) -> tuple[RepNet, Path]:
     torch.manual_seed(0)
     generator = RepNet(RepNetConfig(width=32, critic_width=32, kcs_width=8)).eval()
     path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
-    meta = export.build_metadata(generator.config, "tiny-test", "python -m training.train --x", "synthetic",
-                                 {"pa_mpjpe": 1.0})
+    meta = export.build_metadata(
+        generator.config, "tiny-test", "python -m training.train --x", "synthetic", {"pa_mpjpe": 1.0}
+    )
     export.export_onnx(generator, path, meta)
     return generator, path
 

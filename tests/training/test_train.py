@@ -15,9 +15,19 @@ TINY = RepNetConfig(width=64, critic_width=64, kcs_width=16)
 
 def _config(data_dir: Path, out: Path, iterations: int) -> TrainConfig:
     return TrainConfig(
-        data_dir=str(data_dir), out_dir=str(out), inputs="gt+sh", iterations=iterations, batch_size=64,
-        critic_steps=2, lr=1e-3, lr_decay=1.0, val_size=200, val_every=20, log_every=10,
-        checkpoint_every=20, threads=1,
+        data_dir=str(data_dir),
+        out_dir=str(out),
+        inputs="gt+sh",
+        iterations=iterations,
+        batch_size=64,
+        critic_steps=2,
+        lr=1e-3,
+        lr_decay=1.0,
+        val_size=200,
+        val_every=20,
+        log_every=10,
+        checkpoint_every=20,
+        threads=1,
     )
 
 

@@ -1,0 +1,152 @@
+"""What each keypoint format costs in accuracy: Human3.6M S9/S11 ground truth through every format table.
+
+    python -m bench.format_accuracy [--model PATH] [--frame-step 10] [--out runs/bench/format_accuracy.json]
+
+For each format the 17 ground-truth joints, projected through the Human3.6M cameras, are turned
+into that detector's keypoints (joints it lacks are dropped; pelvis or thorax become midpoints
+where the detector has hips or shoulders), converted back with the service's own table, and lifted
+by the model. The numbers are Protocol II (PA-MPJPE) and Protocol I (MPJPE in the camera's
+orientation, training.metrics.to_camera_frame) as in training.evaluate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+if __package__ in (None, ""):  # `python bench/format_accuracy.py`
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from service.config import BUNDLED_MODEL
+from service.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
+from service.lifter import Lifter
+from training import data, metrics
+from training.evaluate import DATASET_LABEL, build_test_set, select_sequences
+
+log = logging.getLogger("bench.format_accuracy")
+BATCH = 4096
+
+
+def format_inputs(fmt: KeypointFormat, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(M, 17, 2) ground-truth px -> what a `fmt` detector gives the model: points, visible, imputed."""
+    source, source_visible = from_model_joints(fmt, points)  # (M, K, 2), (M, K)
+    model_points, visible, _derived, imputed = to_model_joints(fmt, source, source_visible)
+    return model_points, visible, imputed
+
+
+def lift_all(lifter: Lifter, points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """pose_3d (M, 17, 3) and camera (M, 2, 3) in batches of BATCH."""
+    poses, cameras = [], []
+    for start in range(0, len(points), BATCH):
+        prediction = lifter.lift(points[start : start + BATCH], visible[start : start + BATCH])
+        poses.append(prediction.pose_3d)
+        cameras.append(prediction.camera)
+    return np.concatenate(poses), np.concatenate(cameras)
+
+
+def score_format(fmt: KeypointFormat, lifter: Lifter, points: np.ndarray, gt: np.ndarray) -> dict[str, Any]:
+    model_points, visible, imputed = format_inputs(fmt, points)
+    pose, camera = lift_all(lifter, model_points, visible)
+    p1 = metrics.joint_errors(metrics.to_camera_frame(pose, camera), gt)  # (M, 17)
+    p2 = metrics.procrustes_errors(pose, gt)  # (M, 17)
+    imputed_joints = [name for name, flag in zip(lifter.info.joint_names, imputed[0], strict=True) if flag]
+    derived = [lifter.info.joint_names[j] for j, src in enumerate(fmt.sources) if len(src) == 2]
+    return {
+        "format": fmt.name,
+        "input_joints": len(fmt.joint_names),
+        "imputed": imputed_joints,
+        "derived": derived,
+        "mpjpe": float(p1.mean()),
+        "pa_mpjpe": float(p2.mean()),
+        "pa_mpjpe_imputed_joints": float(p2[imputed].mean()) if imputed.any() else None,
+        "pa_mpjpe_other_joints": float(p2[~imputed].mean()),
+    }
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    started = time.perf_counter()
+    data_dir = data.resolve_data_dir(args.data_dir)
+    poses = select_sequences(data.load_poses(data_dir, "test"), list(data.TEST_SUBJECTS), [])
+    test = build_test_set(poses, data.load_cameras(data_dir), None, args.frame_step)
+    lifter = Lifter.load(args.model, args.threads)
+    log.info(
+        "%d poses from %d camera sequences, model %s", len(test.gt), test.sequences, lifter.info.model_id
+    )
+    rows = []
+    for fmt in FORMATS.values():
+        log.info("format %s", fmt.name)
+        rows.append(score_format(fmt, lifter, test.points, test.gt))
+    base = next(r for r in rows if r["format"] == "h36m17")
+    for row in rows:
+        row["pa_mpjpe_cost"] = row["pa_mpjpe"] - base["pa_mpjpe"]
+        row["mpjpe_cost"] = row["mpjpe"] - base["mpjpe"]
+    return {
+        "command": " ".join(["python -m bench.format_accuracy", *sys.argv[1:]]),
+        "dataset": f"Human3.6M {DATASET_LABEL}, ground-truth 2D (distorted projections), all 4 cameras",
+        "model": str(args.model),
+        "model_id": lifter.info.model_id,
+        "frame_step": args.frame_step,
+        "poses": len(test.gt),
+        "formats": rows,
+        "wall_time_s": round(time.perf_counter() - started, 1),
+    }
+
+
+def markdown(result: dict[str, Any]) -> str:
+    lines = [
+        f"`{result['command']}`: {result['dataset']}, every {result['frame_step']}th frame "
+        f"({result['poses']:,} poses), model `{result['model_id']}`.",
+        "",
+        "| format | input joints | derived (midpoints) | imputed by the model | PA-MPJPE mm | cost "
+        "| MPJPE mm | cost | PA-MPJPE of imputed joints |",
+        "|---|---:|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in result["formats"]:
+        imputed, derived = ", ".join(r["imputed"]) or "—", ", ".join(r["derived"]) or "—"
+        on_imputed = "—" if r["pa_mpjpe_imputed_joints"] is None else f"{r['pa_mpjpe_imputed_joints']:.1f}"
+        lines.append(
+            f"| {r['format']} | {r['input_joints']} | {derived} | {imputed} | {r['pa_mpjpe']:.1f} | "
+            f"{r['pa_mpjpe_cost']:+.1f} | {r['mpjpe']:.1f} | {r['mpjpe_cost']:+.1f} | {on_imputed} |"
+        )
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.format_accuracy",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)"
+    )
+    parser.add_argument("--data-dir", default=None, help=f"Human3.6M folder (default: ${data.DATA_ENV})")
+    parser.add_argument("--frame-step", type=int, default=10, help="use every n-th test frame")
+    parser.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0: one per core)")
+    parser.add_argument("--out", type=Path, default=Path("runs/bench/format_accuracy.json"))
+    args = parser.parse_args(argv)
+    if args.frame_step < 1:
+        parser.error(f"--frame-step must be >= 1, got {args.frame_step}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    result = run(args)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(markdown(result))
+    log.info("wrote %s", args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
