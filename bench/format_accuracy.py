@@ -12,7 +12,6 @@ orientation, training.metrics.to_camera_frame) as in training.evaluate.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -24,6 +23,7 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/format_accuracy.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.stats import write_json
 from service.config import BUNDLED_MODEL
 from service.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
 from service.lifter import Lifter
@@ -141,8 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     result = run(args)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(markdown(result))
     log.info("wrote %s", args.out)
     return 0

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import logging
 import sys
 import time
@@ -26,7 +25,7 @@ if __package__ in (None, ""):  # `python bench/long_stream.py`
 
 from bench.grpc_load import LIFT_STREAM, OPTIONS, STREAM_WINDOW, stream_frames
 from bench.server import ServiceProcess, cpu_seconds, rss_bytes
-from bench.stats import machine
+from bench.stats import machine, write_json
 from service._proto.repnet.v1 import lifter_pb2
 
 log = logging.getLogger("bench.long_stream")
@@ -162,8 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     with ServiceProcess(*args.service_flag) as service:
         result = summarize(asyncio.run(run_streams(service, args)), args)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(markdown(result))
     log.info("wrote %s", args.out)
     return 0

@@ -11,7 +11,6 @@ quantized per run. The ONNX metadata is kept, with "-int8" added to model_id. Se
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
@@ -23,7 +22,7 @@ if __package__ in (None, ""):  # `python bench/quantize.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.roof import measure_roof
-from bench.stats import sample_poses
+from bench.stats import sample_poses, write_json
 from service.config import BUNDLED_MODEL, Settings
 from service.lifter import Lifter
 
@@ -111,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     quantize(args.model, args.out)
     result = compare(args.model, args.out, args.duration)
     result["command"] = " ".join(["python -m bench.quantize", *sys.argv[1:]])
-    args.out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out.with_suffix(".json"), result)
     print(markdown(result))
     return 0
 
