@@ -3,7 +3,9 @@
     python -m bench.run [--model PATH] [--duration 3] [--out runs/bench/bench.json]
 
 The roof is measured first, alone on the machine; then the service starts on free localhost
-ports with the same thread settings and is loaded from this process (its own GIL).
+ports with the same thread settings and is loaded from this process (its own GIL). Last, the
+same service without the model (bench.ceiling) takes the loads whose targets are ratios, which
+shows what the transports alone reach on the machine.
 """
 
 from __future__ import annotations
@@ -58,6 +60,21 @@ def service_loads(
     return loads
 
 
+CEILING = "(no model) "  # name prefix of the rows measured against bench.ceiling
+
+
+def ceiling_loads(service: ServiceProcess, duration: float) -> list[tuple[str, Callable[[], Result]]]:
+    """The transport ceiling: the loads whose targets are ratios, against the service without a model."""
+    pid, target = service.pid, service.target
+    return [
+        ("no model: http c1", partial(measure_http, "127.0.0.1", service.http_port, pid, 1, 1, duration)),
+        *(
+            (f"no model: stream x{s}", partial(measure_stream, target, pid, s, duration=duration))
+            for s in (1, 8)
+        ),
+    ]
+
+
 @dataclass
 class Report:
     """Everything one run measured; written as JSON and printed as markdown."""
@@ -87,6 +104,7 @@ class Report:
     def targets(self) -> list[str]:
         """One line per target of the issue: met or missed, with the figure."""
         lines = []
+        ceiling = {(r.name, r.concurrency): r for r in self.results if r.name.startswith(CEILING)}
         for r in self.results:
             if (
                 r.name.startswith("gRPC LiftStream")
@@ -95,17 +113,26 @@ class Report:
             ):
                 ratio = r.frames_per_s / self.roof_best
                 ok = ratio >= STREAM_FRACTION_OF_ROOF
-                lines.append(
+                line = (
                     f"{'met' if ok else 'MISSED'}: LiftStream x{r.concurrency} at {ratio:.2f} of the "
                     f"roof (target >= {STREAM_FRACTION_OF_ROOF})"
                 )
+                if bare := ceiling.get((CEILING + r.name, r.concurrency)):
+                    line += (
+                        f"; without the model the same load reaches {bare.frames_per_s / self.roof_best:.2f}"
+                    )
+                lines.append(line)
             if r.name == "HTTP /lift, 1 pose" and r.concurrency == 1:
                 p50, p99 = r.latency_ms["p50"], r.latency_ms["p99"]
                 ok = p50 <= HTTP_P50_MS and p99 <= HTTP_P99_MS
-                lines.append(
+                line = (
                     f"{'met' if ok else 'MISSED'}: HTTP single pose c1 p50 {p50:.2f} ms, p99 {p99:.2f} ms "
-                    f"(targets <= {HTTP_P50_MS}, <= {HTTP_P99_MS})"
+                    f"(targets <= {HTTP_P50_MS}, <= {HTTP_P99_MS}); p50 minus the roof's batch-1 call: "
+                    f"{p50 - self.roof_batch1_ms:.2f} ms"
                 )
+                if bare := ceiling.get((CEILING + r.name, r.concurrency)):
+                    line += f"; without the model p50 {bare.latency_ms['p50']:.2f} ms"
+                lines.append(line)
         return lines
 
     def markdown(self) -> str:
@@ -139,6 +166,13 @@ def run(args: argparse.Namespace) -> Report:
             log.info("measuring %s", label)
             results.append(load())
         rss_end = rss_bytes(service.pid)
+    if not args.no_ceiling:
+        with ServiceProcess(*flags, module="bench.ceiling") as bare:
+            for label, load in ceiling_loads(bare, args.duration):
+                log.info("measuring %s", label)
+                result = load()
+                result.name = CEILING + result.name
+                results.append(result)
     return Report(
         when=datetime.now(timezone.utc).isoformat(timespec="seconds"),
         command=" ".join(["python -m bench.run", *sys.argv[1:]]),
@@ -162,6 +196,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--duration", type=float, default=3.0, help="seconds measured per service load")
     parser.add_argument("--roof-duration", type=float, default=2.0, help="seconds per roof batch size")
     parser.add_argument("--quick", action="store_true", help="fewer configurations (a smoke run)")
+    parser.add_argument(
+        "--no-ceiling", action="store_true", help="skip the service without the model (bench.ceiling)"
+    )
     parser.add_argument(
         "--service-flag",
         action="append",

@@ -60,9 +60,17 @@ def cpu_seconds(pid: int) -> float:
 
 
 class ServiceProcess:
-    """A `python -m service` child bound to 127.0.0.1 on free ports; a context manager."""
+    """A `python -m service` child (or another `module` that takes its flags) bound to 127.0.0.1 on
+    free ports; a context manager."""
 
-    def __init__(self, *flags: str, log: Path | None = None, env: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        *flags: str,
+        log: Path | None = None,
+        env: dict[str, str] | None = None,
+        module: str = "service",
+    ) -> None:
+        self.module = module
         self.http_port = free_port()
         self.grpc_port = free_port(exclude=(self.http_port,))
         self.flags = (
@@ -95,7 +103,7 @@ class ServiceProcess:
         self._log_file = self.log.open("wb") if self.log else None
         out = self._log_file if self._log_file else subprocess.DEVNULL
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "service", *self.flags],
+            [sys.executable, "-m", self.module, *self.flags],
             cwd=ROOT,
             env=env,
             stdout=out,

@@ -16,10 +16,8 @@ from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 from types import FrameType
 
-import grpc
 import uvicorn
 from fastapi import FastAPI
-from grpc_health.v1 import health
 from prometheus_client import CollectorRegistry
 from pydantic import ValidationError
 
@@ -27,7 +25,7 @@ from service.config import Settings
 from service.engine import Engine
 from service.errors import ModelLoadError
 from service.formats import MODEL_JOINTS
-from service.grpc_api import create_server
+from service.grpc_api import GrpcServer, create_server
 from service.http_api import create_app
 from service.keypoints import Limits
 from service.lifter import Lifter
@@ -124,9 +122,7 @@ class Service:
     engine: Engine
     metrics: Metrics
     app: FastAPI
-    health_servicer: health.HealthServicer
-    grpc_server: grpc.Server
-    grpc_port: int
+    grpc_server: GrpcServer
     http: uvicorn.Server
     _stopping: threading.Event = field(default_factory=threading.Event)
     _grpc_stopped: threading.Event | None = None
@@ -140,7 +136,7 @@ class Service:
         self._stopping.set()
         log.info("shutting down: draining in-flight requests (grace %.1f s)", self.settings.shutdown_grace_s)
         self.engine.stop_serving()
-        self.health_servicer.enter_graceful_shutdown()
+        self.grpc_server.health.enter_graceful_shutdown()
         if self.settings.shutdown_delay_s > 0:
             self._delay = threading.Timer(self.settings.shutdown_delay_s, self.stop_accepting)
             self._delay.daemon = True
@@ -165,7 +161,7 @@ class Service:
             self.settings.host,
             self.settings.http_port,
             self.settings.host,
-            self.grpc_port,
+            self.grpc_server.port,
         )
         status = 0
         try:
@@ -209,13 +205,11 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
     )
     limits = limits_of(settings)
     app = create_app(engine, metrics, limits, settings.max_body_bytes)
-    health_servicer = health.HealthServicer()
-    grpc_server, grpc_port = create_server(
+    grpc_server = create_server(
         engine,
         metrics,
         limits,
         f"{settings.host}:{settings.grpc_port}",
-        health_servicer=health_servicer,
         workers=settings.grpc_workers,
         max_message_bytes=settings.max_body_bytes,
         stream_window=settings.stream_window,
@@ -229,9 +223,7 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
         timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
         lifespan="off",
     )
-    return Service(
-        settings, engine, metrics, app, health_servicer, grpc_server, grpc_port, _HttpServer(config)
-    )
+    return Service(settings, engine, metrics, app, grpc_server, _HttpServer(config))
 
 
 def parse_settings(argv: Sequence[str] | None) -> Settings:

@@ -31,10 +31,17 @@ class Settings(BaseSettings):
         description="onnxruntime threads spin between runs (faster single runs on idle cores; off "
         "leaves the CPU to the server's own threads, +30 % throughput on 2 cores: docs/BENCHMARKS.md)",
     )
-    grpc_workers: int = Field(default=32, ge=1, description="gRPC handler threads (one per open stream)")
+    grpc_workers: int = Field(
+        default=32,
+        ge=1,
+        description="most gRPC calls at once, open streams included; beyond: RESOURCE_EXHAUSTED",
+    )
     max_batch: int = Field(default=256, ge=1, description="most poses in one onnxruntime run")
     max_wait_ms: float = Field(
-        default=0.5, ge=0, description="longest an idle batcher waits for more poses to join a batch"
+        default=0.5,
+        ge=0,
+        description="under load, longest the batcher waits for more poses to join a batch (an idle "
+        "batcher runs a request at once)",
     )
     queue_size: int = Field(default=4096, ge=1, description="most poses waiting for a run; beyond: 503")
     max_request_poses: int = Field(default=1024, ge=1, description="most poses in one request")

@@ -42,8 +42,9 @@ def concat_predictions(parts: list[Prediction]) -> Prediction:
 class Engine:
     """One worker thread runs the Lifter on batches of queued requests.
 
-    A batch starts when max_batch poses are queued or when its oldest pose has waited
-    max_wait_s; requests larger than max_batch are split into chunks. The queue holds at most
+    An idle batcher runs a request at once; under load (work queued during the last run) a batch
+    starts when max_batch poses are queued or max_wait_s after the last run ended. Requests larger
+    than max_batch are split into chunks. The queue holds at most
     queue_size poses: a request that does not fit is refused at once with Overloaded.
     """
 
@@ -139,18 +140,25 @@ class Engine:
             self.metrics.queue_depth.set(self._queued)
 
     def _take_batch(self) -> list[_Chunk]:
-        """Block until a batch is due, then take it from the queue; [] once closed and empty."""
+        """Block until a batch is due, then take it from the queue; [] once closed and empty.
+
+        An idle batcher runs the first request at once: waiting could only add latency to a lone
+        request. Work that queued up while the last run ran means load: then the batch gets up to
+        max_wait_s to fill, so that runs stay large when poses arrive faster than single runs end.
+        """
         with self._cond:
+            idle = not self._queue
             while not self._queue:
                 if self._closed:
                     return []
                 self._cond.wait()
-            deadline = self._queue[0].enqueued + self.max_wait_s
-            while self._queued < self.max_batch and not self._closed:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self._cond.wait(remaining)
+            if not idle:
+                deadline = time.monotonic() + self.max_wait_s
+                while self._queued < self.max_batch and not self._closed:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    self._cond.wait(remaining)
             batch = [self._queue.popleft()]
             total = len(batch[0])
             while self._queue and total + len(self._queue[0]) <= self.max_batch:

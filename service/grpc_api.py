@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
-import queue
 import threading
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections import deque
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator, Sequence
 from concurrent import futures
-from dataclasses import dataclass
-from typing import NoReturn
+from dataclasses import dataclass, field
+from typing import Any
 
 import grpc
 import numpy as np
@@ -17,17 +18,29 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.engine import Engine
+from service.engine import Engine, concat_predictions
 from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Overloaded, Violation
-from service.keypoints import DEFAULT_FORMAT, Limits, ModelInput, PoseInput, pose_field, prepare_poses
+from service.keypoints import (
+    DEFAULT_FORMAT,
+    Limits,
+    ModelInput,
+    PoseInput,
+    concat_inputs,
+    pose_field,
+    prepare_poses,
+)
 from service.lifter import Prediction
-from service.metrics import ERROR, Metrics, outcome_of
+from service.metrics import Metrics, outcome_of
 
 log = logging.getLogger(__name__)
 
 TRANSPORT = "grpc"
-# A stream frame that finds the batch queue full waits this long for room before its error result.
+# A stream frame that finds the batch queue full waits this long for room before its error result,
+# trying again every QUEUE_RETRY_S.
 STREAM_QUEUE_WAIT_S = 5.0
+QUEUE_RETRY_S = 0.002
+# Unary requests with at most this many poses are converted on the event loop (no thread hop).
+INLINE_POSES = 8
 SERVICE_NAME = lifter_pb2.DESCRIPTOR.services_by_name["PoseLifter"].full_name
 
 
@@ -39,11 +52,6 @@ def status_of(err: LiftError) -> grpc.StatusCode:
     if isinstance(err, ModelNotReady):
         return grpc.StatusCode.UNAVAILABLE
     return grpc.StatusCode.INTERNAL
-
-
-def abort(context: grpc.ServicerContext, err: LiftError) -> NoReturn:
-    """The one place where the core's errors become gRPC status codes."""
-    context.abort(status_of(err), str(err))
 
 
 def _structure_violations(pose: lifter_pb2.Pose2D, field: str) -> list[Violation]:
@@ -83,19 +91,27 @@ def to_pose_inputs(poses: Sequence[lifter_pb2.Pose2D], default_format: str, pref
     return inputs
 
 
-def to_pose_result(inputs: ModelInput, prediction: Prediction, i: int) -> lifter_pb2.PoseResult:
-    return lifter_pb2.PoseResult(
-        pose_3d=prediction.pose_3d[i].ravel().tolist(),
-        pose_3d_camera=prediction.pose_3d_camera[i].ravel().tolist(),
-        camera=prediction.camera[i].ravel().tolist(),
-        scale=float(prediction.scale[i]),
-        rotation=prediction.rotation[i].ravel().tolist(),
-        reprojection=prediction.reprojection[i].ravel().tolist(),
-        reprojection_error_px=float(prediction.reprojection_error_px[i]),
-        visible=inputs.visible[i].tolist(),
-        imputed=inputs.imputed[i].tolist(),
-        derived=inputs.derived[i].tolist(),
-    )
+# Prediction arrays that PoseResult carries flattened, one repeated field each.
+FLAT_ARRAYS = ("pose_3d", "pose_3d_camera", "camera", "rotation", "reprojection")
+
+
+def result_columns(inputs: ModelInput, prediction: Prediction) -> dict[str, list[Any]]:
+    """PoseResult's fields for every pose as Python values, one list item per pose: a few
+    ndarray.tolist calls for the whole batch instead of several per pose."""
+    n = len(prediction)
+    columns: dict[str, list[Any]] = {
+        name: getattr(prediction, name).reshape(n, -1).tolist() for name in FLAT_ARRAYS
+    }
+    columns["scale"] = prediction.scale.tolist()
+    columns["reprojection_error_px"] = prediction.reprojection_error_px.tolist()
+    for name in ("visible", "imputed", "derived"):
+        columns[name] = getattr(inputs, name).tolist()
+    return columns
+
+
+def pose_results(inputs: ModelInput, prediction: Prediction) -> list[lifter_pb2.PoseResult]:
+    columns = result_columns(inputs, prediction)
+    return [lifter_pb2.PoseResult(**{k: v[i] for k, v in columns.items()}) for i in range(len(prediction))]
 
 
 def frame_error(err: LiftError) -> lifter_pb2.FrameError:
@@ -113,18 +129,25 @@ def frame_error(err: LiftError) -> lifter_pb2.FrameError:
 
 
 @dataclass
-class _Pending:
-    """A stream frame between reading and answering."""
+class _Group:
+    """Stream frames read together: prepared in one call and queued as one engine request."""
 
-    frame_id: int
-    start: float
-    inputs: ModelInput | None = None
-    future: futures.Future[Prediction] | None = None
-    error: LiftError | None = None
+    frames: list[tuple[int, float]]  # (frame_id, perf_counter when read) per frame
+    errors: list[LiftError | None]  # per frame: why it gets no pose
+    rows: list[int]  # per frame: its row in `inputs`, -1 for a frame with an error
+    inputs: ModelInput | None = None  # the frames without an error, in order
+    futures: list[futures.Future[Prediction]] = field(default_factory=list)
+
+    def done(self) -> bool:
+        return all(f.done() for f in self.futures)
 
 
 class PoseLifterServicer:
-    """Implements repnet.v1.PoseLifter on the shared Engine."""
+    """Implements repnet.v1.PoseLifter (grpc.aio) on the shared Engine.
+
+    Every call runs on the gRPC server's event loop; only onnxruntime runs elsewhere (the engine's
+    worker thread), and a large unary request is converted on a worker thread.
+    """
 
     def __init__(self, engine: Engine, metrics: Metrics, limits: Limits, stream_window: int = 256) -> None:
         self.engine = engine
@@ -134,111 +157,276 @@ class PoseLifterServicer:
         self.model_id = engine.lifter.info.model_id
         self.joints = list(engine.lifter.info.joint_names)
 
-    def Lift(self, request: lifter_pb2.LiftRequest, context: grpc.ServicerContext) -> lifter_pb2.LiftResponse:
+    async def Lift(
+        self, request: lifter_pb2.LiftRequest, context: grpc.aio.ServicerContext[Any, Any]
+    ) -> lifter_pb2.LiftResponse:
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
+        loop = asyncio.get_running_loop()
+        inline = len(request.poses) <= INLINE_POSES
         try:
             with self.metrics.track(TRANSPORT, "Lift"):
-                poses = to_pose_inputs(request.poses, request.format or DEFAULT_FORMAT, "poses")
-                inputs = prepare_poses(poses, self.limits, threshold)
-                prediction = self.engine.lift(inputs, TRANSPORT)
-                results = [to_pose_result(inputs, prediction, i) for i in range(len(inputs))]
+                if inline:
+                    inputs = self._prepare_request(request, threshold)
+                else:  # keep the event loop free for the other calls
+                    inputs = await loop.run_in_executor(None, self._prepare_request, request, threshold)
+                parts = [await asyncio.wrap_future(f) for f in self.engine.submit(inputs, TRANSPORT)]
+                prediction = concat_predictions(parts)
+                if inline:
+                    results = pose_results(inputs, prediction)
+                else:
+                    results = await loop.run_in_executor(None, pose_results, inputs, prediction)
         except LiftError as err:
-            abort(context, err)
+            await context.abort(status_of(err), str(err))
         return lifter_pb2.LiftResponse(model_id=self.model_id, joints=self.joints, poses=results)
 
-    def LiftStream(
-        self, request_iterator: Iterator[lifter_pb2.LiftFrame], context: grpc.ServicerContext
-    ) -> Iterator[lifter_pb2.LiftFrameResult]:
-        """Frames are read and queued by a helper thread while this one answers them in order,
-        so one stream fills batches instead of waiting for each frame's run."""
-        window: queue.Queue[_Pending | None] = queue.Queue(maxsize=self.stream_window)  # None: the end
-        stop = threading.Event()
-        reader = threading.Thread(
-            target=self._read_frames,
-            args=(request_iterator, window, stop),
-            name="repnet-stream-reader",
-            daemon=True,
-        )
-        self.metrics.open_streams.inc()
-        reader.start()
-        try:
-            while (item := window.get()) is not None:
-                yield self._answer(item)
-        finally:
-            stop.set()  # the client has gone (or the server stops): the reader ends soon
-            reader.join(timeout=1.0)
-            self.metrics.open_streams.dec()
-            while not window.empty():  # frames read but never answered
-                if window.get_nowait() is not None:
-                    self.metrics.in_flight.labels(transport=TRANSPORT).dec()
+    def _prepare_request(self, request: lifter_pb2.LiftRequest, threshold: float | None) -> ModelInput:
+        poses = to_pose_inputs(request.poses, request.format or DEFAULT_FORMAT, "poses")
+        return prepare_poses(poses, self.limits, threshold)
 
-    def _read_frames(
+    async def LiftStream(
         self,
-        frames: Iterable[lifter_pb2.LiftFrame],
-        window: queue.Queue[_Pending | None],
-        stop: threading.Event,
-    ) -> None:
+        request_iterator: AsyncIterator[lifter_pb2.LiftFrame],
+        context: grpc.aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[lifter_pb2.LiftFrameResult]:
+        """A reader task collects frames; this generator takes every frame read so far, prepares them
+        in one call, queues them as one request and answers the groups in order as their runs finish.
+        Frames are taken only while none of this stream's groups waits for a run, so the frames that
+        arrive during a run become the next group: the per-frame cost stays small and one stream
+        fills batches instead of waiting for each frame's run. At most stream_window frames are read
+        and not yet answered (backpressure: the reader stops reading)."""
+        loop = asyncio.get_running_loop()
+        inbox: list[tuple[lifter_pb2.LiftFrame, float]] = []
+        wake = asyncio.Event()  # something may be actionable: frames, a finished run, the end
+        room = asyncio.Semaphore(self.stream_window)
+        ended = False
+        unreadable: Exception | None = None  # why the next frame could not be read
+
+        async def read() -> None:
+            nonlocal ended, unreadable
+            try:
+                async for frame in request_iterator:
+                    await room.acquire()
+                    inbox.append((frame, time.perf_counter()))
+                    wake.set()
+            except Exception as err:  # bytes that are not a LiftFrame: answer what came before, then fail
+                unreadable = err
+            finally:  # the client half-closed, cancelled or the call failed: nothing more to read
+                ended = True
+                wake.set()
+
+        def on_done(_: object) -> None:  # called on the engine's thread
+            loop.call_soon_threadsafe(wake.set)
+
+        gauge = self.metrics.in_flight.labels(transport=TRANSPORT)
+        pending: deque[_Group] = deque()
+        in_flight = 0  # frames taken from the inbox and not yet answered
+        self.metrics.open_streams.inc()
+        reader = asyncio.create_task(read())
         try:
-            for frame in frames:
-                item = self._submit(frame)
-                while not stop.is_set():  # a full window holds the reader back (backpressure)
-                    try:
-                        window.put(item, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                else:  # the answering side stopped before this frame got in
-                    self.metrics.in_flight.labels(transport=TRANSPORT).dec()
+            while True:
+                wake.clear()
+                if inbox and (not pending or pending[-1].done()):
+                    taken = inbox[:]
+                    inbox.clear()
+                    gauge.inc(len(taken))
+                    in_flight += len(taken)
+                    for a in range(0, len(taken), self.engine.max_batch):
+                        group = await self._submit(taken[a : a + self.engine.max_batch])
+                        for future in group.futures:
+                            future.add_done_callback(on_done)
+                        pending.append(group)
+                while pending and pending[0].done():
+                    for result in self._answer(pending.popleft()):
+                        yield result
+                        gauge.dec()
+                        in_flight -= 1
+                        room.release()
+                if ended and not inbox and not pending:
+                    if unreadable is not None:
+                        reason = f"a frame cannot be decoded as a LiftFrame ({unreadable}); the stream ends"
+                        await context.abort(grpc.StatusCode.INVALID_ARGUMENT, reason)
                     return
-        except grpc.RpcError:  # the client cancelled or the call ended: nothing more to read
-            pass
+                idle = not pending or pending[-1].done()
+                if not ((inbox and idle) or (pending and pending[0].done())):
+                    await wake.wait()
         finally:
-            _put_end(window, stop)
+            reader.cancel()
+            self.metrics.open_streams.dec()
+            gauge.dec(in_flight)  # frames queued but never answered (the client went away)
 
-    def _submit(self, frame: lifter_pb2.LiftFrame) -> _Pending:
-        item = _Pending(frame.frame_id, time.perf_counter())
-        self.metrics.in_flight.labels(transport=TRANSPORT).inc()
-        threshold = frame.confidence_threshold if frame.HasField("confidence_threshold") else None
+    def _prepare(
+        self, poses: list[PoseInput], threshold: float | None, frames: list[int], group: _Group
+    ) -> list[tuple[list[int], ModelInput]]:
+        """Prepare poses of one threshold in one call; when that fails, frame by frame, so each
+        frame gets the answer it would get alone."""
         try:
-            poses = to_pose_inputs([frame.pose], frame.pose.format or DEFAULT_FORMAT, "pose")
-            item.inputs = prepare_poses(poses, self.limits, threshold, prefix="pose")
-            item.future = self.engine.submit(item.inputs, TRANSPORT, wait_s=STREAM_QUEUE_WAIT_S)[0]
-        except LiftError as err:
-            item.error = err
-        return item
+            return [(frames, prepare_poses(poses, self.limits, threshold, prefix="pose"))]
+        except InvalidKeypoints:
+            if len(poses) == 1:
+                raise
+        parts = []
+        for k, pose in zip(frames, poses, strict=True):
+            try:
+                parts.append(([k], prepare_poses([pose], self.limits, threshold, prefix="pose")))
+            except InvalidKeypoints as err:
+                group.errors[k] = err
+        return parts
 
-    def _answer(self, item: _Pending) -> lifter_pb2.LiftFrameResult:
-        result = lifter_pb2.LiftFrameResult(frame_id=item.frame_id, model_id=self.model_id)
-        outcome = outcome_of(item.error)
+    async def _submit(self, taken: list[tuple[lifter_pb2.LiftFrame, float]]) -> _Group:
+        """Check and convert a group of frames, then queue the valid ones as one request."""
+        group = _Group([(f.frame_id, t) for f, t in taken], [None] * len(taken), [-1] * len(taken))
+        by_threshold: dict[float | None, tuple[list[PoseInput], list[int]]] = {}
+        for k, (frame, _) in enumerate(taken):
+            threshold = frame.confidence_threshold if frame.HasField("confidence_threshold") else None
+            try:
+                (pose,) = to_pose_inputs([frame.pose], frame.pose.format or DEFAULT_FORMAT, "pose")
+            except InvalidKeypoints as err:
+                group.errors[k] = err
+                continue
+            poses, indices = by_threshold.setdefault(threshold, ([], []))
+            poses.append(pose)
+            indices.append(k)
+        parts: list[tuple[list[int], ModelInput]] = []
+        for threshold, (poses, indices) in by_threshold.items():
+            try:
+                parts.extend(self._prepare(poses, threshold, indices, group))
+            except InvalidKeypoints as err:
+                group.errors[indices[0]] = err
+        if not parts:
+            return group
+        rows = [k for indices, _ in parts for k in indices]
+        inputs = parts[0][1] if len(parts) == 1 else concat_inputs([p for _, p in parts])
         try:
-            if item.future is not None and item.inputs is not None:
-                result.pose.CopyFrom(to_pose_result(item.inputs, item.future.result(), 0))
-        except Exception:  # one frame's fault must not end the stream
-            log.exception("LiftStream frame %d failed", item.frame_id)
-            item.error, outcome = LiftError("internal error while lifting this frame"), ERROR
-        if item.error is not None:
-            result.error.CopyFrom(frame_error(item.error))
-            if isinstance(item.error, InvalidKeypoints):
-                self.metrics.reject(TRANSPORT, item.error.violations)
-        self.metrics.in_flight.labels(transport=TRANSPORT).dec()
-        self.metrics.finish(TRANSPORT, "LiftStream", outcome, time.perf_counter() - item.start)
-        return result
+            group.futures = await self._queue(inputs)
+        except LiftError as err:  # queue full for too long, or shutting down
+            for k in rows:
+                group.errors[k] = err
+            return group
+        group.inputs = inputs
+        for row, k in enumerate(rows):
+            group.rows[k] = row
+        return group
+
+    async def _queue(self, inputs: ModelInput) -> list[futures.Future[Prediction]]:
+        """Engine.submit; a full queue is retried for up to STREAM_QUEUE_WAIT_S without blocking the
+        event loop (a busy moment slows a stream down instead of failing its frames)."""
+        deadline = time.monotonic() + STREAM_QUEUE_WAIT_S
+        while True:
+            try:
+                return self.engine.submit(inputs, TRANSPORT)
+            except Overloaded:
+                if time.monotonic() >= deadline:
+                    raise
+                await asyncio.sleep(QUEUE_RETRY_S)
+
+    def _answer(self, group: _Group) -> Iterator[lifter_pb2.LiftFrameResult]:
+        """The group's results in frame order; a failed run gives its frames an error result."""
+        columns: dict[str, list[Any]] = {}
+        failure: LiftError | None = None
+        if group.inputs is not None:
+            try:
+                prediction = concat_predictions([f.result() for f in group.futures])
+                columns = result_columns(group.inputs, prediction)
+            except Exception:  # one run's fault must not end the stream
+                log.exception("LiftStream: lifting frames %d.. failed", group.frames[0][0])
+                failure = LiftError("internal error while lifting this frame")
+        for k, (frame_id, start) in enumerate(group.frames):
+            error, row = group.errors[k], group.rows[k]
+            if error is None and row >= 0 and failure is None:
+                pose = lifter_pb2.PoseResult(**{name: values[row] for name, values in columns.items()})
+                result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=self.model_id, pose=pose)
+            else:
+                error = error or failure
+                assert error is not None
+                result = lifter_pb2.LiftFrameResult(
+                    frame_id=frame_id, model_id=self.model_id, error=frame_error(error)
+                )
+                if isinstance(error, InvalidKeypoints):
+                    self.metrics.reject(TRANSPORT, error.violations)
+            self.metrics.finish(TRANSPORT, "LiftStream", outcome_of(error), time.perf_counter() - start)
+            yield result
 
 
-def _put_end(window: queue.Queue[_Pending | None], stop: threading.Event) -> None:
-    while not stop.is_set():
-        try:
-            window.put(None, timeout=0.1)
+class Health:
+    """The standard gRPC health service, set from any thread: SERVING or NOT_SERVING for the whole
+    server ("") and for repnet.v1.PoseLifter."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.servicer = health.aio.HealthServicer()
+        self.serving = False  # what was reported last
+
+    def _call(self, coroutine: Coroutine[Any, Any, None]) -> None:
+        if self.loop.is_closed():
+            coroutine.close()
             return
-        except queue.Full:
-            continue
+        asyncio.run_coroutine_threadsafe(coroutine, self.loop).result(timeout=10)
+
+    async def set_status(self, serving: bool) -> None:
+        status = (
+            health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
+        )
+        for name in ("", SERVICE_NAME):
+            await self.servicer.set(name, status)
+        self.serving = serving
+
+    def set_serving(self, serving: bool) -> None:
+        self._call(self.set_status(serving))
+
+    def enter_graceful_shutdown(self) -> None:
+        """NOT_SERVING from now on, whatever is set later (what SIGTERM does first)."""
+        self._call(self.servicer.enter_graceful_shutdown())
+        self.serving = False
 
 
-def set_serving(servicer: health.HealthServicer, serving: bool) -> None:
-    """Report the whole server and the PoseLifter service as SERVING or NOT_SERVING."""
-    status = health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
-    for name in ("", SERVICE_NAME):
-        servicer.set(name, status)
+class GrpcServer:
+    """A grpc.aio server on its own event loop thread, driven from synchronous code.
+
+    Built by create_server (bound, not started); start() serves; stop(grace) stops accepting calls,
+    gives the calls in progress `grace` seconds and returns an Event set once it has stopped.
+    """
+
+    def __init__(self, build: Callable[[Health], Coroutine[Any, Any, tuple[grpc.aio.Server, int]]]) -> None:
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name="repnet-grpc", daemon=True)
+        self._thread.start()
+        self.health = Health(self.loop)
+        self._stopped: threading.Event | None = None
+        try:
+            self.server, self.port = asyncio.run_coroutine_threadsafe(build(self.health), self.loop).result()
+        except BaseException:
+            self._close_loop()
+            raise
+
+    def start(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.server.start(), self.loop).result()
+
+    def stop(self, grace: float | None) -> threading.Event:
+        if self._stopped is None:
+            self._stopped = threading.Event()
+            stopping = asyncio.run_coroutine_threadsafe(self.server.stop(grace), self.loop)
+            threading.Thread(
+                target=self._finish, args=(stopping,), name="repnet-grpc-stop", daemon=True
+            ).start()
+        return self._stopped
+
+    def _finish(self, stopping: futures.Future[None]) -> None:
+        try:
+            stopping.result()
+        except Exception:
+            log.exception("the gRPC server did not stop cleanly")
+        finally:
+            self._close_loop()
+            if self._stopped is not None:
+                self._stopped.set()
+
+    def _close_loop(self) -> None:
+        """Stop the event loop thread and close the loop (from any thread but the loop's own)."""
+        if not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self._thread.join(timeout=10)
+            if not self.loop.is_running():
+                self.loop.close()
 
 
 def create_server(
@@ -247,31 +435,34 @@ def create_server(
     limits: Limits,
     address: str,
     *,
-    health_servicer: health.HealthServicer,
     workers: int = 32,
     max_message_bytes: int = 4 << 20,
     stream_window: int = 256,
-) -> tuple[grpc.Server, int]:
-    """A gRPC server (not started) bound to `address`; returns it and the bound port.
+) -> GrpcServer:
+    """A gRPC server (not started) bound to `address`, with health (`.health`) and reflection.
 
-    Each open stream holds one of `workers` threads; calls beyond that get RESOURCE_EXHAUSTED.
+    At most `workers` calls (open streams included) run at once; calls beyond that get
+    RESOURCE_EXHAUSTED.
     """
-    server = grpc.server(
-        futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="repnet-grpc"),
-        maximum_concurrent_rpcs=workers,
-        # so_reuseport 0: a second server on a taken port fails instead of sharing it.
-        options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.so_reuseport", 0)],
-    )
-    servicer = PoseLifterServicer(engine, metrics, limits, stream_window)
-    lifter_pb2_grpc.add_PoseLifterServicer_to_server(servicer, server)  # type: ignore[no-untyped-call]
-    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    set_serving(health_servicer, engine.ready)
-    names = (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME)
-    reflection.enable_server_reflection(names, server)
-    try:
-        port = server.add_insecure_port(address)
-    except RuntimeError as err:  # grpc's way to say the port is taken
-        raise OSError(f"cannot bind the gRPC server to {address}: {err}") from err
-    if port == 0:
-        raise OSError(f"cannot bind the gRPC server to {address}")
-    return server, port
+
+    async def build(status: Health) -> tuple[grpc.aio.Server, int]:
+        server = grpc.aio.server(
+            maximum_concurrent_rpcs=workers,
+            # so_reuseport 0: a second server on a taken port fails instead of sharing it.
+            options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.so_reuseport", 0)],
+        )
+        servicer = PoseLifterServicer(engine, metrics, limits, stream_window)
+        lifter_pb2_grpc.add_PoseLifterServicer_to_server(servicer, server)  # type: ignore[no-untyped-call]
+        health_pb2_grpc.add_HealthServicer_to_server(status.servicer, server)
+        names = (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME)
+        reflection.enable_server_reflection(names, server)
+        try:
+            port = server.add_insecure_port(address)
+        except RuntimeError as err:  # grpc's way to say the port is taken
+            raise OSError(f"cannot bind the gRPC server to {address}: {err}") from err
+        if port == 0:
+            raise OSError(f"cannot bind the gRPC server to {address}")
+        await status.set_status(engine.ready)
+        return server, port
+
+    return GrpcServer(build)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import Sequence
 from typing import Any
@@ -12,9 +13,10 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
 
-from service.engine import Engine
+from service.engine import Engine, concat_predictions
 from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Overloaded, Violation
 from service.formats import FORMATS
 from service.http_middleware import OUTCOME_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
@@ -33,6 +35,9 @@ from service.schemas import (
 )
 
 log = logging.getLogger(__name__)
+
+# Requests with at most this many poses are converted on the event loop (no worker-thread hop).
+INLINE_POSES = 8
 
 ERRORS: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "The body is not UTF-8 JSON, or is nested too deeply."},
@@ -183,18 +188,28 @@ def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes:
         metrics.reject("http", [violation])
         return JSONResponse({"detail": [error_item(violation)]}, status_code=400)
 
-    @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
-    def lift(request: LiftRequest) -> Response:
-        """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
+    def prepare(request: LiftRequest) -> ModelInput:
         poses = [to_pose_input(p, request.format) for p in request.poses]
-        inputs = prepare_poses(poses, limits, request.confidence_threshold)
-        prediction = engine.lift(inputs, "http")
+        return prepare_poses(poses, limits, request.confidence_threshold)
+
+    def reply(inputs: ModelInput, prediction: Prediction) -> JSONResponse:
         body = {
             "model_id": info.model_id,
             "joints": list(info.joint_names),
             "poses": to_pose_results(inputs, prediction),
         }
         return JSONResponse(body)
+
+    @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
+    async def lift(request: LiftRequest) -> Response:
+        """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
+        # A few poses cost less to convert here than the hop to a worker thread and back; larger
+        # requests go to the thread pool so that the event loop keeps serving the others.
+        inline = len(request.poses) <= INLINE_POSES
+        inputs = prepare(request) if inline else await run_in_threadpool(prepare, request)
+        futures = engine.submit(inputs, "http")
+        prediction = concat_predictions([await asyncio.wrap_future(f) for f in futures])
+        return reply(inputs, prediction) if inline else await run_in_threadpool(reply, inputs, prediction)
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:

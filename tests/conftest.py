@@ -13,7 +13,6 @@ from pathlib import Path
 import grpc
 import numpy as np
 import pytest
-from grpc_health.v1 import health
 from prometheus_client import CollectorRegistry
 
 with warnings.catch_warnings():  # starlette's note about httpx2 is not ours to act on
@@ -23,7 +22,7 @@ with warnings.catch_warnings():  # starlette's note about httpx2 is not ours to 
 from service._proto.repnet.v1 import lifter_pb2_grpc
 from service.config import BUNDLED_MODEL, Settings
 from service.engine import Engine
-from service.grpc_api import create_server
+from service.grpc_api import Health, create_server
 from service.http_api import create_app
 from service.keypoints import Limits
 from service.lifter import Lifter, Prediction
@@ -150,27 +149,18 @@ def client(engine: Engine, metrics: Metrics, limits: Limits) -> Iterator[TestCli
 class GrpcHandle:
     stub: lifter_pb2_grpc.PoseLifterStub
     channel: grpc.Channel
-    health: health.HealthServicer
+    health: Health
     port: int
 
 
 @pytest.fixture
 def grpc_handle(engine: Engine, metrics: Metrics, limits: Limits) -> Iterator[GrpcHandle]:
     """A real gRPC server on a free localhost port, sharing `engine` with `client`."""
-    servicer = health.HealthServicer()
-    server, port = create_server(
-        engine,
-        metrics,
-        limits,
-        "localhost:0",
-        health_servicer=servicer,
-        workers=8,
-        max_message_bytes=64 * 1024,
-    )
+    server = create_server(engine, metrics, limits, "localhost:0", workers=8, max_message_bytes=64 * 1024)
     server.start()
-    channel = grpc.insecure_channel(f"localhost:{port}")
+    channel = grpc.insecure_channel(f"localhost:{server.port}")
     try:
-        yield GrpcHandle(lifter_pb2_grpc.PoseLifterStub(channel), channel, servicer, port)  # type: ignore[no-untyped-call]
+        yield GrpcHandle(lifter_pb2_grpc.PoseLifterStub(channel), channel, server.health, server.port)  # type: ignore[no-untyped-call]
     finally:
         channel.close()
         server.stop(0).wait()
@@ -202,6 +192,6 @@ def live_service(lifter: Lifter) -> Iterator[LiveService]:
             raise RuntimeError("the live service did not start")
         time.sleep(0.02)
     port = service.http.servers[0].sockets[0].getsockname()[1]
-    yield LiveService(f"http://127.0.0.1:{port}", f"127.0.0.1:{service.grpc_port}")
+    yield LiveService(f"http://127.0.0.1:{port}", f"127.0.0.1:{service.grpc_server.port}")
     service.begin_shutdown()
     thread.join(timeout=15)

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 import grpc
 import numpy as np
 import pytest
-from grpc_health.v1 import health
 from prometheus_client import CollectorRegistry
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
@@ -141,11 +140,10 @@ def roomy_stub(
 ) -> Iterator[lifter_pb2_grpc.PoseLifterStub]:
     """A server whose queue holds a whole stream window, as the defaults do: no frame is refused."""
     engine = engine_factory(lifter, max_batch=64, queue_size=1024)
-    servicer = health.HealthServicer()
-    server, port = create_server(engine, metrics, limits, "localhost:0", health_servicer=servicer,
-                                 workers=4, max_message_bytes=64 * 1024, stream_window=256)  # fmt: skip
+    server = create_server(engine, metrics, limits, "localhost:0",
+                           workers=4, max_message_bytes=64 * 1024, stream_window=256)  # fmt: skip
     server.start()
-    with grpc.insecure_channel(f"localhost:{port}") as channel:
+    with grpc.insecure_channel(f"localhost:{server.port}") as channel:
         yield lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
     server.stop(0).wait()
 

@@ -123,7 +123,7 @@ def check_answers(answers: list[Answer], accepted: str, refused: str) -> int:
 def test_burst_beyond_the_queue_is_refused_fast_and_the_server_recovers(slow_service: Service) -> None:
     port = slow_service.http.servers[0].sockets[0].getsockname()[1]
     url = f"http://127.0.0.1:{port}"
-    with grpc.insecure_channel(f"127.0.0.1:{slow_service.grpc_port}") as channel:
+    with grpc.insecure_channel(f"127.0.0.1:{slow_service.grpc_server.port}") as channel:
         stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
         with ThreadPoolExecutor(max_workers=1) as background:
             grpc_answers = background.submit(grpc_burst, stub)

@@ -192,3 +192,31 @@ def test_a_failed_run_reaches_every_caller_and_the_worker_goes_on(
             future.result(timeout=10)
     with pytest.raises(RuntimeError):
         engine.lift(model_input(variant(2)), "test")
+
+
+def test_an_idle_batcher_runs_a_lone_request_without_waiting(
+    engine_factory: Callable[..., Engine], lifter: Lifter
+) -> None:
+    """max_wait only applies under load: a request to an idle engine does not wait for company."""
+    engine = engine_factory(lifter, max_wait_s=5.0)
+    engine.lift(model_input(variant(0)), "http")  # warm-up
+    start = time.monotonic()
+    engine.lift(model_input(variant(1)), "http")
+    assert time.monotonic() - start < 2.5
+
+
+def test_work_queued_during_a_run_waits_for_company(
+    engine_factory: Callable[..., Engine], gated: GatedLifter
+) -> None:
+    """Under load the batcher gives the next batch max_wait to fill: requests that arrive shortly
+    after the run that held them up ends still join the same batch."""
+    engine = engine_factory(gated, max_batch=64, max_wait_s=1.0, queue_size=64)
+    gated.gate.clear()
+    first = engine.submit(model_input(variant(0)), "http")
+    wait_until(gated.entered.is_set, "the first run to start")
+    second = engine.submit(model_input(variant(1)), "http")  # queued while the first run runs
+    gated.gate.set()
+    first[0].result(timeout=10)
+    third = engine.submit(model_input(variant(2)), "http")  # after that run, within max_wait
+    assert len(second[0].result(timeout=10)) == 1 and len(third[0].result(timeout=10)) == 1
+    assert gated.batches == [1, 2]

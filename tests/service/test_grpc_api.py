@@ -182,3 +182,50 @@ def test_a_cancelled_stream_releases_its_frames(stub: Stub, registry: CollectorR
         time.sleep(0.01)
     assert registry.get_sample_value("repnet_in_flight_requests", {"transport": "grpc"}) == 0
     assert stub.Lift(to_proto_request({"poses": [good()]}), timeout=10).poses  # the server goes on
+
+
+def test_frames_read_together_get_the_answers_they_get_alone(stub: Stub) -> None:
+    """Frames that arrive together are prepared as one group: mixed thresholds, formats and invalid
+    frames among them must not change any frame's answer."""
+    confidence = [1.0] * 17
+    confidence[13] = 0.5  # left wrist: visible at threshold 0.2, missing at 0.9
+    sent = []
+    for i in range(40):
+        pose = good(keypoints=(POSE_2D * (1 + 0.01 * i)).tolist(), confidence=confidence)
+        frame = lifter_pb2.LiftFrame(frame_id=i, pose=to_proto_pose(pose))
+        if i % 3 == 1:
+            frame.confidence_threshold = 0.9
+        if i % 7 == 6:
+            frame.confidence_threshold = 1.5  # out of range: this frame alone is refused
+        if i % 11 == 10:
+            frame.pose.keypoints[8] = float("inf")
+        sent.append(frame)
+    streamed = list(stub.LiftStream(iter(sent), timeout=30))
+    assert [r.frame_id for r in streamed] == list(range(40))
+    for frame, result in zip(sent, streamed, strict=True):
+        (alone,) = stub.LiftStream(iter([frame]), timeout=10)
+        assert result.WhichOneof("result") == alone.WhichOneof("result"), frame.frame_id
+        if result.HasField("error"):
+            assert result.error == alone.error
+        else:
+            assert list(result.pose.visible) == list(alone.pose.visible)
+            np.testing.assert_allclose(result.pose.pose_3d, alone.pose.pose_3d, rtol=1e-4, atol=1e-2)
+    assert not streamed[1].pose.visible[13] and streamed[0].pose.visible[13]
+    assert streamed[6].error.violations[0].field == "confidence_threshold"
+
+
+def test_undecodable_frame_ends_the_stream_after_the_frames_before_it(grpc_handle: GrpcHandle) -> None:
+    raw: grpc.StreamStreamMultiCallable[bytes, bytes] = grpc_handle.channel.stream_stream(
+        "/repnet.v1.PoseLifter/LiftStream"
+    )  # bytes in, bytes out
+    good_frames = [
+        lifter_pb2.LiftFrame(frame_id=i, pose=to_proto_pose(good())).SerializeToString() for i in range(3)
+    ]
+    call = raw(iter([*good_frames, b"\xff\xff\xff\xff\x0f not a protobuf message"]), timeout=10)
+    answers = []
+    with pytest.raises(grpc.RpcError) as raised:
+        for answer in call:
+            answers.append(lifter_pb2.LiftFrameResult.FromString(answer))
+    assert raised.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "cannot be decoded" in (raised.value.details() or "")
+    assert [a.frame_id for a in answers] == [0, 1, 2] and all(a.HasField("pose") for a in answers)

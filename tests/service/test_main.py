@@ -155,9 +155,11 @@ def test_shutdown_reports_not_serving_and_finishes_in_flight_requests(gated: Gat
     wait_until(gated.entered.is_set, "the request to reach the model")
 
     service.begin_shutdown()
-    check = service.health_servicer.Check(health_pb2.HealthCheckRequest(service=""), None)  # type: ignore[arg-type]
-    assert check.status == health_pb2.HealthCheckResponse.NOT_SERVING and not service.engine.ready
-    with grpc.insecure_channel(f"127.0.0.1:{service.grpc_port}") as channel, pytest.raises(grpc.RpcError):
+    assert not service.grpc_server.health.serving and not service.engine.ready
+    with (
+        grpc.insecure_channel(f"127.0.0.1:{service.grpc_server.port}") as channel,
+        pytest.raises(grpc.RpcError),
+    ):
         stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
         stub.Lift(lifter_pb2.LiftRequest(poses=[to_proto_pose(good())]), timeout=5)  # no new calls
     gated.gate.set()
@@ -174,7 +176,7 @@ def test_health_flips_on_the_wire_during_the_shutdown_delay(lifter: Lifter) -> N
     try:
         wait_until(lambda: service.http.started, "the HTTP server")
         url = f"http://127.0.0.1:{service.http.servers[0].sockets[0].getsockname()[1]}/readyz"
-        with grpc.insecure_channel(f"127.0.0.1:{service.grpc_port}") as channel:
+        with grpc.insecure_channel(f"127.0.0.1:{service.grpc_server.port}") as channel:
             check = channel.unary_unary(
                 "/grpc.health.v1.Health/Check",
                 request_serializer=health_pb2.HealthCheckRequest.SerializeToString,

@@ -1,0 +1,59 @@
+"""The service with the model taken out: what HTTP and gRPC cost on their own (the transport ceiling).
+
+    python -m bench.ceiling [service flags]   (the same flags as `python -m service`)
+
+Everything a request goes through runs as in the service (validation, format conversion, the
+batcher, result building, metrics) except onnxruntime and the camera geometry: the lifter answers
+each batch with copies of one real prediction. bench.run measures it next to the service, so the
+report shows how close to the roof the Python transports could get at all on the machine.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+from dataclasses import fields
+from pathlib import Path
+from types import FrameType
+
+import numpy as np
+
+if __package__ in (None, ""):  # `python bench/ceiling.py`
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench.stats import sample_poses
+from service.__main__ import build_service, load_lifter, parse_settings
+from service.lifter import Lifter, Prediction
+
+
+class ConstantLifter(Lifter):
+    """Answers every batch with one real prediction repeated: no model run, no geometry."""
+
+    def __init__(self, lifter: Lifter) -> None:
+        super().__init__(lifter.session, lifter.path)
+        pose = sample_poses(1)
+        self.answer = lifter.lift(pose, np.ones(pose.shape[:2], bool))
+
+    def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
+        n = keypoints_2d.shape[0]
+        return Prediction(
+            **{f.name: np.repeat(getattr(self.answer, f.name), n, axis=0) for f in fields(Prediction)}
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    settings = parse_settings(argv)
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    service = build_service(settings, ConstantLifter(load_lifter(settings)))
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        service.begin_shutdown()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    return service.run()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
