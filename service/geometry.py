@@ -18,20 +18,44 @@ def camera_scale(camera: np.ndarray) -> FloatArray:
 def camera_rotation(camera: np.ndarray) -> FloatArray:
     """The rotation hidden in (N, 2, 3) K as (N, 3, 3) matrices with det 1.
 
-    Rows 1 and 2 are the row-orthonormal 2x3 matrix nearest to K / s (polar decomposition,
-    U V^T of K's SVD), which is K / s itself when K is a scaled row-orthonormal matrix as the
-    RepNet camera loss asks (Wandt & Rosenhahn 2019, Eq. 5); row 3 is their cross product.
-    Unlike Gram-Schmidt it favours neither row and stays orthonormal for any K.
+    Rows 1 and 2 are the row-orthonormal 2x3 matrix nearest to K / s: the orthogonal factor Q of
+    K's polar decomposition K = P Q, P = (K K^T)^(1/2), which equals U V^T of K's SVD and is
+    K / s itself when K is a scaled row-orthonormal matrix as the RepNet camera loss asks (Wandt &
+    Rosenhahn 2019, Eq. 5); row 3 is their cross product. Unlike Gram-Schmidt it favours neither
+    row and stays orthonormal for any K. Q = P^-1 K uses the closed form of a 2x2 matrix square
+    root, (M + sqrt(det M) I) / sqrt(tr M + 2 sqrt(det M)); cameras of rank < 2 go through the SVD.
     """
-    u, _, vt = np.linalg.svd(camera.astype(np.float64), full_matrices=False)  # (N,2,2) (N,2) (N,2,3)
-    rows = u @ vt  # (N, 2, 3)
-    third = np.cross(rows[:, 0], rows[:, 1])  # (N, 3)
+    k = camera.astype(np.float64)
+    m = k @ k.transpose(0, 2, 1)  # (N, 2, 2) K K^T
+    det = np.maximum(m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0], 0.0)
+    trace = m[:, 0, 0] + m[:, 1, 1]
+    root_det = np.sqrt(det)
+    full_rank = det > 1e-12 * np.maximum(trace, 1e-300) ** 2
+    # P^-1 = t (M + r I)^-1 with r = sqrt(det M), t = sqrt(tr M + 2 r); (M + r I)^-1 by its adjugate.
+    r = np.where(full_rank, root_det, 1.0)
+    t = np.sqrt(trace + 2 * r)
+    a, b, c, d = m[:, 0, 0] + r, m[:, 0, 1], m[:, 1, 0], m[:, 1, 1] + r
+    scale = t / np.where(full_rank, a * d - b * c, 1.0)
+    inverse_root = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], 1) * scale[:, None, None]
+    rows = inverse_root @ k  # (N, 2, 3)
+    if not full_rank.all():
+        u, _, vt = np.linalg.svd(k[~full_rank], full_matrices=False)
+        rows[~full_rank] = u @ vt
+    r0, r1 = rows[:, 0], rows[:, 1]
+    third = np.stack(
+        [
+            r0[:, 1] * r1[:, 2] - r0[:, 2] * r1[:, 1],
+            r0[:, 2] * r1[:, 0] - r0[:, 0] * r1[:, 2],
+            r0[:, 0] * r1[:, 1] - r0[:, 1] * r1[:, 0],
+        ],
+        -1,
+    )
     return np.asarray(np.concatenate([rows, third[:, None]], axis=1), dtype=np.float32)
 
 
 def rotate_to_camera(pose_3d: np.ndarray, rotation: np.ndarray) -> FloatArray:
     """pose_3d (N, J, 3) in the template frame -> (N, J, 3) in the camera's orientation (X R^T)."""
-    return np.asarray(np.einsum("nkj,nij->nki", pose_3d.astype(np.float64), rotation), dtype=np.float32)
+    return np.asarray(pose_3d.astype(np.float64) @ rotation.transpose(0, 2, 1), dtype=np.float32)
 
 
 def _visible_stats(points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,7 +81,7 @@ def reproject(
     K X matches the normalised input up to a translation, so it is centred on its visible joints,
     scaled by the input's standard deviation and moved to the input's visible mean.
     """
-    projected = np.einsum("nij,nkj->nki", camera.astype(np.float64), pose_3d)  # (N, J, 2)
+    projected = pose_3d.astype(np.float64) @ camera.astype(np.float64).transpose(0, 2, 1)  # (N, J, 2)
     proj_mean, _ = _visible_stats(projected, visible)
     in_mean, in_std = _visible_stats(keypoints_2d, visible)
     pixels = (projected - proj_mean[:, None]) * in_std[:, None, None] + in_mean[:, None]

@@ -63,3 +63,20 @@ def test_invisible_joints_do_not_move_the_reprojection() -> None:
     b = geometry.reproject(camera, POSE_3D[None], poisoned, visible)
     np.testing.assert_array_equal(a, b)
     assert np.isfinite(geometry.reprojection_error(b, poisoned, visible)).all()
+
+
+def test_rotation_rows_are_the_polar_factor_of_the_camera() -> None:
+    """The closed form equals U V^T of K's SVD, the nearest row-orthonormal matrix; cameras of
+    rank 1 or 0 (where that matrix is not unique) still give a rotation."""
+    rng = np.random.default_rng(7)
+    camera = rng.normal(size=(200, 2, 3)) * rng.uniform(1e-4, 10, (200, 1, 1))
+    camera[0, 1] = 3 * camera[0, 0]  # rank 1
+    camera[1] = 0.0
+    u, _, vt = np.linalg.svd(camera, full_matrices=False)
+    rotation = geometry.camera_rotation(camera.astype(np.float32))
+    np.testing.assert_allclose(rotation[2:, :2], (u @ vt)[2:], atol=1e-5)
+    rotation64 = rotation.astype(np.float64)
+    np.testing.assert_allclose(
+        rotation64 @ rotation64.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (200, 3, 3)), atol=1e-5
+    )
+    np.testing.assert_allclose(np.linalg.det(rotation64), 1.0, atol=1e-5)
