@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
 import time
@@ -215,7 +216,8 @@ class PoseLifterServicer:
                 wake.set()
 
         def on_done(_: object) -> None:  # called on the engine's thread
-            loop.call_soon_threadsafe(wake.set)
+            with contextlib.suppress(RuntimeError):  # the loop closed: the server has stopped
+                loop.call_soon_threadsafe(wake.set)
 
         gauge = self.metrics.in_flight.labels(transport=TRANSPORT)
         pending: deque[_Group] = deque()

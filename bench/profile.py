@@ -1,0 +1,150 @@
+"""Profile the running service under one load with py-spy: where its CPU time goes, per thread and function.
+
+    python -m bench.profile --load stream-x1 [--seconds 8] [--out runs/bench/profile-stream-x1.json]
+
+Starts `python -m service` (or `--module bench.ceiling`) in a child process, samples it with
+`py-spy record` (a dev dependency; it needs ptrace: root or CAP_SYS_PTRACE) while bench's own load
+generator drives it, and prints the busiest threads and functions: *self* is time in the function's
+own code, *inclusive* counts its callees too. Idle threads (waiting on a lock or on I/O) are not
+sampled, so the shares are of the time the server's threads were running.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+
+if __package__ in (None, ""):  # `python bench/profile.py`
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench.grpc_load import measure_stream, measure_unary
+from bench.http_load import measure_http
+from bench.server import ServiceProcess
+from bench.stats import Result, write_json
+
+log = logging.getLogger("bench.profile")
+
+LOADS: dict[str, Callable[[ServiceProcess, float], Result]] = {
+    "http-c1": lambda s, d: measure_http("127.0.0.1", s.http_port, s.pid, 1, 1, d),
+    "http-c8": lambda s, d: measure_http("127.0.0.1", s.http_port, s.pid, 1, 8, d),
+    "grpc-c1": lambda s, d: measure_unary(s.target, s.pid, 1, 1, d),
+    "stream-x1": lambda s, d: measure_stream(s.target, s.pid, 1, duration=d),
+    "stream-x8": lambda s, d: measure_stream(s.target, s.pid, 8, duration=d),
+}
+
+
+@dataclass
+class Profile:
+    """Sample counts from py-spy's raw (collapsed stack) output."""
+
+    samples: int = 0
+    threads: Counter[str] = field(default_factory=Counter)
+    self_time: Counter[str] = field(default_factory=Counter)
+    inclusive: Counter[str] = field(default_factory=Counter)
+
+    @classmethod
+    def parse(cls, text: str) -> Profile:
+        """Lines `thread;frame;frame;... count`, outermost frame first."""
+        profile = cls()
+        for line in text.splitlines():
+            stack, _, count = line.rpartition(" ")
+            if not stack or not count.isdigit():
+                continue
+            n = int(count)
+            thread, *frames = stack.split(";")
+            profile.samples += n
+            profile.threads[thread] += n
+            if frames:
+                profile.self_time[frames[-1]] += n
+                for frame in set(frames):
+                    profile.inclusive[frame] += n
+        return profile
+
+    def table(self, counter: Counter[str], title: str, top: int) -> str:
+        lines = [f"| {title} | share of samples |", "|---|---:|"]
+        for name, n in counter.most_common(top):
+            lines.append(f"| `{name}` | {100 * n / max(self.samples, 1):.1f} % |")
+        return "\n".join(lines)
+
+
+def record(service: ServiceProcess, load: str, seconds: float, rate: int, raw: Path) -> tuple[Result, str]:
+    """Run py-spy on the service while the load runs; returns the load's Result and py-spy's output."""
+    spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
+    command = [spy, "record", "--pid", str(service.pid), "--duration", str(int(seconds)), "--rate", str(rate),
+               "--format", "raw", "--output", str(raw), "--nonblocking", "--threads"]  # fmt: skip
+    result: list[Result] = []
+    # The load starts first and runs 1 s longer than the recording, which starts once it is warm.
+    runner = threading.Thread(target=lambda: result.append(LOADS[load](service, seconds + 1.5)))
+    runner.start()
+    threading.Event().wait(1.0)
+    spy_run = subprocess.run(command, capture_output=True, text=True, check=False)
+    runner.join()
+    if spy_run.returncode != 0 or not raw.exists():
+        raise RuntimeError(f"py-spy failed ({spy_run.returncode}): {spy_run.stderr.strip()[-500:]}")
+    return result[0], spy_run.stderr.strip()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.profile",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--load", choices=sorted(LOADS), required=True)
+    parser.add_argument("--seconds", type=float, default=8.0, help="seconds recorded")
+    parser.add_argument("--rate", type=int, default=200, help="samples per second")
+    parser.add_argument("--module", default="service", help="service | bench.ceiling (no model)")
+    parser.add_argument("--top", type=int, default=25, help="functions listed")
+    parser.add_argument("--service-flag", action="append", default=[], help="extra flag for the service")
+    parser.add_argument("--out", type=Path, default=None, help="JSON summary (default: print only)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        ServiceProcess(*args.service_flag, module=args.module) as service,
+    ):
+        raw = Path(tmp) / "profile.txt"
+        result, spy_log = record(service, args.load, args.seconds, args.rate, raw)
+        profile = Profile.parse(raw.read_text())
+    log.info("%s", spy_log.splitlines()[-2] if spy_log else "")
+    top = partial(profile.table, top=args.top)
+    print(
+        "\n\n".join(
+            [
+                f"`python -m bench.profile --load {args.load} --module {args.module}`: "
+                f"{result.frames_per_s:,.0f} frames/s, p50 {result.latency_ms.get('p50', 0):.2f} ms, "
+                f"server CPU {result.server_cpu or 0:.2f} cores, {profile.samples} samples",
+                top(profile.threads, "thread"),
+                top(profile.self_time, "function (self)"),
+                top(profile.inclusive, "function (inclusive)"),
+            ]
+        )
+    )
+    if args.out:
+        write_json(
+            args.out,
+            {
+                "load": args.load,
+                "module": args.module,
+                "result": result,
+                "samples": profile.samples,
+                "threads": dict(profile.threads.most_common()),
+                "self": dict(profile.self_time.most_common(200)),
+                "inclusive": dict(profile.inclusive.most_common(200)),
+            },
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
