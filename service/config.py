@@ -29,7 +29,7 @@ class Settings(BaseSettings):
     intra_op_spinning: bool = Field(
         default=False,
         description="onnxruntime threads spin between runs (faster single runs on idle cores; off "
-        "leaves the CPU to the server's own threads, +30 % throughput on 2 cores: docs/BENCHMARKS.md)",
+        "leaves the CPU to the server's own threads, +20 % stream throughput on 2 cores: docs/BENCHMARKS.md)",
     )
     grpc_workers: int = Field(
         default=32,
