@@ -11,11 +11,9 @@ report shows how close to the roof the Python transports could get at all on the
 from __future__ import annotations
 
 import logging
-import signal
 import sys
 from dataclasses import fields
 from pathlib import Path
-from types import FrameType
 
 import numpy as np
 
@@ -23,7 +21,7 @@ if __package__ in (None, ""):  # `python bench/ceiling.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.stats import sample_poses
-from service.__main__ import build_service, load_lifter, parse_settings
+from service.__main__ import build_service, load_lifter, parse_settings, serve
 from service.lifter import Lifter, Prediction
 
 
@@ -45,14 +43,7 @@ class ConstantLifter(Lifter):
 def main(argv: list[str] | None = None) -> int:
     settings = parse_settings(argv)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
-    service = build_service(settings, ConstantLifter(load_lifter(settings)))
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        service.begin_shutdown()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    return service.run()
+    return serve(build_service(settings, ConstantLifter(load_lifter(settings))))
 
 
 if __name__ == "__main__":

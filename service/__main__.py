@@ -255,12 +255,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         service = build_service(settings)
-    except ModelLoadError as err:
+    except (ModelLoadError, OSError) as err:
         log.error("cannot start: %s", err)
         return 1
-    except OSError as err:
-        log.error("cannot start: %s", err)
-        return 1
+    return serve(service)
+
+
+def serve(service: Service) -> int:
+    """Run `service` until SIGTERM or SIGINT, drain it and return the exit status (main thread only)."""
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         log.info("received %s", signal.Signals(signum).name)

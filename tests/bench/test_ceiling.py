@@ -1,0 +1,46 @@
+"""bench.ceiling's model-free lifter and how bench.run reports the ceiling beside the targets."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bench.ceiling import ConstantLifter
+from bench.roof import RoofRow
+from bench.run import CEILING, Report
+from bench.stats import Result, sample_poses
+from service.lifter import Lifter
+
+
+def test_constant_lifter_answers_every_pose_with_one_real_prediction(lifter: Lifter) -> None:
+    constant = ConstantLifter(lifter)
+    poses = sample_poses(5, seed=3)
+    prediction = constant.lift(poses, np.ones(poses.shape[:2], bool))
+    assert len(prediction) == 5 and prediction.pose_3d.shape == (5, 17, 3)
+    np.testing.assert_array_equal(prediction.camera[4], constant.answer.camera[0])
+    assert np.isfinite(prediction.reprojection).all()
+
+
+def result(name: str, concurrency: int, frames: int, p50: float = 1.0) -> Result:
+    return Result(name, concurrency, frames, frames, 1.0, {"p50": p50, "p99": 2 * p50})
+
+
+def test_targets_name_the_ceiling_beside_the_service() -> None:
+    roof = [RoofRow("session.run", 1, 100, 0.2, {}), RoofRow("session.run", 256, 40, 1.0, {})]
+    stream = "gRPC LiftStream, 256 in flight"
+    report = Report(
+        when="", command="", machine={}, model="m.onnx", model_id="m", service_flags=[], intra_op_threads=0,
+        roof=roof,
+        results=[
+            result("HTTP /lift, 1 pose", 1, 100, p50=4.0),
+            result(stream, 1, 2_000),
+            result(CEILING + stream, 1, 5_000),
+            result(CEILING + "HTTP /lift, 1 pose", 1, 500, p50=1.5),
+        ],
+        server_rss_mb={"start": 1.0, "end": 1.0},
+    )  # fmt: skip
+    assert report.roof_best == 10_240 and report.roof_batch1_ms == 2.0
+    http, x1 = report.targets
+    assert http.startswith("MISSED: HTTP single pose c1 p50 4.00 ms")
+    assert "roof's batch-1 call: 2.00 ms" in http and "without the model p50 1.50 ms" in http
+    assert x1.startswith("MISSED: LiftStream x1 at 0.20 of the roof (target >= 0.7)")
+    assert x1.endswith("without the model the same load reaches 0.49")
