@@ -44,3 +44,15 @@ def test_targets_name_the_ceiling_beside_the_service() -> None:
     assert "roof's batch-1 call: 2.00 ms" in http and "without the model p50 1.50 ms" in http
     assert x1.startswith("MISSED: LiftStream x1 at 0.20 of the roof (target >= 0.7)")
     assert x1.endswith("without the model the same load reaches 0.49")
+
+
+def test_the_roof_is_the_better_of_the_passes_before_and_after_the_loads() -> None:
+    report = Report(
+        when="", command="", machine={"cpus": 2, "cpu": "x"}, model="m.onnx", model_id="m",
+        service_flags=[], intra_op_threads=0,
+        roof=[RoofRow("session.run", 1, 100, 0.3, {}), RoofRow("session.run", 256, 20, 1.0, {})],
+        roof_end=[RoofRow("session.run", 1, 100, 0.2, {}), RoofRow("session.run", 256, 40, 1.0, {})],
+        results=[], server_rss_mb={"start": 1.0, "end": 1.0},
+    )  # fmt: skip
+    assert report.roof_best == 10_240 and report.roof_batch1_ms == 2.0
+    assert "Roof after them" in report.markdown()
