@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -87,7 +88,7 @@ def record(service: ServiceProcess, load: str, seconds: float, rate: int, raw: P
     # The load starts first and runs 1 s longer than the recording, which starts once it is warm.
     runner = threading.Thread(target=lambda: result.append(LOADS[load](service, seconds + 1.5)))
     runner.start()
-    threading.Event().wait(1.0)
+    time.sleep(1.0)
     spy_run = subprocess.run(command, capture_output=True, text=True, check=False)
     runner.join()
     if spy_run.returncode != 0 or not raw.exists():

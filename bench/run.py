@@ -62,18 +62,7 @@ def service_loads(
 
 
 CEILING = "(no model) "  # name prefix of the rows measured against bench.ceiling
-
-
-def ceiling_loads(service: ServiceProcess, duration: float) -> list[tuple[str, Callable[[], Result]]]:
-    """The transport ceiling: the loads whose targets are ratios, against the service without a model."""
-    pid, target = service.pid, service.target
-    return [
-        ("no model: http c1", partial(measure_http, "127.0.0.1", service.http_port, pid, 1, 1, duration)),
-        *(
-            (f"no model: stream x{s}", partial(measure_stream, target, pid, s, duration=duration))
-            for s in (1, 8)
-        ),
-    ]
+CEILING_LOADS = ("http c1", "stream x1", "stream x8")  # of service_loads: those whose targets are ratios
 
 
 @dataclass
@@ -181,8 +170,10 @@ def run(args: argparse.Namespace) -> Report:
         rss_end = rss_bytes(service.pid)
     if not args.no_ceiling:
         with ServiceProcess(*flags, module="bench.ceiling") as bare:
-            for label, load in ceiling_loads(bare, args.duration):
-                log.info("measuring %s", label)
+            for label, load in service_loads(bare, args.duration, args.quick):
+                if label not in CEILING_LOADS:
+                    continue
+                log.info("measuring %s without the model", label)
                 result = load()
                 result.name = CEILING + result.name
                 results.append(result)

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, fields
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -30,13 +34,49 @@ class _Chunk:
         return int(self.keypoints_2d.shape[0])
 
 
-def concat_predictions(parts: list[Prediction]) -> Prediction:
-    """Join predictions of consecutive pose ranges back into one."""
+Rows = TypeVar("Rows", Prediction, ModelInput)
+Reply = TypeVar("Reply")
+
+# Requests of at most this many poses are converted on the caller's event loop by lift_async:
+# cheaper than the hop to a worker thread and back.
+INLINE_POSES = 8
+# The Prediction arrays a reply carries per pose, in reply order.
+RESULT_ARRAYS = (
+    "pose_3d",
+    "pose_3d_camera",
+    "camera",
+    "scale",
+    "rotation",
+    "reprojection",
+    "reprojection_error_px",
+)
+
+
+def concat_rows(parts: Sequence[Rows]) -> Rows:
+    """Join Predictions (or ModelInputs) of consecutive pose ranges into one, in order."""
     if len(parts) == 1:
         return parts[0]
-    return Prediction(
-        **{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Prediction)}
-    )
+    first = parts[0]
+    return type(first)(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(first)})
+
+
+def result_columns(inputs: ModelInput, prediction: Prediction, flat: bool = False) -> dict[str, list[Any]]:
+    """Every reply field for all poses as Python values, one list item per pose (a few ndarray.tolist
+    calls for the whole batch instead of several per pose; tolist on float32 gives the same floats as
+    converting to float64 first). `flat`: each pose's matrices as one flat list, as proto carries them."""
+    n = len(prediction)
+    columns: dict[str, list[Any]] = {}
+    for name in RESULT_ARRAYS:
+        values = getattr(prediction, name)
+        columns[name] = (values.reshape(n, -1) if flat and values.ndim > 1 else values).tolist()
+    for name in ("visible", "imputed", "derived"):
+        columns[name] = getattr(inputs, name).tolist()
+    return columns
+
+
+def _wake(room: asyncio.Future[None]) -> None:
+    if not room.done():  # a waiter that timed out cancelled its future
+        room.set_result(None)
 
 
 class Engine:
@@ -65,6 +105,8 @@ class Engine:
         self.max_wait_s = max_wait_s
         self.queue_size = queue_size
         self._queue: deque[_Chunk] = deque()
+        # Coroutines in submit_async waiting for room, woken on their own loops.
+        self._room_waiters: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []
         self._queued = 0  # poses in _queue
         self._closed = False
         self._serving = True  # False once shutdown begins: readiness off, queued work still done
@@ -88,8 +130,55 @@ class Engine:
         wait: their own window already bounds what they hold, so a busy moment slows them down
         instead of failing their frames).
         """
-        n = len(inputs)
-        chunks = [
+        chunks = self._chunks(inputs, transport)
+        with self._cond:
+            deadline = time.monotonic() + wait_s
+            while self._must_wait(len(inputs)):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._cond.wait(remaining)
+            return self._enqueue(chunks, len(inputs))
+
+    async def submit_async(
+        self, inputs: ModelInput, transport: str, wait_s: float = 0.0
+    ) -> list[Future[Prediction]]:
+        """Engine.submit for coroutines: waiting for room suspends the caller, not its event loop."""
+        loop = asyncio.get_running_loop()
+        chunks = self._chunks(inputs, transport)
+        deadline = time.monotonic() + wait_s
+        while True:
+            with self._cond:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or not self._must_wait(len(inputs)):
+                    return self._enqueue(chunks, len(inputs))
+                room: asyncio.Future[None] = loop.create_future()
+                self._room_waiters.append((loop, room))
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(room, remaining)
+
+    async def lift_async(
+        self,
+        count: int,
+        prepare: Callable[[], ModelInput],
+        reply: Callable[[ModelInput, Prediction], Reply],
+        transport: str,
+    ) -> Reply:
+        """prepare() the `count` poses of a request, queue them, await their runs and build the
+        reply, for adapters on an event loop. Up to INLINE_POSES poses are converted on the loop;
+        larger requests on a worker thread, so that the loop keeps serving the others."""
+        loop = asyncio.get_running_loop()
+        inline = count <= INLINE_POSES
+        inputs = prepare() if inline else await loop.run_in_executor(None, prepare)
+        prediction = concat_rows([await asyncio.wrap_future(f) for f in self.submit(inputs, transport)])
+        return (
+            reply(inputs, prediction)
+            if inline
+            else await loop.run_in_executor(None, reply, inputs, prediction)
+        )
+
+    def _chunks(self, inputs: ModelInput, transport: str) -> list[_Chunk]:
+        return [
             _Chunk(
                 inputs.keypoints_2d[a : a + self.max_batch],
                 inputs.visible[a : a + self.max_batch],
@@ -97,41 +186,49 @@ class Engine:
                 0.0,
                 Future(),
             )
-            for a in range(0, n, self.max_batch)
+            for a in range(0, len(inputs), self.max_batch)
         ]
-        with self._cond:
-            deadline = time.monotonic() + wait_s
-            while self._queued + n > self.queue_size and n <= self.queue_size and not self._closed:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self._cond.wait(remaining)
-            if self._closed:
-                raise ModelNotReady("the server is shutting down and accepts no new requests")
-            if self._queued + n > self.queue_size:
-                raise Overloaded(
-                    f"the batch queue is full ({self._queued} of {self.queue_size} poses waiting, "
-                    f"{n} more requested); retry later"
-                )
-            now = time.monotonic()
-            for chunk in chunks:
-                chunk.enqueued = now
-                self._queue.append(chunk)
-            self._queued += n
-            self._set_depth()
-            self._cond.notify_all()
+
+    def _must_wait(self, n: int) -> bool:
+        """n poses do not fit now but would once the queue drains (call with _cond held)."""
+        return self._queued + n > self.queue_size and n <= self.queue_size and not self._closed
+
+    def _enqueue(self, chunks: list[_Chunk], n: int) -> list[Future[Prediction]]:
+        """Queue the chunks of n poses, or raise why not (call with _cond held)."""
+        if self._closed:
+            raise ModelNotReady("the server is shutting down and accepts no new requests")
+        if self._queued + n > self.queue_size:
+            raise Overloaded(
+                f"the batch queue is full ({self._queued} of {self.queue_size} poses waiting, "
+                f"{n} more requested); retry later"
+            )
+        now = time.monotonic()
+        for chunk in chunks:
+            chunk.enqueued = now
+            self._queue.append(chunk)
+        self._queued += n
+        self._set_depth()
+        self._cond.notify_all()
         return [c.future for c in chunks]
+
+    def _room_freed(self) -> None:
+        """Wake whoever waits for room in the queue, threads and coroutines (call with _cond held)."""
+        self._cond.notify_all()
+        for loop, room in self._room_waiters:
+            with contextlib.suppress(RuntimeError):  # that loop has closed: nobody waits any more
+                loop.call_soon_threadsafe(_wake, room)
+        self._room_waiters.clear()
 
     def lift(self, inputs: ModelInput, transport: str) -> Prediction:
         """Queue `inputs`, wait for their runs and return their Prediction in input order."""
         futures = self.submit(inputs, transport)
-        return concat_predictions([f.result() for f in futures])
+        return concat_rows([f.result() for f in futures])
 
     def close(self, timeout: float | None = None) -> bool:
         """Refuse new work, finish everything queued, stop the worker; False if it timed out."""
         with self._cond:
             self._closed = True
-            self._cond.notify_all()
+            self._room_freed()  # waiting submitters learn that the server is shutting down
         self._worker.join(timeout)
         return not self._worker.is_alive()
 
@@ -166,7 +263,7 @@ class Engine:
                 batch.append(self._queue.popleft())
             self._queued -= total
             self._set_depth()
-            self._cond.notify_all()  # submitters waiting for room
+            self._room_freed()
         return batch
 
     def _run(self) -> None:

@@ -11,6 +11,7 @@ from collections import deque
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterator, Sequence
 from concurrent import futures
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import grpc
@@ -19,29 +20,17 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.engine import Engine, concat_predictions
+from service.engine import Engine, concat_rows, result_columns
 from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Overloaded, Violation
-from service.keypoints import (
-    DEFAULT_FORMAT,
-    Limits,
-    ModelInput,
-    PoseInput,
-    concat_inputs,
-    pose_field,
-    prepare_poses,
-)
+from service.keypoints import DEFAULT_FORMAT, Limits, ModelInput, PoseInput, pose_field, prepare_poses
 from service.lifter import Prediction
 from service.metrics import Metrics, outcome_of
 
 log = logging.getLogger(__name__)
 
 TRANSPORT = "grpc"
-# A stream frame that finds the batch queue full waits this long for room before its error result,
-# trying again every QUEUE_RETRY_S.
+# A stream frame that finds the batch queue full waits this long for room before its error result.
 STREAM_QUEUE_WAIT_S = 5.0
-QUEUE_RETRY_S = 0.002
-# Unary requests with at most this many poses are converted on the event loop (no thread hop).
-INLINE_POSES = 8
 SERVICE_NAME = lifter_pb2.DESCRIPTOR.services_by_name["PoseLifter"].full_name
 
 
@@ -92,26 +81,8 @@ def to_pose_inputs(poses: Sequence[lifter_pb2.Pose2D], default_format: str, pref
     return inputs
 
 
-# Prediction arrays that PoseResult carries flattened, one repeated field each.
-FLAT_ARRAYS = ("pose_3d", "pose_3d_camera", "camera", "rotation", "reprojection")
-
-
-def result_columns(inputs: ModelInput, prediction: Prediction) -> dict[str, list[Any]]:
-    """PoseResult's fields for every pose as Python values, one list item per pose: a few
-    ndarray.tolist calls for the whole batch instead of several per pose."""
-    n = len(prediction)
-    columns: dict[str, list[Any]] = {
-        name: getattr(prediction, name).reshape(n, -1).tolist() for name in FLAT_ARRAYS
-    }
-    columns["scale"] = prediction.scale.tolist()
-    columns["reprojection_error_px"] = prediction.reprojection_error_px.tolist()
-    for name in ("visible", "imputed", "derived"):
-        columns[name] = getattr(inputs, name).tolist()
-    return columns
-
-
 def pose_results(inputs: ModelInput, prediction: Prediction) -> list[lifter_pb2.PoseResult]:
-    columns = result_columns(inputs, prediction)
+    columns = result_columns(inputs, prediction, flat=True)
     return [lifter_pb2.PoseResult(**{k: v[i] for k, v in columns.items()}) for i in range(len(prediction))]
 
 
@@ -162,20 +133,10 @@ class PoseLifterServicer:
         self, request: lifter_pb2.LiftRequest, context: grpc.aio.ServicerContext[Any, Any]
     ) -> lifter_pb2.LiftResponse:
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
-        loop = asyncio.get_running_loop()
-        inline = len(request.poses) <= INLINE_POSES
+        prepare = partial(self._prepare_request, request, threshold)
         try:
             with self.metrics.track(TRANSPORT, "Lift"):
-                if inline:
-                    inputs = self._prepare_request(request, threshold)
-                else:  # keep the event loop free for the other calls
-                    inputs = await loop.run_in_executor(None, self._prepare_request, request, threshold)
-                parts = [await asyncio.wrap_future(f) for f in self.engine.submit(inputs, TRANSPORT)]
-                prediction = concat_predictions(parts)
-                if inline:
-                    results = pose_results(inputs, prediction)
-                else:
-                    results = await loop.run_in_executor(None, pose_results, inputs, prediction)
+                results = await self.engine.lift_async(len(request.poses), prepare, pose_results, TRANSPORT)
         except LiftError as err:
             await context.abort(status_of(err), str(err))
         return lifter_pb2.LiftResponse(model_id=self.model_id, joints=self.joints, poses=results)
@@ -225,9 +186,13 @@ class PoseLifterServicer:
         self.metrics.open_streams.inc()
         reader = asyncio.create_task(read())
         try:
+
+            def can_take() -> bool:  # frames wait, and none of this stream's groups waits for a run
+                return bool(inbox) and (not pending or pending[-1].done())
+
             while True:
                 wake.clear()
-                if inbox and (not pending or pending[-1].done()):
+                if can_take():
                     taken = inbox[:]
                     inbox.clear()
                     gauge.inc(len(taken))
@@ -248,8 +213,7 @@ class PoseLifterServicer:
                         reason = f"a frame cannot be decoded as a LiftFrame ({unreadable}); the stream ends"
                         await context.abort(grpc.StatusCode.INVALID_ARGUMENT, reason)
                     return
-                idle = not pending or pending[-1].done()
-                if not ((inbox and idle) or (pending and pending[0].done())):
+                if not can_take() and not (pending and pending[0].done()):
                     await wake.wait()
         finally:
             reader.cancel()
@@ -297,9 +261,9 @@ class PoseLifterServicer:
         if not parts:
             return group
         rows = [k for indices, _ in parts for k in indices]
-        inputs = parts[0][1] if len(parts) == 1 else concat_inputs([p for _, p in parts])
+        inputs = concat_rows([p for _, p in parts])
         try:
-            group.futures = await self._queue(inputs)
+            group.futures = await self.engine.submit_async(inputs, TRANSPORT, wait_s=STREAM_QUEUE_WAIT_S)
         except LiftError as err:  # queue full for too long, or shutting down
             for k in rows:
                 group.errors[k] = err
@@ -309,26 +273,14 @@ class PoseLifterServicer:
             group.rows[k] = row
         return group
 
-    async def _queue(self, inputs: ModelInput) -> list[futures.Future[Prediction]]:
-        """Engine.submit; a full queue is retried for up to STREAM_QUEUE_WAIT_S without blocking the
-        event loop (a busy moment slows a stream down instead of failing its frames)."""
-        deadline = time.monotonic() + STREAM_QUEUE_WAIT_S
-        while True:
-            try:
-                return self.engine.submit(inputs, TRANSPORT)
-            except Overloaded:
-                if time.monotonic() >= deadline:
-                    raise
-                await asyncio.sleep(QUEUE_RETRY_S)
-
     def _answer(self, group: _Group) -> Iterator[lifter_pb2.LiftFrameResult]:
         """The group's results in frame order; a failed run gives its frames an error result."""
         columns: dict[str, list[Any]] = {}
         failure: LiftError | None = None
         if group.inputs is not None:
             try:
-                prediction = concat_predictions([f.result() for f in group.futures])
-                columns = result_columns(group.inputs, prediction)
+                prediction = concat_rows([f.result() for f in group.futures])
+                columns = result_columns(group.inputs, prediction, flat=True)
             except Exception:  # one run's fault must not end the stream
                 log.exception("LiftStream: lifting frames %d.. failed", group.frames[0][0])
                 failure = LiftError("internal error while lifting this frame")
@@ -371,9 +323,6 @@ class Health:
         for name in ("", SERVICE_NAME):
             await self.servicer.set(name, status)
         self.serving = serving
-
-    def set_serving(self, serving: bool) -> None:
-        self._call(self.set_status(serving))
 
     def enter_graceful_shutdown(self) -> None:
         """NOT_SERVING from now on, whatever is set later (what SIGTERM does first)."""

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from collections.abc import Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -14,10 +14,9 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
 
-from service.engine import Engine, concat_predictions
+from service.engine import Engine, result_columns
 from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Overloaded, Violation
 from service.formats import FORMATS
 from service.http_middleware import OUTCOME_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
@@ -36,9 +35,6 @@ from service.schemas import (
 )
 
 log = logging.getLogger(__name__)
-
-# Requests with at most this many poses are converted on the event loop (no worker-thread hop).
-INLINE_POSES = 8
 
 ERRORS: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "The body is not UTF-8 JSON, or is nested too deeply."},
@@ -66,26 +62,8 @@ class LiftJSONResponse(JSONResponse):
 
 
 def to_pose_results(inputs: ModelInput, prediction: Prediction) -> list[dict[str, Any]]:
-    """One JSON-ready dict per pose (ndarray.tolist is far faster than pydantic per value; on
-    float32 arrays it gives the same Python floats as converting to float64 first, without the copy)."""
-    arrays = {
-        name: getattr(prediction, name).tolist()
-        for name in (
-            "pose_3d",
-            "pose_3d_camera",
-            "camera",
-            "scale",
-            "rotation",
-            "reprojection",
-            "reprojection_error_px",
-        )
-    }
-    flags = {
-        "visible": inputs.visible.tolist(),
-        "imputed": inputs.imputed.tolist(),
-        "derived": inputs.derived.tolist(),
-    }
-    columns = {**arrays, **flags}
+    """One JSON-ready dict per pose."""
+    columns = result_columns(inputs, prediction)
     return [{name: values[i] for name, values in columns.items()} for i in range(len(prediction))]
 
 
@@ -214,13 +192,7 @@ def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes:
     @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
     async def lift(request: LiftRequest) -> Response:
         """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
-        # A few poses cost less to convert here than the hop to a worker thread and back; larger
-        # requests go to the thread pool so that the event loop keeps serving the others.
-        inline = len(request.poses) <= INLINE_POSES
-        inputs = prepare(request) if inline else await run_in_threadpool(prepare, request)
-        futures = engine.submit(inputs, "http")
-        prediction = concat_predictions([await asyncio.wrap_future(f) for f in futures])
-        return reply(inputs, prediction) if inline else await run_in_threadpool(reply, inputs, prediction)
+        return await engine.lift_async(len(request.poses), partial(prepare, request), reply, "http")
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
@@ -49,11 +49,6 @@ class ModelInput:
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
-
-
-def concat_inputs(parts: Sequence[ModelInput]) -> ModelInput:
-    """Join the inputs of several prepared requests into one, in order."""
-    return ModelInput(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(ModelInput)))
 
 
 def pose_field(prefix: str, index: int) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections.abc import Callable
@@ -174,6 +175,42 @@ def test_a_waiting_submit_still_fails_when_no_room_comes(engine: Engine, gated: 
     with pytest.raises(Overloaded, match=r"8 of 8 poses waiting"):
         engine.submit(model_input(variant(9)), "test", wait_s=0.3)
     assert 0.25 < time.monotonic() - start < 5
+
+
+def test_an_awaiting_submit_gets_in_once_the_queue_has_room_or_fails_in_time(
+    engine: Engine, gated: GatedLifter
+) -> None:
+    """submit_async waits like submit, but suspends its coroutine: the loop runs on meanwhile."""
+    gated.gate.clear()
+    engine.submit(model_input(variant(0)), "test")
+    wait_until(gated.entered.is_set, "the first run")
+    engine.submit(model_input(*(variant(i) for i in range(8))), "test")
+
+    async def scenario() -> tuple[int, float]:
+        ticks = 0
+
+        async def tick() -> None:  # proves the event loop is free while a submit waits
+            nonlocal ticks
+            while True:
+                await asyncio.sleep(0.01)
+                ticks += 1
+
+        ticker = asyncio.create_task(tick())
+        start = time.monotonic()
+        with pytest.raises(Overloaded, match=r"8 of 8 poses waiting"):
+            await engine.submit_async(model_input(variant(9)), "test", wait_s=0.3)
+        failed_after = time.monotonic() - start
+        waiting = asyncio.create_task(engine.submit_async(model_input(variant(9)), "test", wait_s=10.0))
+        await asyncio.sleep(0.2)
+        assert not waiting.done()  # the queue is still full: it waits instead of failing
+        gated.gate.set()
+        (future,) = await asyncio.wait_for(waiting, 10)
+        await asyncio.wrap_future(future)
+        ticker.cancel()
+        return ticks, failed_after
+
+    ticks, failed_after = asyncio.run(scenario())
+    assert 0.25 < failed_after < 5 and ticks >= 10
 
 
 class FailingLifter(Lifter):
