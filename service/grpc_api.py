@@ -301,6 +301,11 @@ class PoseLifterServicer:
             yield result
 
 
+def _log_failure(done: futures.Future[None]) -> None:
+    if not done.cancelled() and (err := done.exception()) is not None:
+        log.error("updating the gRPC health status failed: %s", err)
+
+
 class Health:
     """The standard gRPC health service, set from any thread: SERVING or NOT_SERVING for the whole
     server ("") and for repnet.v1.PoseLifter."""
@@ -311,10 +316,15 @@ class Health:
         self.serving = False  # what was reported last
 
     def _call(self, coroutine: Coroutine[Any, Any, None]) -> None:
-        if self.loop.is_closed():
+        """Schedule `coroutine` on the server's loop without waiting for it: the caller may be a signal
+        handler, which must not block on another thread (that thread may wait for a lock the
+        interrupted code holds). Calls scheduled later, such as the server's stop, run after it."""
+        try:
+            done = asyncio.run_coroutine_threadsafe(coroutine, self.loop)
+        except RuntimeError:  # the loop has closed: the server has stopped, there is nobody to tell
             coroutine.close()
             return
-        asyncio.run_coroutine_threadsafe(coroutine, self.loop).result(timeout=10)
+        done.add_done_callback(_log_failure)
 
     async def set_status(self, serving: bool) -> None:
         status = (
