@@ -172,7 +172,7 @@ def result_json(result: LiftResult, points: np.ndarray, conf: np.ndarray | None)
             "reprojection": result.reprojection.tolist(),
             "reprojection_error_px": result.reprojection_error_px,
             "visible": result.visible.tolist(), "imputed": result.imputed.tolist(),
-            "derived": result.derived.tolist()}  # fmt: skip
+            "derived": result.derived.tolist(), "plausibility": result.plausibility}  # fmt: skip
 
 
 def run_lift(args: argparse.Namespace) -> int:

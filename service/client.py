@@ -54,6 +54,7 @@ class LiftResult:
     derived: BoolArray  # (17,) midpoint of two detector joints
     joints: tuple[str, ...]
     model_id: str
+    plausibility: float | None = None  # in [0, 1]; None when the model has no plausibility output
 
     @classmethod
     def from_fields(cls, get: Callable[[str], Any], joints: Sequence[str], model_id: str) -> LiftResult:
@@ -61,8 +62,13 @@ class LiftResult:
         flat repeated field (gRPC)."""
         arrays: dict[str, Any] = {k: np.asarray(get(k), np.float32).reshape(s) for k, s in _SHAPES.items()}
         flags: dict[str, Any] = {k: np.asarray(get(k), bool) for k in ("visible", "imputed", "derived")}
+        try:
+            plausibility = get("plausibility")
+        except KeyError:  # a server from before the field: the same as a model without the output
+            plausibility = None
         return cls(**arrays, **flags, scale=float(get("scale")), joints=tuple(joints), model_id=model_id,
-                   reprojection_error_px=float(get("reprojection_error_px")))  # fmt: skip
+                   reprojection_error_px=float(get("reprojection_error_px")),
+                   plausibility=None if plausibility is None else float(plausibility))  # fmt: skip
 
 
 def as_poses(

@@ -57,7 +57,9 @@ def concat_rows(parts: Sequence[Rows]) -> Rows:
     if len(parts) == 1:
         return parts[0]
     first = parts[0]
-    return type(first)(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(first)})
+    joined = {f.name: [getattr(p, f.name) for p in parts] for f in fields(first)}
+    columns: dict[str, Any] = {k: None if v[0] is None else np.concatenate(v) for k, v in joined.items()}
+    return type(first)(**columns)  # None: an optional output the model does not have
 
 
 def result_columns(inputs: ModelInput, prediction: Prediction, flat: bool = False) -> dict[str, list[Any]]:
@@ -71,6 +73,9 @@ def result_columns(inputs: ModelInput, prediction: Prediction, flat: bool = Fals
         columns[name] = (values.reshape(n, -1) if flat and values.ndim > 1 else values).tolist()
     for name in ("visible", "imputed", "derived"):
         columns[name] = getattr(inputs, name).tolist()
+    # None per pose when the model has no plausibility output: null over HTTP, unset in proto.
+    plausibility = prediction.plausibility
+    columns["plausibility"] = [None] * n if plausibility is None else plausibility.tolist()
     return columns
 
 
@@ -290,6 +295,8 @@ class Engine:
         if self.metrics is not None:
             self.metrics.inference_seconds.observe(time.monotonic() - start)
             self.metrics.batch_size.observe(len(prediction))
+            if prediction.plausibility is not None:
+                self.metrics.observe_plausibility(prediction.plausibility)
         offset = 0
         for chunk in batch:
             chunk.future.set_result(prediction.slice(offset, offset + len(chunk)))

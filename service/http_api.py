@@ -17,7 +17,17 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException
 
 from service.engine import Engine, result_columns
-from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Overloaded, Violation
+from service.errors import (
+    MAX_ECHO_CHARS,
+    MAX_ERROR_ITEMS,
+    InvalidKeypoints,
+    LiftError,
+    ModelNotReady,
+    ModelOutputError,
+    Overloaded,
+    Violation,
+    clip,
+)
 from service.formats import FORMATS
 from service.http_middleware import OUTCOME_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
 from service.keypoints import Limits, ModelInput, PoseInput, prepare_poses
@@ -79,6 +89,19 @@ def error_item(v: Violation) -> dict[str, Any]:
     }
 
 
+def error_body(violations: Sequence[Violation]) -> dict[str, Any]:
+    """The body of a 4xx: the first MAX_ERROR_ITEMS violations as items, and how many there were."""
+    return {
+        "detail": [error_item(v) for v in violations[:MAX_ERROR_ITEMS]],
+        "error_count": len(violations),
+    }
+
+
+def _loc_part(part: Any) -> str:
+    """One step of a pydantic error location in a field name; a key from the request is cut short."""
+    return f"[{part}]" if isinstance(part, int) else "." + clip(str(part), MAX_ECHO_CHARS)
+
+
 def violations_of(errors: Sequence[Any]) -> list[Violation]:
     """Pydantic's errors as Violations, naming the field like the core does: poses[0].keypoints[3]."""
     found = []
@@ -86,7 +109,7 @@ def violations_of(errors: Sequence[Any]) -> list[Violation]:
         loc = [p for p in error.get("loc", ()) if p != "body"]
         if error.get("type") == "json_invalid":
             loc = []
-        field = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".") or "body"
+        field = "".join(_loc_part(p) for p in loc).lstrip(".") or "body"
         pose = loc[1] if len(loc) > 1 and loc[0] == "poses" and isinstance(loc[1], int) else None
         joint = None
         if (
@@ -130,6 +153,8 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
             max_wait_ms=engine.max_wait_s * 1000,
             queue_size=engine.queue_size,
         ),
+        plausibility=engine.lifter.has_plausibility,
+        plausibility_calibration=info.plausibility_calibration,
         evaluation=info.evaluation,
         metadata=info.metadata,
     )
@@ -152,9 +177,12 @@ def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes:
         setattr(request.state, OUTCOME_KEY, outcome_of(err))
         if isinstance(err, InvalidKeypoints):
             metrics.reject("http", err.violations)
-            return JSONResponse({"detail": [error_item(v) for v in err.violations]}, status_code=422)
+            return JSONResponse(error_body(err.violations), status_code=422)
         if isinstance(err, Overloaded | ModelNotReady):
             return JSONResponse({"detail": str(err)}, status_code=503, headers={"Retry-After": "1"})
+        if isinstance(err, ModelOutputError):  # counted by the engine; one line, no traceback
+            log.error("POST /lift: %s", err)
+            return JSONResponse({"detail": str(err)}, status_code=500)
         raise err  # any other LiftError is a server fault: the 500 handler logs it
 
     @app.exception_handler(RequestValidationError)
@@ -162,7 +190,7 @@ def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes:
         violations = violations_of(err.errors() if isinstance(err, RequestValidationError) else [])
         setattr(request.state, OUTCOME_KEY, INVALID)
         metrics.reject("http", violations)
-        return JSONResponse({"detail": [error_item(v) for v in violations]}, status_code=422)
+        return JSONResponse(error_body(violations), status_code=422)
 
     @app.exception_handler(HTTPException)
     async def handle_http_error(request: Request, err: Exception) -> Response:
@@ -175,7 +203,7 @@ def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes:
         violation = Violation("body", reason, "malformed_json")
         setattr(request.state, OUTCOME_KEY, INVALID)
         metrics.reject("http", [violation])
-        return JSONResponse({"detail": [error_item(violation)]}, status_code=400)
+        return JSONResponse(error_body([violation]), status_code=400)
 
     def prepare(request: LiftRequest) -> ModelInput:
         poses = [to_pose_input(p, request.format) for p in request.poses]

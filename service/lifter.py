@@ -19,6 +19,10 @@ log = logging.getLogger(__name__)
 
 INPUTS = ("keypoints_2d", "visibility")
 OUTPUTS = ("pose_3d", "camera")
+# Optional output (N,) float32 in [0, 1]: the critic's score calibrated as a percentile among real
+# validation poses; its calibration is the JSON metadata entry PLAUSIBILITY_CALIBRATION.
+PLAUSIBILITY = "plausibility"
+PLAUSIBILITY_CALIBRATION = "plausibility_calibration"
 
 
 @dataclass(frozen=True)
@@ -40,6 +44,15 @@ class ModelInfo:
             return {}
         return value if isinstance(value, dict) else {}
 
+    @property
+    def plausibility_calibration(self) -> dict[str, Any] | None:
+        """How the model calibrated its plausibility output (metadata JSON), None if it says nothing."""
+        try:
+            value = json.loads(self.metadata.get(PLAUSIBILITY_CALIBRATION, "null") or "null")
+        except json.JSONDecodeError:
+            return None
+        return value if isinstance(value, dict) else None
+
 
 @dataclass(frozen=True)
 class Prediction:
@@ -52,13 +65,16 @@ class Prediction:
     pose_3d_camera: FloatArray  # (N, J, 3) mm, pose_3d rotated into the camera's orientation
     reprojection: FloatArray  # (N, J, 2) px, K X mapped back into the input's pixels
     reprojection_error_px: FloatArray  # (N,) mean pixel distance over the visible joints
+    plausibility: FloatArray | None = None  # (N,) in [0, 1]; None when the model has no such output
 
     def __len__(self) -> int:
         return int(self.pose_3d.shape[0])
 
     def slice(self, start: int, stop: int) -> Prediction:
         """Poses start..stop-1 of this prediction (views, no copy)."""
-        return replace(self, **{f.name: getattr(self, f.name)[start:stop] for f in fields(self)})
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        sliced: dict[str, Any] = {k: None if v is None else v[start:stop] for k, v in values.items()}
+        return replace(self, **sliced)
 
 
 def _read_info(session: ort.InferenceSession, path: Path) -> ModelInfo:
@@ -97,6 +113,10 @@ def _check_contract(session: ort.InferenceSession, info: ModelInfo, path: Path) 
             f"{path}: expected keypoints_2d (N, {joints}, 2) and pose_3d (N, {joints}, 3) for the "
             f"{joints} joints in its metadata, got {inputs['keypoints_2d']} and {outputs['pose_3d']}"
         )
+    if PLAUSIBILITY in outputs and len(outputs[PLAUSIBILITY]) != 1:
+        raise ModelLoadError(
+            f"{path}: expected output {PLAUSIBILITY} of shape (N,), got {outputs[PLAUSIBILITY]}"
+        )
 
 
 class Lifter:
@@ -108,6 +128,8 @@ class Lifter:
         _check_names(session, path)
         self.info = _read_info(session, path)
         _check_contract(session, self.info, path)
+        self.has_plausibility = PLAUSIBILITY in {o.name for o in session.get_outputs()}
+        self._outputs = [*OUTPUTS, PLAUSIBILITY] if self.has_plausibility else list(OUTPUTS)
 
     @classmethod
     def load(
@@ -159,8 +181,8 @@ class Lifter:
             raise InvalidKeypoints(
                 [Violation("keypoints_2d", "visible coordinates must be finite", "non_finite")]
             )
-        pose_3d, camera = self.session.run(
-            list(OUTPUTS), {"keypoints_2d": points, "visibility": visible.astype(np.float32)}
+        pose_3d, camera, *plausibility = self.session.run(
+            self._outputs, {"keypoints_2d": points, "visibility": visible.astype(np.float32)}
         )
         rotation = geometry.camera_rotation(camera)
         reprojection = geometry.reproject(camera, pose_3d, points, visible)
@@ -172,4 +194,5 @@ class Lifter:
             pose_3d_camera=geometry.rotate_to_camera(pose_3d, rotation),
             reprojection=reprojection,
             reprojection_error_px=geometry.reprojection_error(reprojection, points, visible),
+            plausibility=plausibility[0] if plausibility else None,
         )

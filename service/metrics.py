@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -15,6 +15,8 @@ from service.errors import InvalidKeypoints, ModelNotReady, Overloaded, Violatio
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0,
                    2.5, 5.0, 10.0)  # fmt: skip
 BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048)
+# Plausibility is a percentile among real poses: deciles, plus the tails where implausible poses sit.
+PLAUSIBILITY_BUCKETS = (0.01, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 
 OK, INVALID, OVERLOADED, UNAVAILABLE, ERROR = "ok", "invalid", "overloaded", "unavailable", "error"
 
@@ -90,6 +92,13 @@ class Metrics:
             buckets=BATCH_BUCKETS,
             registry=registry,
         )
+        self.plausibility = Histogram(
+            "repnet_pose_plausibility_ratio",
+            "Plausibility of each lifted pose (the model's calibrated critic score in [0, 1]); "
+            "empty when the model has no plausibility output.",
+            buckets=PLAUSIBILITY_BUCKETS,
+            registry=registry,
+        )
         self.queue_depth = Gauge(
             "repnet_batch_queue_poses", "Poses waiting in the batch queue now.", registry=registry
         )
@@ -103,6 +112,11 @@ class Metrics:
     def set_model(self, model_id: str, skeleton: str) -> None:
         self.model_info.clear()
         self.model_info.labels(model_id=model_id, skeleton=skeleton).set(1)
+
+    def observe_plausibility(self, values: Iterable[float]) -> None:
+        """One observation per pose (N,): a Python loop, run only for models with the output."""
+        for value in values:
+            self.plausibility.observe(float(value))
 
     def reject(self, transport: str, violations: Sequence[Violation]) -> None:
         for code in sorted({v.code for v in violations}):

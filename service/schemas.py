@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, Strict, model_validator
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, Strict, field_validator, model_validator
+from pydantic_core import PydanticCustomError
 
+from service.errors import echo
 from service.formats import FORMATS
 
 # Strict: a JSON string such as "12" or a boolean is not a coordinate.
@@ -23,6 +25,32 @@ FRAME_DOC = (
     "into input pixels (x right, y down)."
 )
 
+PLAUSIBILITY_DOC = (
+    "How plausible the 3D pose is, in [0, 1]: the model's critic score calibrated as a percentile "
+    "among real validation poses (0.3: more plausible than 30 % of them; near 0: a pose unlike any "
+    "real one). It judges the 3D pose alone, not its fit to the input (that is "
+    "`reprojection_error_px`). null when the loaded model has no plausibility output."
+)
+
+
+def reject_unknown_keys(model: type[BaseModel], data: Any) -> None:
+    """All unknown keys of one object as one error naming the first (cut short) and counting the
+    rest: pydantic's extra="forbid" gives one error per key, and echoes each key in full."""
+    if not isinstance(data, dict):
+        return
+    unknown = [key for key in data if key not in model.model_fields]
+    if unknown:
+        more = f" and {len(unknown) - 1} more" if len(unknown) > 1 else ""
+        raise PydanticCustomError(
+            "extra_forbidden",
+            "unknown field {name}{more}; expected {expected}",
+            {"name": echo(str(unknown[0])), "more": more, "expected": ", ".join(model.model_fields)},
+        )
+
+
+# Lists of the request stop at their first invalid item (fail_fast): a list of 300,000 wrong
+# values gets one error, found in microseconds, instead of 300,000 errors built over seconds.
+
 
 class PoseIn(BaseModel):
     """One 2D pose from a detector."""
@@ -33,17 +61,38 @@ class PoseIn(BaseModel):
         description="One [x, y] per joint of the format, in pixels (x right, y down), in the "
         "format's joint order; null for a joint the detector did not find.",
         examples=[[[512.0, 400.0], None]],
+        fail_fast=True,
     )
     confidence: list[Number] | None = Field(
         None,
         description="Optional detector confidence per joint in [0, 1]; a joint below the "
         "confidence threshold counts as missing.",
+        fail_fast=True,
     )
     format: str | None = Field(
         None,
         description="Keypoint format of this pose; defaults to the request's `format`.",
         json_schema_extra={"enum": list(FORMATS)},
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _check_keys(cls, data: Any) -> Any:
+        reject_unknown_keys(cls, data)
+        return data
+
+    @field_validator("keypoints", mode="before")
+    @classmethod
+    def _check_pairs(cls, value: Any) -> Any:
+        """A flat list [x0, y0, x1, ...] (the gRPC layout) is one wrong shape, named as such."""
+        if isinstance(value, list) and value and type(value[0]) in (int, float):
+            raise PydanticCustomError(
+                "keypoints_shape",
+                "expected a list of [x, y] pairs, one per joint (null for a missing joint), "
+                "got a flat list of {count} numbers",
+                {"count": len(value)},
+            )
+        return value
 
 
 # A person in mid-stride seen from 4.5 m (h36m17 joint order, px): the OpenAPI example request.
@@ -62,7 +111,7 @@ class LiftRequest(BaseModel):
         json_schema_extra={"examples": [{"poses": [{"keypoints": EXAMPLE_KEYPOINTS}], "format": "h36m17"}]},
     )
 
-    poses: list[PoseIn] = Field(description="The poses to lift, answered in the same order.")
+    poses: list[PoseIn] = Field(description="The poses to lift, answered in the same order.", fail_fast=True)
     format: str = Field(
         "h36m17",
         description="Keypoint format of poses that do not name their own: " + ", ".join(FORMATS) + ".",
@@ -81,6 +130,7 @@ class LiftRequest(BaseModel):
             if "confidence_threshold" in data:
                 batch["confidence_threshold"] = data["confidence_threshold"]
             return batch
+        reject_unknown_keys(cls, data)
         return data
 
 
@@ -110,6 +160,7 @@ class PoseResult(BaseModel):
         description="Per joint: the input point is the midpoint of two detector "
         "joints (e.g. pelvis = mid-hips for COCO)."
     )
+    plausibility: float | None = Field(None, description=PLAUSIBILITY_DOC)
 
 
 class LiftResponse(BaseModel):
@@ -136,6 +187,9 @@ class ErrorResponse(BaseModel):
     """A 4xx/503 answer: `detail` lists the rejected fields, or says why the server cannot serve."""
 
     detail: list[ErrorItem] | str
+    error_count: int | None = Field(
+        None, description="How many fields were rejected; `detail` lists the first 20 of them."
+    )
 
 
 class FormatInfo(BaseModel):
@@ -168,5 +222,9 @@ class ModelDescription(BaseModel):
     coordinate_contract: str = FRAME_DOC
     formats: list[FormatInfo]
     limits: LimitsInfo
+    plausibility: bool = Field(False, description="The model gives each pose a `plausibility`.")
+    plausibility_calibration: dict[str, Any] | None = Field(
+        None, description="How the plausibility was calibrated (ONNX metadata `plausibility_calibration`)."
+    )
     evaluation: dict[str, Any] = Field(description="Evaluation figures embedded in the model.")
     metadata: dict[str, str] = Field(description="Every ONNX metadata entry, verbatim.")

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
-from functools import partial
+from typing import Any
 
 import grpc
 import numpy as np
@@ -45,6 +45,17 @@ def _pose_proto(points: np.ndarray, conf: np.ndarray | None, format: str) -> lif
     flat = np.where(missing[:, None], 0.0, points).ravel().tolist()
     return lifter_pb2.Pose2D(keypoints=flat, confidence=[] if conf is None else conf.tolist(),
                              missing=missing.tolist() if missing.any() else [], format=format)  # fmt: skip
+
+
+def proto_field(pose: lifter_pb2.PoseResult) -> Callable[[str], Any]:
+    """A field getter of one proto result for LiftResult.from_fields; unset plausibility is None."""
+
+    def get(name: str) -> Any:
+        if name == "plausibility" and not pose.HasField("plausibility"):
+            return None
+        return getattr(pose, name)
+
+    return get
 
 
 def _rpc_error(err: grpc.RpcError) -> LiftClientError:
@@ -94,9 +105,7 @@ class StreamClient:
         try:
             for answer in call:
                 if answer.WhichOneof("result") == "pose":
-                    result = LiftResult.from_fields(
-                        partial(getattr, answer.pose), MODEL_JOINTS, answer.model_id
-                    )
+                    result = LiftResult.from_fields(proto_field(answer.pose), MODEL_JOINTS, answer.model_id)
                     yield FrameResult(answer.frame_id, result, None)
                     continue
                 e = answer.error
@@ -120,7 +129,7 @@ class StreamClient:
             try:
                 response = self._stub.Lift(request, timeout=self.timeout)
                 joints, model_id = response.joints, response.model_id
-                return [LiftResult.from_fields(partial(getattr, p), joints, model_id) for p in response.poses]
+                return [LiftResult.from_fields(proto_field(p), joints, model_id) for p in response.poses]
             except grpc.RpcError as err:
                 retry = isinstance(err, grpc.Call) and err.code() in _RETRY_CODES
                 if not retry or attempt == self.retries:

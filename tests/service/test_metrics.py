@@ -12,6 +12,7 @@ NAMES = {
     "repnet_requests_total", "repnet_request_duration_seconds", "repnet_rejected_inputs_total",
     "repnet_in_flight_requests", "repnet_open_streams", "repnet_batch_queue_wait_seconds",
     "repnet_inference_seconds", "repnet_batch_size_poses", "repnet_batch_queue_poses", "repnet_model_info",
+    "repnet_pose_plausibility_ratio",
 }  # fmt: skip
 
 
@@ -19,7 +20,8 @@ def test_every_metric_is_registered_with_its_unit(registry: CollectorRegistry) -
     Metrics(registry)
     names = {m.name + ("_total" if m.type == "counter" else "") for m in registry.collect()}
     assert names == NAMES
-    assert all(n.endswith(("_total", "_seconds", "_poses", "_requests", "_streams", "_info")) for n in names)
+    units = ("_total", "_seconds", "_poses", "_requests", "_streams", "_info", "_ratio")
+    assert all(n.endswith(units) for n in names)
     Metrics(CollectorRegistry())  # a second registry: no clash, nothing global
 
 

@@ -1,0 +1,194 @@
+"""The optional `plausibility` model output, followed through every module that carries it: Lifter,
+Engine batching, HTTP, gRPC (unary and stream), the clients, the CLI and the metrics. A model with
+the output is built here from the bundled graph, so the plumbing does not wait for a trained one."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+from prometheus_client import CollectorRegistry
+
+from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.cli import EXIT_OK, main
+from service.config import BUNDLED_MODEL
+from service.engine import Engine
+from service.errors import ModelLoadError
+from service.grpc_api import create_server
+from service.http_api import create_app
+from service.keypoints import Limits
+from service.lifter import PLAUSIBILITY_CALIBRATION, Lifter
+from service.metrics import Metrics
+from service.stream_client import StreamClient
+from tests.conftest import POSE_2D, POSE_3D, TestClient, project
+
+onnx = pytest.importorskip("onnx")  # the dev extra has it; service tests need no torch
+from onnx import TensorProto, helper  # noqa: E402
+
+CALIBRATION = {"method": "percentile", "reference": "test poses", "quantiles": [0.0, 0.5, 1.0]}
+SPREAD_MM = 100.0  # the test output: sigmoid(mean(pose_3d) / SPREAD_MM), a known value per pose
+
+
+def expected_plausibility(pose_3d: np.ndarray) -> np.ndarray:
+    """What the test model's extra output computes from its (N, J, 3) pose_3d, written in numpy."""
+    return np.asarray(1.0 / (1.0 + np.exp(-pose_3d.mean(axis=(1, 2)) / SPREAD_MM)))
+
+
+def build_model(path: Path, shape: list[int | str] | None = None) -> Path:
+    """The bundled model with an extra output `plausibility` (N,) = sigmoid(mean(pose_3d) / 100)
+    and the `plausibility_calibration` metadata entry; `shape` overrides the declared shape."""
+    model = onnx.load(str(BUNDLED_MODEL))
+    graph = model.graph
+    graph.initializer.append(helper.make_tensor("plaus_spread", TensorProto.FLOAT, [], [SPREAD_MM]))
+    graph.node.extend([
+        helper.make_node("ReduceMean", ["pose_3d"], ["plaus_mean"], axes=[1, 2], keepdims=0),
+        helper.make_node("Div", ["plaus_mean", "plaus_spread"], ["plaus_logit"]),
+        helper.make_node("Sigmoid", ["plaus_logit"], ["plaus_raw"]),
+    ])  # fmt: skip
+    declared = shape or ["N"]
+    if len(declared) == 1:
+        graph.node.append(helper.make_node("Identity", ["plaus_raw"], ["plausibility"]))
+    else:
+        graph.initializer.append(helper.make_tensor("plaus_shape", TensorProto.INT64, [2], [-1, 1]))
+        graph.node.append(helper.make_node("Reshape", ["plaus_raw", "plaus_shape"], ["plausibility"]))
+    graph.output.append(helper.make_tensor_value_info("plausibility", TensorProto.FLOAT, declared))
+    entry = model.metadata_props.add()
+    entry.key, entry.value = PLAUSIBILITY_CALIBRATION, json.dumps(CALIBRATION)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return path
+
+
+@pytest.fixture(scope="module")
+def plausible(tmp_path_factory: pytest.TempPathFactory) -> Lifter:
+    path = build_model(tmp_path_factory.mktemp("model") / "plausible.onnx")
+    return Lifter.load(path, intra_op_threads=1)
+
+
+def poses(n: int) -> np.ndarray:
+    """(n, 17, 2) px: the conftest person seen from n directions."""
+    return np.stack([project(POSE_3D, yaw) for yaw in np.linspace(-60, 60, n)])
+
+
+def test_lifter_returns_the_models_plausibility(plausible: Lifter, lifter: Lifter) -> None:
+    points = poses(5)
+    visible = np.ones(points.shape[:2], bool)
+    prediction = plausible.lift(points, visible)
+    assert prediction.plausibility is not None and prediction.plausibility.shape == (5,)
+    assert prediction.plausibility.dtype == np.float32
+    np.testing.assert_allclose(prediction.plausibility, expected_plausibility(prediction.pose_3d), atol=1e-6)
+    assert plausible.has_plausibility and plausible.info.plausibility_calibration == CALIBRATION
+    assert len(prediction.slice(1, 3).plausibility) == 2  # type: ignore[arg-type]
+    bundled = lifter.lift(points, visible)
+    assert bundled.plausibility is None and not lifter.has_plausibility
+    assert lifter.info.plausibility_calibration is None
+    np.testing.assert_array_equal(bundled.pose_3d, prediction.pose_3d)  # the extra output changes nothing
+
+
+def test_a_plausibility_output_of_another_shape_is_refused(tmp_path: Path) -> None:
+    path = build_model(tmp_path / "wrong.onnx", shape=["N", 1])
+    with pytest.raises(ModelLoadError, match=r"expected output plausibility of shape \(N,\), got \['N', 1\]"):
+        Lifter.load(path)
+
+
+def _body(points: np.ndarray) -> dict[str, object]:
+    return {"poses": [{"keypoints": p.tolist()} for p in points]}
+
+
+@pytest.fixture
+def app_for(
+    engine_factory: Callable[..., Engine], metrics: Metrics
+) -> Iterator[Callable[[Lifter], TestClient]]:
+    clients: list[TestClient] = []
+
+    def build(model: Lifter) -> TestClient:
+        engine = engine_factory(model, max_batch=4)  # a 10-pose request runs in three chunks
+        client = TestClient(create_app(engine, metrics, Limits(max_request_poses=16)))
+        clients.append(client.__enter__())
+        return client
+
+    yield build
+    for client in clients:
+        client.__exit__(None, None, None)
+
+
+def test_http_reply_carries_plausibility_across_chunks(
+    app_for: Callable[[Lifter], TestClient], plausible: Lifter, registry: CollectorRegistry
+) -> None:
+    client = app_for(plausible)
+    reply = client.post("/lift", json=_body(poses(10)))
+    assert reply.status_code == 200, reply.text
+    results = reply.json()["poses"]
+    pose_3d = np.array([r["pose_3d"] for r in results])
+    got = np.array([r["plausibility"] for r in results])
+    np.testing.assert_allclose(got, expected_plausibility(pose_3d), atol=1e-5)
+    assert registry.get_sample_value("repnet_pose_plausibility_ratio_count") == 10
+    assert registry.get_sample_value("repnet_pose_plausibility_ratio_sum") == pytest.approx(got.sum(), 1e-5)
+    below_half = registry.get_sample_value("repnet_pose_plausibility_ratio_bucket", {"le": "0.5"})
+    assert below_half == int((got <= 0.5).sum())
+    model = client.get("/v1/model").json()
+    assert model["plausibility"] is True and model["plausibility_calibration"] == CALIBRATION
+
+
+def test_http_plausibility_is_null_without_the_output(
+    app_for: Callable[[Lifter], TestClient], lifter: Lifter, registry: CollectorRegistry
+) -> None:
+    client = app_for(lifter)
+    reply = client.post("/lift", json=_body(poses(6)))
+    assert reply.status_code == 200, reply.text
+    assert [r["plausibility"] for r in reply.json()["poses"]] == [None] * 6
+    assert registry.get_sample_value("repnet_pose_plausibility_ratio_count") == 0
+    model = client.get("/v1/model").json()
+    assert model["plausibility"] is False and model["plausibility_calibration"] is None
+
+
+@pytest.mark.parametrize("with_output", [True, False])
+def test_grpc_lift_and_stream_carry_plausibility(
+    engine_factory: Callable[..., Engine],
+    metrics: Metrics,
+    plausible: Lifter,
+    lifter: Lifter,
+    with_output: bool,
+) -> None:
+    model = plausible if with_output else lifter
+    server = create_server(engine_factory(model), metrics, Limits(), "localhost:0", workers=4)
+    server.start()
+    try:
+        with grpc.insecure_channel(f"localhost:{server.port}") as channel:
+            stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
+            points = poses(3)
+            request = lifter_pb2.LiftRequest(poses=[lifter_pb2.Pose2D(keypoints=p.ravel()) for p in points])
+            unary = stub.Lift(request).poses
+            frames = [lifter_pb2.LiftFrame(frame_id=i, pose=request.poses[i]) for i in range(3)]
+            streamed = [r.pose for r in stub.LiftStream(iter(frames))]
+        with StreamClient(f"localhost:{server.port}") as client:
+            results = client.lift_batch(points) + [f.result for f in client.stream(points)]  # type: ignore[misc]
+    finally:
+        server.stop(0).wait()
+    for pose in [*unary, *streamed]:
+        assert pose.HasField("plausibility") is with_output
+    if with_output:
+        pose_3d = np.array([p.pose_3d for p in unary]).reshape(3, 17, 3)
+        expected = expected_plausibility(pose_3d)
+        np.testing.assert_allclose([p.plausibility for p in unary], expected, atol=1e-5)
+        np.testing.assert_allclose([p.plausibility for p in streamed], expected, atol=1e-5)
+        np.testing.assert_allclose([r.plausibility for r in results], [*expected, *expected], atol=1e-5)
+    else:
+        assert [r.plausibility for r in results] == [None] * 6
+
+
+def test_cli_output_has_plausibility(tmp_path: Path, plausible: Lifter) -> None:
+    source = tmp_path / "poses.json"
+    source.write_text(json.dumps([POSE_2D.tolist(), poses(2)[1].tolist()]))
+    for model, out in ((plausible.path, tmp_path / "with.json"), (None, tmp_path / "without.json")):
+        extra = [] if model is None else ["--model", str(model)]
+        assert main(["lift", str(source), "--local", *extra, "-o", str(out)]) == EXIT_OK
+    with_output = json.loads((tmp_path / "with.json").read_text())["poses"]
+    pose_3d = np.array([p["pose_3d"] for p in with_output])
+    np.testing.assert_allclose([p["plausibility"] for p in with_output], expected_plausibility(pose_3d), 1e-5)
+    without = json.loads((tmp_path / "without.json").read_text())["poses"]
+    assert [p["plausibility"] for p in without] == [None] * 2
