@@ -55,6 +55,7 @@ class LiftResult:
     joints: tuple[str, ...]
     model_id: str
     plausibility: float | None = None  # in [0, 1]; None when the model has no plausibility output
+    warnings: tuple[str, ...] = ()  # why the answer may be wrong, e.g. the format looks mistaken
 
     @classmethod
     def from_fields(cls, get: Callable[[str], Any], joints: Sequence[str], model_id: str) -> LiftResult:
@@ -66,9 +67,14 @@ class LiftResult:
             plausibility = get("plausibility")
         except KeyError:  # a server from before the field: the same as a model without the output
             plausibility = None
+        try:
+            warnings = tuple(str(w) for w in get("warnings"))
+        except KeyError:  # a server from before the field
+            warnings = ()
         return cls(**arrays, **flags, scale=float(get("scale")), joints=tuple(joints), model_id=model_id,
                    reprojection_error_px=float(get("reprojection_error_px")),
-                   plausibility=None if plausibility is None else float(plausibility))  # fmt: skip
+                   plausibility=None if plausibility is None else float(plausibility),
+                   warnings=warnings)  # fmt: skip
 
 
 def as_poses(

@@ -17,6 +17,7 @@ import numpy as np
 from service.errors import ModelNotReady, Overloaded
 from service.keypoints import ModelInput
 from service.lifter import Lifter, Prediction
+from service.lookalike import format_warnings
 from service.metrics import Metrics
 
 
@@ -76,6 +77,7 @@ def result_columns(inputs: ModelInput, prediction: Prediction, flat: bool = Fals
     # None per pose when the model has no plausibility output: null over HTTP, unset in proto.
     plausibility = prediction.plausibility
     columns["plausibility"] = [None] * n if plausibility is None else plausibility.tolist()
+    columns["warnings"] = format_warnings(inputs, prediction)
     return columns
 
 

@@ -73,6 +73,12 @@ def _visible_stats(points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray,
     return mean, std
 
 
+def visible_spread(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.float64]:
+    """(N,) the standard deviation of (N, J, 2) points over their visible joints, as the model's
+    input normalisation takes it: the size of a pose in pixels."""
+    return _visible_stats(points, visible)[1]
+
+
 def reproject(
     camera: np.ndarray, pose_3d: np.ndarray, keypoints_2d: np.ndarray, visible: np.ndarray
 ) -> FloatArray:

@@ -12,6 +12,7 @@ import numpy.typing as npt
 from service.errors import InvalidKeypoints, Violation
 from service.formats import FORMATS, MODEL_JOINTS, KeypointFormat, to_model_joints
 from service.geometry import BoolArray, FloatArray
+from service.lookalike import FORMAT_NAMES, lookalike_of, nose_height
 
 DEFAULT_FORMAT = "h36m17"
 # Below this spread (px) the visible joints count as one point: the input cannot be normalised.
@@ -46,6 +47,8 @@ class ModelInput:
     visible: BoolArray  # (N, 17)
     derived: BoolArray  # (N, 17) the joint is the midpoint of two detector joints
     imputed: BoolArray  # (N, 17) no visible source: the model fills the joint in
+    format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into lookalike.FORMAT_NAMES
+    nose_height: npt.NDArray[np.float32]  # (N,) lookalike.nose_height of its 17 input joints, or NaN
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
@@ -217,6 +220,8 @@ def prepare_poses(
         visible=np.zeros((n, len(MODEL_JOINTS)), bool),
         derived=np.zeros((n, len(MODEL_JOINTS)), bool),
         imputed=np.zeros((n, len(MODEL_JOINTS)), bool),
+        format_index=np.zeros(n, np.int8),
+        nose_height=np.full(n, np.nan, np.float32),
     )
     for name, index in groups.items():
         fmt = FORMATS[name]
@@ -228,10 +233,14 @@ def prepare_poses(
         if found := _model_violations(index, converted[0].astype(np.float64), converted[1], limits, prefix):
             violations.extend(found)
             continue
+        # The geometry a format mix-up shows, kept for the reply's warnings (service.lookalike).
+        height = nose_height(points, visible) if lookalike_of(name) else np.full(len(index), np.nan)
+        format_index = np.full(len(index), FORMAT_NAMES.index(name), np.int8)
         if len(index) == n and not violations:  # one format for the whole request: no scatter
-            return ModelInput(*converted)
+            return ModelInput(*converted, format_index=format_index, nose_height=height)
+        targets: tuple[np.ndarray, ...] = (out.keypoints_2d, out.visible, out.derived, out.imputed)
         for target, value in zip(
-            (out.keypoints_2d, out.visible, out.derived, out.imputed), converted, strict=True
+            (*targets, out.format_index, out.nose_height), (*converted, format_index, height), strict=True
         ):
             target[index] = value
     if violations:

@@ -161,6 +161,12 @@ class PoseResult(BaseModel):
         "joints (e.g. pelvis = mid-hips for COCO)."
     )
     plausibility: float | None = Field(None, description=PLAUSIBILITY_DOC)
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="Why this answer may be wrong although the input was accepted: today, that the "
+        'keypoints look like another format with as many joints ("format: these keypoints look like '
+        'coco17, not h36m17 ..."). Empty when nothing looks wrong.',
+    )
 
 
 class LiftResponse(BaseModel):

@@ -16,6 +16,7 @@ from grpc_reflection.v1alpha import reflection_pb2
 from prometheus_client import CollectorRegistry
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.formats import FORMATS, from_model_joints
 from service.grpc_api import SERVICE_NAME
 from tests.conftest import POSE_2D, GrpcHandle
 from tests.service.invalid_inputs import CASES, Case, good, to_proto_pose, to_proto_request, with_joint
@@ -229,3 +230,14 @@ def test_undecodable_frame_ends_the_stream_after_the_frames_before_it(grpc_handl
     assert raised.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "cannot be decoded" in (raised.value.details() or "")
     assert [a.frame_id for a in answers] == [0, 1, 2] and all(a.HasField("pose") for a in answers)
+
+
+def test_lift_and_stream_carry_the_format_warning(stub: Stub) -> None:
+    coco, present = from_model_joints(FORMATS["coco17"], POSE_2D[None].astype(np.float32))
+    pose = {"keypoints": [p.tolist() if ok else None for p, ok in zip(coco[0], present[0], strict=True)]}
+    reply = stub.Lift(to_proto_request({"poses": [pose, good()]}), timeout=10)
+    assert "look like coco17, not h36m17" in reply.poses[0].warnings[0]
+    assert list(reply.poses[1].warnings) == []
+    frames = [lifter_pb2.LiftFrame(frame_id=i, pose=to_proto_pose(p)) for i, p in enumerate([good(), pose])]
+    results = list(stub.LiftStream(iter(frames), timeout=10))
+    assert [len(r.pose.warnings) for r in results] == [0, 1]

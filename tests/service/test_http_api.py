@@ -205,3 +205,14 @@ def test_reply_renderer_keeps_every_value_and_never_writes_invalid_json() -> Non
     assert decoded["bad"] == [None]
     assert decoded["poses"] == json.loads(json.dumps(content["poses"]))
     assert np.array_equal(np.array([p["pose_3d"] for p in decoded["poses"]], np.float32), values)
+
+
+def test_coco_keypoints_without_a_format_get_a_warning(client: TestClient, trained: Lifter) -> None:
+    """COCO detections sent without `format` are read as h36m17 (the default): still 200, but the
+    reply says they look like coco17; sent as coco17 they get no warning."""
+    coco, present = from_model_joints(FORMATS["coco17"], POSE_2D[None].astype(np.float32))
+    keypoints = [p.tolist() if ok else None for p, ok in zip(coco[0], present[0], strict=True)]
+    warned = lift_one(client, keypoints)["poses"][0]["warnings"]
+    assert len(warned) == 1 and "look like coco17, not h36m17" in warned[0]
+    assert lift_one(client, keypoints, format="coco17")["poses"][0]["warnings"] == []
+    assert lift_one(client, POSE_2D.tolist())["poses"][0]["warnings"] == []

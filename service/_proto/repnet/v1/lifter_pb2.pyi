@@ -29,7 +29,7 @@ class LiftRequest(_message.Message):
     def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ...) -> None: ...
 
 class PoseResult(_message.Message):
-    __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility")
+    __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings")
     POSE_3D_FIELD_NUMBER: _ClassVar[int]
     POSE_3D_CAMERA_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
@@ -41,6 +41,7 @@ class PoseResult(_message.Message):
     IMPUTED_FIELD_NUMBER: _ClassVar[int]
     DERIVED_FIELD_NUMBER: _ClassVar[int]
     PLAUSIBILITY_FIELD_NUMBER: _ClassVar[int]
+    WARNINGS_FIELD_NUMBER: _ClassVar[int]
     pose_3d: _containers.RepeatedScalarFieldContainer[float]
     pose_3d_camera: _containers.RepeatedScalarFieldContainer[float]
     camera: _containers.RepeatedScalarFieldContainer[float]
@@ -52,7 +53,8 @@ class PoseResult(_message.Message):
     imputed: _containers.RepeatedScalarFieldContainer[bool]
     derived: _containers.RepeatedScalarFieldContainer[bool]
     plausibility: float
-    def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ..., plausibility: _Optional[float] = ...) -> None: ...
+    warnings: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ..., plausibility: _Optional[float] = ..., warnings: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class LiftResponse(_message.Message):
     __slots__ = ("model_id", "joints", "poses")

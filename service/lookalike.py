@@ -1,0 +1,112 @@
+"""Format mix-ups: poses sent under the wrong 17-joint label (coco17 as h36m17, the default, or
+back), told apart by their geometry, their reprojection error and the model's plausibility."""
+
+from __future__ import annotations
+
+from functools import cache
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from service.formats import COCO17, FORMATS, H36M17
+from service.geometry import visible_spread
+
+if TYPE_CHECKING:
+    from service.keypoints import ModelInput
+    from service.lifter import Prediction
+
+FORMAT_NAMES: tuple[str, ...] = tuple(FORMATS)  # ModelInput.format_index points into this
+# The mix-up score of a pose is its reprojection error as a fraction of its spread (the standard
+# deviation of its visible coordinates) plus GEOMETRY_WEIGHT times the geometric evidence (in
+# [-1, 1]) that it is in the other format; a warning is given above THRESHOLD. Chosen on
+# Human3.6M S1-S8 and measured on S9/S11 by bench/format_mixup.py (docs/BENCHMARKS.md): poses in
+# the right format score under 0.21 (99.9th percentile), the same poses under the wrong label over 0.30.
+GEOMETRY_WEIGHT = 0.05
+THRESHOLD = 0.25
+# With a plausibility output (a percentile among real poses), a 3D pose below PLAUSIBILITY_FLOOR
+# adds PLAUSIBILITY_WEIGHT to the score: a wrong reading of the joints rarely lifts to a real pose.
+PLAUSIBILITY_FLOOR = 0.01
+PLAUSIBILITY_WEIGHT = 0.05
+
+# COCO's nose, shoulders and hips; Human3.6M has its pelvis, knee, ankle, shoulder and elbow there.
+_NOSE = COCO17.joint_names.index("nose")
+_SHOULDERS = [COCO17.joint_names.index(j) for j in ("left_shoulder", "right_shoulder")]
+_HIPS = [COCO17.joint_names.index(j) for j in ("left_hip", "right_hip")]
+
+
+# Why the geometry points to the other format, for each given format.
+_GEOMETRY_NOTE = {
+    H36M17.name: "joint 0 sits above the shoulders (5, 6) like COCO's nose, not between the hips",
+    COCO17.name: "joint 0 is not above the shoulders (5, 6) as COCO's nose would be",
+}
+
+
+@cache
+def lookalike_of(name: str) -> str | None:
+    """The other format a pose in `name` is mistaken for: the one with as many joints, if any."""
+    count = len(FORMATS[name].joint_names)
+    others = [f for f in FORMATS if f != name and len(FORMATS[f].joint_names) == count]
+    return others[0] if len(others) == 1 else None
+
+
+def nose_height(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.float32]:
+    """How far joint 0 of (n, 17, 2) points lies beyond the shoulders (5, 6), in torso lengths
+    (from the hips 11, 12) along the torso: (n,), NaN where a joint is missing or the torso has no
+    length. Read as coco17, joint 0 is the nose, above the shoulders (typically +0.3); read as
+    h36m17, those joints are the pelvis, left knee and ankle, left shoulder and elbow, and joint 0
+    lies below "the shoulders" (typically -0.6). It uses the body's own axis, not the image's."""
+    # Missing joints may hold NaN or huge values: their results are replaced by NaN, never read.
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        shoulders = points[:, _SHOULDERS].mean(axis=1)  # (n, 2)
+        axis = shoulders - points[:, _HIPS].mean(axis=1)  # (n, 2)
+        length = (axis**2).sum(axis=1)  # (n,)
+        height = ((points[:, _NOSE] - shoulders) * axis).sum(axis=1) / length
+    ok = visible[:, [_NOSE, *_SHOULDERS, *_HIPS]].all(axis=1) & (length > 0)
+    return np.where(ok, height, np.nan).astype(np.float32)
+
+
+def _evidence(given: str, height: float) -> float:
+    """The geometric evidence in [-1, 1] that a pose labelled `given` is in its lookalike."""
+    if np.isnan(height):
+        return 0.0
+    toward_coco = float(np.clip(height, -1.0, 1.0))
+    return toward_coco if given == H36M17.name else -toward_coco if given == COCO17.name else 0.0
+
+
+def relative_error(inputs: ModelInput, prediction: Prediction) -> npt.NDArray[np.float64]:
+    """(N,) reprojection error as a fraction of the pose's spread: the same for any image size."""
+    spread = visible_spread(inputs.keypoints_2d, inputs.visible)  # (N,) px
+    return prediction.reprojection_error_px.astype(np.float64) / np.maximum(spread, 1e-9)
+
+
+def mixup_scores(inputs: ModelInput, prediction: Prediction) -> npt.NDArray[np.float64]:
+    """(N,) the mix-up score of each pose (NaN for a format without a lookalike)."""
+    relative = relative_error(inputs, prediction)
+    scores = np.full(len(inputs), np.nan)
+    for i, (index, height) in enumerate(zip(inputs.format_index, inputs.nose_height, strict=True)):
+        given = FORMAT_NAMES[index]
+        if lookalike_of(given) is not None:
+            scores[i] = relative[i] + GEOMETRY_WEIGHT * _evidence(given, float(height))
+    if prediction.plausibility is not None:
+        scores += PLAUSIBILITY_WEIGHT * (prediction.plausibility < PLAUSIBILITY_FLOOR)
+    return scores
+
+
+def format_warnings(inputs: ModelInput, prediction: Prediction) -> list[list[str]]:
+    """Per pose, the warnings of its reply: today at most one, that the format looks wrong."""
+    scores = mixup_scores(inputs, prediction)
+    relative = relative_error(inputs, prediction)
+    out: list[list[str]] = [[] for _ in range(len(inputs))]
+    for i in np.flatnonzero(scores > THRESHOLD):  # NaN compares False
+        given = FORMAT_NAMES[inputs.format_index[i]]
+        other = lookalike_of(given)
+        geometry = ""
+        if _evidence(given, float(inputs.nose_height[i])) > 0:
+            geometry = "; " + _GEOMETRY_NOTE[given]
+        out[i].append(
+            f"format: these keypoints look like {other}, not {given} (reprojection error "
+            f"{relative[i]:.0%} of the pose's size, rare above {THRESHOLD:.0%} in the right format"
+            f"{geometry}); if they are {other}, send format \"{other}\""
+        )
+    return out
