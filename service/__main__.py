@@ -238,7 +238,8 @@ def parse_settings(argv: Sequence[str] | None) -> Settings:
             f"--{name.replace('_', '-')}",
             dest=name,
             metavar=name.upper(),
-            help=f"{info.description or name} (default: {info.default})",
+            # argparse formats help with %: a literal one (e.g. "+20 %") must be doubled.
+            help=f"{info.description or name} (default: {info.default})".replace("%", "%%"),
         )
     args = parser.parse_args(argv)
     return Settings(**{k: v for k, v in vars(args).items() if v is not None})

@@ -194,3 +194,15 @@ def test_health_flips_on_the_wire_during_the_shutdown_delay(lifter: Lifter) -> N
     finally:
         service.stop_accepting()  # end the delay early
         runner.join(30)
+
+
+def test_help_renders_every_flag_with_its_description(capsys: pytest.CaptureFixture[str]) -> None:
+    """`python -m service --help` once printed argparse's internal dict: a description held a bare %."""
+    with pytest.raises(SystemExit) as exited:
+        main(["--help"])
+    assert exited.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "'prog':" not in text and "%%" not in text
+    for name, info in Settings.model_fields.items():
+        assert f"--{name.replace('_', '-')}" in text
+        assert " ".join((info.description or name).split()) in text
