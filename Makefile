@@ -56,8 +56,9 @@ typecheck: $(STAMP_DIR)/.test-installed
 
 check: lint typecheck test
 
-container-test:
-	bash deploy/test-container.sh
+# The smoke checks run on this machine and need the service's own packages (grpc, httpx): the venv's.
+container-test: $(STAMP_DIR)/.serve-installed
+	PYTHON=$(if $(strip $(VENV)),$(abspath $(PY)),$(PY)) bash deploy/test-container.sh
 
 image:
 	docker build -t $(IMAGE) .

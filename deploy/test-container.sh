@@ -19,6 +19,8 @@ BASE_IMAGE=localhost/repnet-base:$SUITE-$BASE_KEY
 IMAGE=${REPNET_IMAGE:-localhost/repnet:test}
 NAME=repnet-container-test-$$
 WORK=$(mktemp -d)
+# The host-side checks (smoke.py) need grpc and httpx: the project's .venv when there is one.
+if [[ -z ${PYTHON:-} && -x $ROOT/.venv/bin/python ]]; then PYTHON=$ROOT/.venv/bin/python; fi
 PYTHON=${PYTHON:-python3}
 
 # crun cannot set rlimits in this sandbox, and podman's default rlimits (nofile 1048576) are above the
@@ -86,6 +88,9 @@ cleanup() {
 }
 trap cleanup EXIT
 
+"$PYTHON" -c 'import grpc, grpc_health, httpx' 2>/dev/null \
+    || fail "$PYTHON cannot import grpc, grpc_health and httpx, which deploy/smoke.py needs: run \
+\`make container-test\` (it installs the service into .venv) or set PYTHON to a Python that has them"
 [[ $(id -u) == 0 ]] || fail "needs root (rootful podman, debootstrap)"
 [[ -f $ROOT/service/models/repnet-h36m.onnx ]] || fail "service/models/repnet-h36m.onnx is missing"
 ensure_tools
