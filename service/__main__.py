@@ -204,7 +204,7 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
         queue_size=settings.queue_size,
     )
     limits = limits_of(settings)
-    app = create_app(engine, metrics, limits, settings.max_body_bytes)
+    app = create_app(engine, metrics, limits, settings.max_body_bytes, ui=settings.ui)
     grpc_server = create_server(
         engine,
         metrics,

@@ -62,6 +62,7 @@ class Settings(BaseSettings):
     shutdown_delay_s: float = Field(
         default=0.0, ge=0, description="time between reporting not ready and refusing new requests"
     )
+    ui: bool = Field(default=True, description="serve the web page at GET / (false: the API alone)")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @model_validator(mode="after")

@@ -33,6 +33,7 @@ from service.http_middleware import OUTCOME_KEY, BodyLimitMiddleware, LiftMetric
 from service.keypoints import Limits, ModelInput, PoseInput, prepare_poses
 from service.lifter import ModelInfo, Prediction
 from service.metrics import INVALID, Metrics, outcome_of
+from service.page import add_page
 from service.schemas import (
     FRAME_DOC,
     ErrorResponse,
@@ -160,8 +161,11 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
     )
 
 
-def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes: int = 4 << 20) -> FastAPI:
-    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server."""
+def create_app(
+    engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes: int = 4 << 20, ui: bool = True
+) -> FastAPI:
+    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
+    `ui`: also serve the web page at GET / (service/page.py)."""
     info = engine.lifter.info
     app = FastAPI(
         title="RepNet pose lifting",
@@ -244,4 +248,6 @@ def create_app(engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes:
     async def prometheus() -> Response:
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
+    if ui:
+        add_page(app)
     return app
