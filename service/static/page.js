@@ -6,7 +6,7 @@ import { View3D, draw2d, sideOf } from "./view.js";
 
 const $ = (id) => document.getElementById(id);
 const SLOTS = ["example", "file", "paste", "format", "threshold"];
-const state = { model: null, formats: {}, examples: [], frames: [], results: [], index: 0, timer: null, lifts: 0 };
+const state = { model: null, formats: {}, examples: [], frames: [], results: [], index: 0, timer: null, lifts: 0, last: null };
 const view3d = new View3D($("view3d"));
 
 function text(id, value) {
@@ -206,7 +206,9 @@ function play() {
 
 async function run(source, read) {
   try {
-    await lift(await read(), source);
+    const parsed = await read();
+    state.last = { parsed, source };
+    await lift(parsed, source);
   } catch (err) {
     if (!(err instanceof InputError)) throw err;
     clearErrors();
@@ -262,6 +264,9 @@ async function start() {
     $("example").append(option);
   });
   $("example").addEventListener("change", liftExample);
+  for (const id of ["format", "threshold"]) {  // lift the last input again with the new setting
+    $(id).addEventListener("change", () => { if (state.last) lift(state.last.parsed, state.last.source); });
+  }
   $("file").addEventListener("change", liftFiles);
   $("lift-paste").addEventListener("click", liftPaste);
   $("prev").addEventListener("click", () => { pause(); step(-1); });

@@ -255,6 +255,30 @@ def test_page_lifts_an_example_draws_it_and_shows_the_api_numbers(driver: Any, p
     assert not errors, errors
 
 
+def test_format_choice_relifts_and_shows_the_services_warning(driver: Any, page_url: str) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    open_page(driver, page_url)
+    before = lifts(driver)
+    Select(driver.find_element(By.ID, "example")).select_by_index(2)  # the COCO-17 detector result
+    wait_lift(driver, before)
+    assert text_of(driver, "format-warnings") == ""
+    assert text_of(driver, "num-imputed") == "spine, head"
+    assert text_of(driver, "num-derived") == "pelvis, thorax"
+    triples = np.array(build_examples()[1]["data"][0]["keypoints"]).reshape(-1, 3)
+    body = {"format": "h36m17", "poses": [{"keypoints": triples[:, :2].tolist(),
+                                           "confidence": triples[:, 2].tolist()}]}  # fmt: skip
+    reply = lift_api(page_url, body)
+    assert reply["poses"][0]["warnings"], "the service no longer warns about coco17 sent as h36m17"
+    before = lifts(driver)
+    Select(driver.find_element(By.ID, "format")).select_by_value("h36m17")
+    wait_lift(driver, before)
+    assert text_of(driver, "format-warnings") == "".join(reply["poses"][0]["warnings"])
+    assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
+    driver.save_screenshot(str(SHOTS / "format-warning.png"))
+
+
 def openpose_frames(tmp_path: Path, yaws: list[float]) -> list[Path]:
     paths = []
     for i, yaw in enumerate(yaws):
