@@ -30,7 +30,7 @@ from service.errors import (
 )
 from service.formats import FORMATS
 from service.http_middleware import OUTCOME_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
-from service.keypoints import Limits, ModelInput, PoseInput, prepare_poses
+from service.keypoints import Limits, ModelInput, PoseInput, pose_field, prepare_poses
 from service.lifter import ModelInfo, Prediction
 from service.metrics import INVALID, Metrics, outcome_of
 from service.page import add_page
@@ -55,12 +55,49 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
-def to_pose_input(pose: PoseIn, default_format: str) -> PoseInput:
-    """The wire-independent form of one JSON pose; null joints are marked not present."""
+def _layout_violations(
+    pose: PoseIn, width: int, fmt: str, size: tuple[float, float] | None, field: str, index: int
+) -> list[Violation]:
+    """Rules on rows of 3 and 4 values: where their confidence and their pixel scale come from."""
+    found = []
+    if width >= 3 and pose.confidence is not None:
+        reason = "give the confidence either as the third value of each joint or as `confidence`, not both"
+        found.append(Violation(f"{field}.confidence", reason, "confidence_twice", pose=index))
+    if width == 4 and size is None:
+        reason = (
+            "rows of 4 values are MediaPipe landmarks [x, y, z, visibility] with x and y normalised to "
+            "[0, 1]: give image_size [width, height] in pixels to scale them"
+        )
+        found.append(Violation(f"{field}.image_size", reason, "image_size_needed", pose=index))
+    if width == 4 and fmt != "mediapipe33" and fmt in FORMATS:  # an unknown format is named later
+        reason = (
+            "rows of 4 values are MediaPipe landmarks [x, y, z, visibility]: send format mediapipe33, "
+            f"not {fmt}"
+        )
+        found.append(Violation(f"{field}.keypoints", reason, "layout_format", pose=index))
+    return found
+
+
+def to_pose_input(pose: PoseIn, request: LiftRequest, index: int) -> PoseInput:
+    """The wire-independent form of one JSON pose; null joints are marked not present. Rows of
+    [x, y, confidence] give the confidence; MediaPipe rows [x, y, z, visibility] are scaled by the
+    image size and give the visibility as the confidence. Raises InvalidKeypoints on a bad layout."""
+    fmt = pose.format or request.format
+    size = pose.image_size or request.image_size
+    width = next((len(p) for p in pose.keypoints if p is not None), 2)  # every row has it (PoseIn)
     present = np.array([p is not None for p in pose.keypoints], dtype=bool)
-    points = np.array([p if p is not None else (np.nan, np.nan) for p in pose.keypoints], dtype=np.float64)
+    blank = (np.nan,) * width
+    rows = np.array([p if p is not None else blank for p in pose.keypoints], dtype=np.float64)
+    rows = rows.reshape(-1, width)  # (K, width)
     confidence = None if pose.confidence is None else np.array(pose.confidence, dtype=np.float64)
-    return PoseInput(points.reshape(-1, 2), present, confidence, pose.format or default_format)
+    if width == 2 and size is None:
+        return PoseInput(rows, present, confidence, fmt)
+    if found := _layout_violations(pose, width, fmt, size, pose_field("poses", index), index):
+        raise InvalidKeypoints(found)
+    points = rows[:, :2] if size is None else rows[:, :2] * np.asarray(size)  # (K, 2) px
+    if width >= 3:  # a missing joint's confidence is never read: 0 keeps the range check quiet
+        confidence = np.where(present, rows[:, width - 1], 0.0)
+    return PoseInput(points, present, confidence, fmt)
 
 
 class LiftJSONResponse(JSONResponse):
@@ -210,7 +247,15 @@ def create_app(
         return JSONResponse(error_body([violation]), status_code=400)
 
     def prepare(request: LiftRequest) -> ModelInput:
-        poses = [to_pose_input(p, request.format) for p in request.poses]
+        poses: list[PoseInput] = []
+        violations: list[Violation] = []
+        for i, pose in enumerate(request.poses):
+            try:
+                poses.append(to_pose_input(pose, request, i))
+            except InvalidKeypoints as err:
+                violations.extend(err.violations)
+        if violations:
+            raise InvalidKeypoints(violations)
         return prepare_poses(poses, limits, request.confidence_threshold)
 
     def reply(inputs: ModelInput, prediction: Prediction) -> LiftJSONResponse:

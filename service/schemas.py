@@ -12,7 +12,11 @@ from service.formats import FORMATS
 
 # Strict: a JSON string such as "12" or a boolean is not a coordinate.
 Number = Annotated[float, Strict()]
-Point = tuple[Number, Number]
+# One joint: [x, y]; [x, y, confidence] (OpenPose, MMPose, YOLO-pose); MediaPipe's [x, y, z,
+# visibility]. A list, not a union of tuples: pydantic would name each union member in its errors.
+Row = Annotated[list[Number], Field(min_length=2, max_length=4)]
+Size = tuple[Annotated[float, Strict(), Field(gt=0)], Annotated[float, Strict(), Field(gt=0)]]
+ROW_LAYOUTS = "[x, y], [x, y, confidence] or MediaPipe [x, y, z, visibility]"
 Matrix = list[list[float]]
 
 FRAME_DOC = (
@@ -57,9 +61,12 @@ class PoseIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    keypoints: list[Point | None] = Field(
-        description="One [x, y] per joint of the format, in pixels (x right, y down), in the "
-        "format's joint order; null for a joint the detector did not find.",
+    keypoints: list[Row | None] = Field(
+        description="One row per joint of the format, in the format's joint order; null for a "
+        "joint the detector did not find. Every row is [x, y] in pixels (x right, y down), or "
+        "[x, y, confidence] as most detectors write them (then leave `confidence` out), or "
+        "MediaPipe's normalised [x, y, z, visibility] (format mediapipe33, with `image_size`; z is "
+        "ignored, visibility is the confidence).",
         examples=[[[512.0, 400.0], None]],
         fail_fast=True,
     )
@@ -74,6 +81,11 @@ class PoseIn(BaseModel):
         description="Keypoint format of this pose; defaults to the request's `format`.",
         json_schema_extra={"enum": list(FORMATS)},
     )
+    image_size: Size | None = Field(
+        None,
+        description="[width, height] of the image in pixels when x and y are normalised to [0, 1] "
+        "(MediaPipe): they are multiplied by it. Defaults to the request's `image_size`.",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -83,14 +95,30 @@ class PoseIn(BaseModel):
 
     @field_validator("keypoints", mode="before")
     @classmethod
-    def _check_pairs(cls, value: Any) -> Any:
-        """A flat list [x0, y0, x1, ...] (the gRPC layout) is one wrong shape, named as such."""
-        if isinstance(value, list) and value and type(value[0]) in (int, float):
+    def _check_rows(cls, value: Any) -> Any:
+        """A wrongly shaped array is one error, not one per joint: a flat list [x0, y0, x1, ...]
+        (the gRPC layout), a list of poses, or rows of another or of mixed lengths."""
+        if not isinstance(value, list) or not value:
+            return value
+        if type(value[0]) in (int, float):
             raise PydanticCustomError(
                 "keypoints_shape",
-                "expected a list of [x, y] pairs, one per joint (null for a missing joint), "
+                "expected one row per joint ({layouts}, null for a missing joint), "
                 "got a flat list of {count} numbers",
-                {"count": len(value)},
+                {"count": len(value), "layouts": ROW_LAYOUTS},
+            )
+        if type(value[0]) is list and value[0] and type(value[0][0]) is list:
+            raise PydanticCustomError(
+                "keypoints_shape",
+                "expected the rows of one pose, got a list of {count} poses: send a batch as {batch}",
+                {"count": len(value), "batch": '{"poses": [{"keypoints": ...}, ...]}'},
+            )
+        lengths = {len(row) for row in value if type(row) is list}
+        if len(lengths) > 1 or not lengths <= {2, 3, 4}:
+            raise PydanticCustomError(
+                "keypoints_shape",
+                "expected every row to be {layouts} (null for a missing joint), got rows of {lengths} values",
+                {"layouts": ROW_LAYOUTS, "lengths": " and ".join(map(str, sorted(lengths)))},
             )
         return value
 
@@ -119,6 +147,9 @@ class LiftRequest(BaseModel):
     )
     confidence_threshold: Number | None = Field(
         None, description="Joints with a confidence below this count as missing (default: server setting)."
+    )
+    image_size: Size | None = Field(
+        None, description="`image_size` of poses that do not give their own ([width, height] in pixels)."
     )
 
     @model_validator(mode="before")

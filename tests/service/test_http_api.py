@@ -216,3 +216,30 @@ def test_coco_keypoints_without_a_format_get_a_warning(client: TestClient, train
     assert len(warned) == 1 and "look like coco17, not h36m17" in warned[0]
     assert lift_one(client, keypoints, format="coco17")["poses"][0]["warnings"] == []
     assert lift_one(client, POSE_2D.tolist())["poses"][0]["warnings"] == []
+
+
+def test_triplets_give_the_confidence(client: TestClient) -> None:
+    """[x, y, confidence] rows, as OpenPose, MMPose and YOLO-pose write them, are taken as they come."""
+    confidence = [0.9] * 17
+    confidence[5] = 0.05  # below the default threshold: missing
+    triplets = [[*p, c] for p, c in zip(POSE_2D.tolist(), confidence, strict=True)]
+    got = lift_one(client, triplets)["poses"][0]
+    want = lift_one(client, POSE_2D.tolist(), confidence=confidence)["poses"][0]
+    assert got["visible"] == want["visible"] and got["visible"][5] is False
+    np.testing.assert_allclose(got["pose_3d"], want["pose_3d"], atol=1e-4)
+
+
+def test_mediapipe_normalised_landmarks_are_scaled_by_the_image_size(client: TestClient) -> None:
+    size = (1000.0, 1002.0)
+    points, present = from_model_joints(FORMATS["mediapipe33"], POSE_2D[None].astype(np.float32))
+    pixels = [p.tolist() if ok else None for p, ok in zip(points[0], present[0], strict=True)]
+    landmarks = [None if p is None else [p[0] / size[0], p[1] / size[1], -0.2, 0.97] for p in pixels]
+    want = lift_one(client, pixels, format="mediapipe33")["poses"][0]
+    one = lift_one(client, landmarks, format="mediapipe33", image_size=list(size))["poses"][0]
+    batch = client.post(
+        "/lift", json={"poses": [{"keypoints": landmarks}], "format": "mediapipe33", "image_size": list(size)}
+    ).json()["poses"][0]
+    for got in (one, batch):
+        np.testing.assert_allclose(got["reprojection"], want["reprojection"], atol=1e-2)  # pixels again
+        np.testing.assert_allclose(got["pose_3d"], want["pose_3d"], atol=1e-3)
+        assert got["visible"] == want["visible"]

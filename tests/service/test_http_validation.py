@@ -54,11 +54,50 @@ def test_lift_rejects_non_numbers(client: TestClient, value: str) -> None:
     assert "valid number" in item["reason"]
 
 
-def test_lift_rejects_a_point_without_two_values(client: TestClient) -> None:
+def test_lift_rejects_rows_of_mixed_lengths_with_one_item(client: TestClient) -> None:
     keypoints: list[Any] = POSE_2D.tolist()
     keypoints[3] = [1.0, 2.0, 3.0]
     item = only_item(client.post("/lift", json={"keypoints": keypoints}))
-    assert item["field"] == "poses[0].keypoints[3]" and "at most 2 items" in item["reason"]
+    assert item["field"] == "poses[0].keypoints" and "got rows of 2 and 3 values" in item["reason"]
+
+
+@pytest.mark.parametrize(
+    ("keypoints", "reason"),
+    [
+        ([[*p, 0.9, 0.0, 1.0] for p in POSE_2D.tolist()], "got rows of 5 values"),
+        ([[p[0]] for p in POSE_2D.tolist()], "got rows of 1 values"),
+        ([v for p in POSE_2D.tolist() for v in p], "got a flat list of 34 numbers"),
+        ([POSE_2D.tolist(), POSE_2D.tolist()], "got a list of 2 poses"),
+    ],
+    ids=["rows_of_5", "rows_of_1", "flat", "list_of_poses"],
+)
+def test_lift_rejects_a_wrongly_shaped_array_with_one_item(
+    client: TestClient, keypoints: list[Any], reason: str
+) -> None:
+    """One item for the whole array, not one per joint (17 near-identical errors before)."""
+    item = only_item(client.post("/lift", json={"keypoints": keypoints}))
+    assert item["field"] == "poses[0].keypoints" and reason in item["reason"], item
+    assert "[x, y, confidence]" in item["reason"] or '{"poses": [{"keypoints": ...}' in item["reason"]
+
+
+def test_lift_rejects_a_confidence_given_twice(client: TestClient) -> None:
+    keypoints = [[*p, 0.9] for p in POSE_2D.tolist()]
+    item = only_item(client.post("/lift", json={"keypoints": keypoints, "confidence": [0.9] * 17}))
+    assert (item["field"], item["code"]) == ("poses[0].confidence", "confidence_twice")
+
+
+def test_lift_asks_for_the_image_size_of_mediapipe_landmarks(client: TestClient) -> None:
+    landmarks = [[0.5, 0.5, -0.1, 0.99]] * 33
+    item = only_item(client.post("/lift", json={"keypoints": landmarks, "format": "mediapipe33"}))
+    assert (item["field"], item["code"]) == ("poses[0].image_size", "image_size_needed")
+    assert "image_size [width, height]" in item["reason"]
+
+
+def test_lift_names_the_format_of_mediapipe_rows(client: TestClient) -> None:
+    landmarks = [[0.5, 0.5, -0.1, 0.99]] * 17
+    item = only_item(client.post("/lift", json={"keypoints": landmarks, "image_size": [640, 480]}))
+    assert (item["field"], item["code"]) == ("poses[0].keypoints", "layout_format")
+    assert "send format mediapipe33" in item["reason"]
 
 
 def test_lift_rejects_unknown_fields(client: TestClient) -> None:
