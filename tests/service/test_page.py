@@ -3,7 +3,9 @@ through chromium-driver) against a running service. Screenshots go to runs/page/
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
 import os
 import re
 import shutil
@@ -78,8 +80,8 @@ def test_bundled_examples_are_current() -> None:
 # ---- in the browser ----
 
 
-@pytest.fixture(scope="module")
-def page_url(lifter: Lifter) -> Iterator[str]:
+@contextlib.contextmanager
+def serving(lifter: Lifter) -> Iterator[str]:
     """The service as `python -m service` runs it, with a small body limit for the upload test."""
     from service.__main__ import build_service
 
@@ -93,9 +95,17 @@ def page_url(lifter: Lifter) -> Iterator[str]:
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("the service did not start")
         time.sleep(0.02)
-    yield f"http://127.0.0.1:{service.http.servers[0].sockets[0].getsockname()[1]}"
-    service.begin_shutdown()
-    thread.join(timeout=15)
+    try:
+        yield f"http://127.0.0.1:{service.http.servers[0].sockets[0].getsockname()[1]}"
+    finally:
+        service.begin_shutdown()
+        thread.join(timeout=15)
+
+
+@pytest.fixture(scope="module")
+def page_url(lifter: Lifter) -> Iterator[str]:
+    with serving(lifter) as url:
+        yield url
 
 
 @pytest.fixture(scope="module")
@@ -396,3 +406,35 @@ def test_bad_inputs_show_the_api_error_next_to_the_field(driver: Any, page_url: 
         f"file big.json has {big.stat().st_size} bytes, more than the {BODY_LIMIT}-byte limit of a /lift body"
     )
     driver.save_screenshot(str(SHOTS / "error-file-limit.png"))
+
+
+def test_page_shows_the_plausibility_of_a_model_that_has_it(driver: Any, tmp_path: Path) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    pytest.importorskip("onnx")
+    from tests.service.test_plausibility import build_model
+
+    plausible = Lifter.load(build_model(tmp_path / "plausible.onnx"), intra_op_threads=1)
+    with serving(plausible) as url:
+        open_page(driver, url)
+        assert "plausibility: given" in text_of(driver, "model-line")
+        before = lifts(driver)
+        Select(driver.find_element(By.ID, "example")).select_by_index(4)  # the 36-frame sequence
+        wait_lift(driver, before)
+        frames = build_examples()[3]["data"]
+        body = {"format": "body25", "poses": [
+            {"keypoints": np.array(f["people"][0]["pose_keypoints_2d"]).reshape(-1, 3)[:, :2].tolist()}
+            for f in frames]}  # fmt: skip
+        reply = lift_api(url, body)
+        assert driver.execute_script("return document.getElementById('fps').value") == "12"
+        for index in (0, 9):
+            driver.execute_script("const s = document.getElementById('frame'); s.value = arguments[0];"
+                                  "s.dispatchEvent(new Event('input'));", str(index))  # fmt: skip
+            pose = reply["poses"][index]
+            assert pose["plausibility"] is not None
+            assert_numbers_match(shown_numbers(driver), pose, reply["joints"])
+            percent = math.floor(100 * pose["plausibility"] + 0.5)  # JavaScript's Math.round
+            expected = f"more plausible than {percent} % of real poses"
+            assert expected in text_of(driver, "num-plausibility")
+        driver.save_screenshot(str(SHOTS / "plausibility-frame10.png"))
