@@ -438,3 +438,38 @@ def test_page_shows_the_plausibility_of_a_model_that_has_it(driver: Any, tmp_pat
             expected = f"more plausible than {percent} % of real poses"
             assert expected in text_of(driver, "num-plausibility")
         driver.save_screenshot(str(SHOTS / "plausibility-frame10.png"))
+
+
+def test_cli_output_and_coco_annotations_files_are_read(driver: Any, page_url: str, tmp_path: Path) -> None:
+    from selenium.webdriver.common.by import By
+
+    from service.cli import EXIT_OK, main
+
+    coco = np.stack([detector_pose("coco17", y) for y in (10.0, 40.0)])
+    source = tmp_path / "poses.json"
+    source.write_text(json.dumps({"keypoints": coco.tolist(), "format": "coco17"}))
+    out = tmp_path / "lifted.json"
+    assert main(["lift", str(source), "--local", "-o", str(out)]) == EXIT_OK
+    lifted = json.loads(out.read_text())
+    open_page(driver, page_url)
+    before = lifts(driver)
+    driver.find_element(By.ID, "file").send_keys(str(out))
+    wait_lift(driver, before)
+    assert "repnet lift output: 2 poses" in text_of(driver, "status")
+    driver.find_element(By.ID, "next").click()
+    assert_numbers_match(shown_numbers(driver), lifted["poses"][1], lifted["joints"])  # the CLI's own answer
+
+    flags = np.full((17, 1), 2.0)
+    flags[9] = 0  # left wrist not labelled
+    annotation = {"id": 7, "image_id": 3, "num_keypoints": 16,
+                  "keypoints": np.concatenate([coco[0], flags], axis=1).ravel().tolist()}  # fmt: skip
+    path = tmp_path / "person_keypoints.json"
+    path.write_text(json.dumps({"images": [{"id": 3}], "annotations": [annotation]}))
+    before = lifts(driver)
+    driver.execute_script("document.getElementById('file').value = ''")  # chromedriver adds to a selection
+    driver.find_element(By.ID, "file").send_keys(str(path))
+    wait_lift(driver, before)
+    keypoints = [None if j == 9 else p.tolist() for j, p in enumerate(coco[0])]
+    reply = lift_api(page_url, {"format": "coco17", "poses": [{"keypoints": keypoints}]})
+    assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
+    assert "left_wrist" in text_of(driver, "num-imputed")
