@@ -9,15 +9,17 @@ import os
 import re
 import sys
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar, cast
+from typing import Any, TextIO, TypeVar
 
 import numpy as np
 
 from service.client import DEFAULT_URL, LiftClient, LiftClientError, LiftResult
 from service.errors import ModelLoadError
 from service.formats import FORMATS, MODEL_PARENTS, format_table
+from service.pose_file import InputFileError, Poses, load_poses, read_input
+
+__all__ = ["InputFileError", "Poses", "build_parser", "load_poses", "main"]
 
 # Exit codes: 0 done; 1 the service or model rejected the input; 2 bad usage, input file or model
 # file; 3 the service could not be reached.
@@ -26,104 +28,34 @@ T = TypeVar("T")
 Lift = Callable[[np.ndarray, "np.ndarray | None"], list[LiftResult]]
 
 
-class InputFileError(Exception):
-    """The input file cannot be read as poses."""
-
-
-@dataclass(frozen=True)
-class Poses:
-    """Poses read from a file."""
-
-    points: np.ndarray  # (N, J, 2) px, NaN where a joint is missing
-    confidence: np.ndarray | None  # (N, J) in [0, 1], or None
-    format: str | None  # the format the file names, if any
-
-
-def _pose_array(rows: Any, where: str) -> np.ndarray:
-    """One pose of J rows ([x, y], [x, y, c] or null) -> (J, 3): NaN rows for null, c NaN if not given."""
-    if not isinstance(rows, list) or not rows:
-        raise InputFileError(f"{where}: expected a non-empty list of joints, got {type(rows).__name__}")
-    out = np.full((len(rows), 3), np.nan)
-    for j, row in enumerate(rows):
-        if row is None:
-            continue
-        numbers = isinstance(row, list) and all(isinstance(v, int | float) for v in row)
-        if not numbers or len(row) not in (2, 3):
-            raise InputFileError(f"{where}[{j}]: expected [x, y], [x, y, confidence] or null, got {row!r}")
-        out[j, : len(row)] = row
-    return out
-
-
-def _stack(poses: Sequence[np.ndarray], confidence: Any, fmt: Any, where: str) -> Poses:
-    """(J, 3) poses from _pose_array, with `confidence` (N, J) overriding their third column."""
-    if not poses:
-        raise InputFileError(f"{where}: no poses")
-    if len({p.shape for p in poses}) != 1:
-        raise InputFileError(f"{where}: poses have different joint counts {sorted({len(p) for p in poses})}")
-    data = np.stack(poses)  # (N, J, 3)
-    if confidence is None and not np.isnan(data[..., 2]).all():
-        confidence = np.nan_to_num(data[..., 2], nan=1.0)  # a joint given without confidence counts as sure
-    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64).reshape(data.shape[:2])
-    return Poses(data[..., :2], conf, None if fmt is None else str(fmt))
-
-
-def _read_json(data: Any) -> Poses:
-    if isinstance(data, dict) and "people" in data:  # OpenPose --write_json: x, y, c triples, 0 = missing
-        people = [np.asarray(p["pose_keypoints_2d"], dtype=np.float64).reshape(-1, 3) for p in data["people"]]
-        people = [np.where(p[:, 2:] > 0, p, np.nan) for p in people]
-        return _stack(people, None, "body25" if people and len(people[0]) == 25 else None, "people")
-    if isinstance(data, dict) and "poses" in data:  # the POST /lift body
-        items = data["poses"] if isinstance(data["poses"], list) else []
-        poses = [_pose_array(p.get("keypoints") if isinstance(p, dict) else None, f"poses[{i}].keypoints")
-                 for i, p in enumerate(items)]  # fmt: skip
-        for pose, item in zip(poses, items, strict=True):
-            if isinstance(item, dict) and item.get("confidence") is not None:
-                pose[:, 2] = np.asarray(item["confidence"], dtype=np.float64)
-        return _stack(poses, None, data.get("format"), "poses")
-    body = data if isinstance(data, dict) else {"keypoints": data}
-    keypoints, fmt = body.get("keypoints"), body.get("format")
-    many = isinstance(keypoints, list) and bool(keypoints) and isinstance(keypoints[0], list) and \
-        any(isinstance(row, list) for row in keypoints[0])  # fmt: skip
-    rows: list[Any] = keypoints if many and isinstance(keypoints, list) else [keypoints]
-    arrays = [_pose_array(r, f"keypoints[{i}]") for i, r in enumerate(rows)]
-    return _stack(arrays, body.get("confidence"), fmt, "keypoints")
-
-
-def load_poses(path: Path) -> Poses:
-    """Poses from a .json (a pose, a list of poses, a POST /lift body or OpenPose output) or .npz
-    (`keypoints` (N, J, 2|3) or (J, 2|3) with NaN for missing joints, optional `confidence`, `format`)."""
-    try:
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as npz:
-                if "keypoints" not in npz:
-                    raise InputFileError(f"{path}: no 'keypoints' array (has {', '.join(npz.files)})")
-                keypoints = np.asarray(npz["keypoints"], dtype=np.float64)
-                conf = npz["confidence"] if "confidence" in npz else None
-                fmt = npz["format"] if "format" in npz else None
-            keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
-            if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3):
-                raise InputFileError(f"expected keypoints (N, J, 2) or (N, J, 3), got {keypoints.shape}")
-            padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
-            return _stack(list(padded), conf, fmt, str(path))
-        if path.suffix == ".json":
-            return _read_json(json.loads(path.read_text()))
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
-        raise InputFileError(f"{path}: {err}") from err
-    raise InputFileError(f"{path}: expected a .json or .npz file")
-
-
 def _shift_pose_indices(message: str, offset: int) -> str:
     """Rename poses[i] to poses[offset + i] in a message about one chunk of the file."""
     return re.sub(r"poses\[(\d+)\]", lambda m: f"poses[{offset + int(m.group(1))}]", message)
 
 
-def _progress(items: Sequence[T], total: int, enabled: bool) -> Iterable[T]:
+def progress_bar(total: int, unit: str, file: TextIO | None = None) -> Any:
+    """A tqdm bar on stderr, shown only when it is a terminal and the work lasts over half a second;
+    None without tqdm (progress bars are optional: pip install 'repnet[cli]')."""
     try:
         tqdm = importlib.import_module("tqdm").tqdm
-    except ImportError:  # progress bars are optional: pip install 'repnet[cli]'
+    except ImportError:
+        return None
+    return tqdm(total=total, unit=unit, file=file or sys.stderr, disable=None, delay=0.5, leave=False)
+
+
+def _progress(items: Sequence[T], unit: str) -> Iterable[T]:
+    """`items`, advancing a progress bar (see progress_bar) as they are taken."""
+    bar = progress_bar(len(items), unit)
+    if bar is None:
         return items
-    bar = tqdm(items, total=total, unit="batch", disable=None if enabled else True, file=sys.stderr)
-    return cast(Iterable[T], bar)
+
+    def advance() -> Iterable[T]:
+        with bar:
+            for item in items:
+                yield item
+                bar.update(1)
+
+    return advance()
 
 
 def _remote_lift(url: str, fmt: str, threshold: float | None, timeout: float) -> tuple[Lift, LiftClient]:
@@ -164,19 +96,57 @@ def _local_lift(model: Path | None, fmt: str, threshold: float | None, batch: in
 
 
 def result_json(result: LiftResult, points: np.ndarray, conf: np.ndarray | None) -> dict[str, Any]:
-    """One pose of the output file: its input and every field of the service's reply."""
-    keypoints = [None if np.isnan(p).any() else p.tolist() for p in points]
-    return {"input": {"keypoints": keypoints, "confidence": None if conf is None else conf.tolist()},
+    """One pose of the output file: its input and every field of the service's reply. A missing
+    joint is null in both `keypoints` and `confidence`."""
+    missing = np.isnan(points).any(axis=1)  # (J,)
+    keypoints = [None if gone else p.tolist() for p, gone in zip(points, missing, strict=True)]
+    confidence = None if conf is None else [None if gone else float(c)
+                                            for c, gone in zip(conf, missing, strict=True)]  # fmt: skip
+    return {"input": {"keypoints": keypoints, "confidence": confidence},
             "pose_3d": result.pose_3d.tolist(), "pose_3d_camera": result.pose_3d_camera.tolist(),
             "camera": result.camera.tolist(), "scale": result.scale, "rotation": result.rotation.tolist(),
             "reprojection": result.reprojection.tolist(),
             "reprojection_error_px": result.reprojection_error_px,
             "visible": result.visible.tolist(), "imputed": result.imputed.tolist(),
-            "derived": result.derived.tolist(), "plausibility": result.plausibility}  # fmt: skip
+            "derived": result.derived.tolist(), "plausibility": result.plausibility,
+            "warnings": list(result.warnings)}  # fmt: skip
+
+
+def warn_about(results: Sequence[LiftResult], poses: Poses) -> None:
+    """Say on stderr how many poses got a warning, with the first of each kind and where it was."""
+    kinds: dict[str, list[int]] = {}
+    for i, result in enumerate(results):
+        for warning in result.warnings:
+            kinds.setdefault(warning.split(" (")[0], []).append(i)
+    for kind, where in kinds.items():
+        first = where[0]
+        message = next(w for w in results[first].warnings if w.startswith(kind))
+        print(f"repnet: warning: {len(where)} of {len(results)} poses: {message} (first: poses[{first}], "
+              f"frame {poses.frame[first]}, person {poses.person[first]})", file=sys.stderr)  # fmt: skip
+
+
+def _lift_all(lift: Lift, poses: Poses, size: int) -> list[LiftResult]:
+    """Lift `poses` in requests of `size`, with a progress bar for long inputs."""
+    n = len(poses.points)
+    results: list[LiftResult] = []
+    bar = progress_bar(n, "pose")
+    try:
+        for a in range(0, n, size):
+            conf = None if poses.confidence is None else poses.confidence[a : a + size]
+            try:
+                results.extend(lift(poses.points[a : a + size], conf))
+            except LiftClientError as err:
+                raise LiftClientError(_shift_pose_indices(err.message, a), err.status, err.details) from err
+            if bar is not None:
+                bar.update(min(size, n - a))
+    finally:
+        if bar is not None:
+            bar.close()
+    return results
 
 
 def run_lift(args: argparse.Namespace) -> int:
-    poses = load_poses(args.input)
+    poses = read_input(args.input, lambda files: _progress(files, "file"))
     fmt = args.format or poses.format or "h36m17"
     if fmt not in FORMATS:
         raise InputFileError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
@@ -187,41 +157,47 @@ def run_lift(args: argparse.Namespace) -> int:
         lift, close = _local_lift(args.model, fmt, args.confidence_threshold, args.batch_size), None
     else:
         lift, close = _remote_lift(args.url, fmt, args.confidence_threshold, args.timeout)
-    n, size = len(poses.points), args.batch_size
-    starts = list(range(0, n, size))
-    results: list[LiftResult] = []
     try:
-        for a in _progress(starts, len(starts), enabled=n > size):
-            conf = None if poses.confidence is None else poses.confidence[a : a + size]
-            try:
-                results.extend(lift(poses.points[a : a + size], conf))
-            except LiftClientError as err:
-                raise LiftClientError(_shift_pose_indices(err.message, a), err.status, err.details) from err
+        results = _lift_all(lift, poses, args.batch_size)
     finally:
         if close is not None:
             close.close()
     conf = poses.confidence
     out = {"model_id": results[0].model_id, "format": fmt, "input_joints": list(FORMATS[fmt].joint_names),
            "joints": list(results[0].joints), "parents": list(MODEL_PARENTS),
-           "poses": [result_json(r, poses.points[i], None if conf is None else conf[i])
+           "poses": [{"frame": int(poses.frame[i]), "person": int(poses.person[i]),
+                      **result_json(r, poses.points[i], None if conf is None else conf[i])}
                      for i, r in enumerate(results)]}  # fmt: skip
+    warn_about(results, poses)
     text = json.dumps(out, allow_nan=False)
+    n, frames = len(results), len(set(poses.frame.tolist()))
     if args.output is None:
         print(text)
     else:
         args.output.write_text(text)
-        print(f"lifted {n} poses ({fmt}, model {out['model_id']}) -> {args.output}", file=sys.stderr)
+        print(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}) -> {args.output}",
+              file=sys.stderr)  # fmt: skip
     return EXIT_OK
 
 
 def run_plot(args: argparse.Namespace) -> int:
     from service.plot import plot_lift_file
 
+    bar = progress_bar(0, "frame")
+
+    def advance(done: int, total: int) -> None:
+        if bar is not None:
+            bar.total = total
+            bar.update(1)
+
     try:
-        plot_lift_file(args.input, args.output, args.index)
+        drawn = plot_lift_file(args.input, args.output, args.index, args.person, args.fps, advance)
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise InputFileError(str(err)) from err
-    print(f"wrote {args.output}", file=sys.stderr)
+    finally:
+        if bar is not None:
+            bar.close()
+    print(f"wrote {args.output} ({drawn} {'pose' if drawn == 1 else 'frames'})", file=sys.stderr)
     return EXIT_OK
 
 
@@ -237,7 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
                            add_help=False)  # fmt: skip
     serve.add_argument("args", nargs=argparse.REMAINDER)
     lift = sub.add_parser("lift", help="lift the poses of a .json or .npz file to 3D")
-    lift.add_argument("input", type=Path, help=".json or .npz file of one or many poses")
+    lift.add_argument("input", help=".json or .npz file of one or many poses, or a folder or glob "
+                      "of per-frame .json files (OpenPose --write_json), taken by frame number")  # fmt: skip
     lift.add_argument("--format", choices=list(FORMATS), help="keypoint format (default: file's, h36m17)")
     lift.add_argument("--url", default=DEFAULT_URL, help=f"service URL (default {DEFAULT_URL})")
     lift.add_argument("--local", action="store_true", help="run the ONNX model in this process, no service")
@@ -248,8 +225,12 @@ def build_parser() -> argparse.ArgumentParser:
     lift.add_argument("-o", "--output", type=Path, help="output .json (default: stdout)")
     plot = sub.add_parser("plot", help="draw a lift output: 2D input with reprojection, 3D from two sides")
     plot.add_argument("input", type=Path, help="output .json of `repnet lift`")
-    plot.add_argument("-o", "--output", type=Path, required=True, help="image file (.png, .svg, .pdf)")
-    plot.add_argument("--index", type=int, default=0, help="which pose of the file (default 0)")
+    plot.add_argument("-o", "--output", type=Path, required=True,
+                      help="image file (.png, .svg, .pdf), or an animation of the sequence (.gif; .mp4 "
+                      "where ffmpeg is installed)")  # fmt: skip
+    plot.add_argument("--index", type=int, default=0, help="which pose of the file, for an image (default 0)")
+    plot.add_argument("--person", type=int, default=0, help="whose poses to animate (default 0)")
+    plot.add_argument("--fps", type=int, default=10, help="frames per second of an animation (default 10)")
     sub.add_parser("formats", help="print how each keypoint format maps onto the model's 17 joints")
     return parser
 
@@ -266,6 +247,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     if args.command == "lift" and args.batch_size < 1:
         print("repnet: error: --batch-size must be at least 1", file=sys.stderr)
+        return EXIT_USAGE
+    if args.command == "plot" and args.fps < 1:
+        print("repnet: error: --fps must be at least 1", file=sys.stderr)
         return EXIT_USAGE
     commands = {"lift": run_lift, "plot": run_plot, "formats": run_formats}
     try:

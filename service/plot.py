@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,16 +30,32 @@ def _draw_2d(ax: Any, points: np.ndarray, visible: np.ndarray, **style: Any) -> 
             ax.plot(points[[p, c], 0], points[[p, c], 1], color=side_colour(MODEL_JOINTS[c]), **style)
 
 
-def _draw_3d(ax: Any, pose: np.ndarray, imputed: np.ndarray, title: str, elev: float, azim: float) -> None:
-    """(17, 3) pose in a camera-like frame (x right, y down, z depth) shown with up pointing up."""
-    x, depth, up = pose[:, 0], pose[:, 2], -pose[:, 1]
+Box = tuple[np.ndarray, float]  # a square window: centre and half its side
+
+
+def _square(points: np.ndarray, margin: float, pad: float) -> Box:
+    """The window around (M, D) points: centred on their extent, half the largest side + pad."""
+    centre = (points.max(axis=0) + points.min(axis=0)) / 2
+    return centre, float(np.ptp(points, axis=0).max()) * margin + pad
+
+
+def _view_3d(pose: np.ndarray) -> np.ndarray:
+    """(17, 3) camera-like pose (x right, y down, z depth) -> (17, 3) plotted x, depth, up."""
+    return np.stack([pose[:, 0], pose[:, 2], -pose[:, 1]], axis=1)
+
+
+def _draw_3d(ax: Any, pose: np.ndarray, imputed: np.ndarray, title: str, elev: float, azim: float,
+             box: Box | None = None) -> None:  # fmt: skip
+    """(17, 3) pose in a camera-like frame (x right, y down, z depth) shown with up pointing up,
+    in `box` (default: around the pose itself)."""
+    view = _view_3d(pose)
+    x, depth, up = view[:, 0], view[:, 1], view[:, 2]
     for p, c in _bones(MODEL_PARENTS):
         ax.plot(x[[p, c]], depth[[p, c]], up[[p, c]], color=side_colour(MODEL_JOINTS[c]), linewidth=2.5)
     colours = [side_colour(j) for j in MODEL_JOINTS]
     ax.scatter(x, depth, up, c=colours, s=14, depthshade=False)
     ax.scatter(x[imputed], depth[imputed], up[imputed], facecolors="none", edgecolors="k", s=60)
-    centre = np.array([x.mean(), depth.mean(), up.mean()])
-    half = max(np.ptp(x), np.ptp(depth), np.ptp(up)) / 2 + 50
+    centre, half = box or (view.mean(axis=0), max(np.ptp(x), np.ptp(depth), np.ptp(up)) / 2 + 50)
     ax.set_xlim(centre[0] - half, centre[0] + half)
     ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_zlim(centre[2] - half, centre[2] + half)
@@ -52,15 +69,21 @@ def _draw_3d(ax: Any, pose: np.ndarray, imputed: np.ndarray, title: str, elev: f
     ax.set_title(title)
 
 
-def plot_pose(
-    output: Path, fmt_name: str, keypoints: np.ndarray, pose: dict[str, Any], model_id: str
-) -> None:
-    """Write a figure of one lifted pose: `keypoints` (K, 2) in `fmt_name`, NaN where missing;
-    `pose` the reply's fields (pose_3d_camera, reprojection, imputed, reprojection_error_px)."""
+def _figure() -> tuple[Any, tuple[Any, Any, Any]]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(16, 5.5), layout="constrained")
+    axes = (fig.add_subplot(1, 3, 1), fig.add_subplot(1, 3, 2, projection="3d"),
+            fig.add_subplot(1, 3, 3, projection="3d"))  # fmt: skip
+    return fig, axes
+
+
+def _draw(axes: tuple[Any, Any, Any], fmt_name: str, keypoints: np.ndarray, pose: dict[str, Any],
+          window: Box | None = None, box: Box | None = None) -> None:  # fmt: skip
+    """One lifted pose on the three panels; `window` and `box` fix the 2D and 3D views (sequences)."""
     from matplotlib.lines import Line2D
 
     fmt = FORMATS[fmt_name]
@@ -68,14 +91,12 @@ def plot_pose(
     model_points, model_visible, _, _ = to_model_joints(fmt, keypoints[None], present[None])
     reprojection = np.asarray(pose["reprojection"], dtype=np.float64)  # (17, 2)
     imputed = np.asarray(pose["imputed"], dtype=bool)
-    fig = plt.figure(figsize=(16, 5.5), layout="constrained")
-    ax = fig.add_subplot(1, 3, 1)
+    ax = axes[0]
     ax.scatter(keypoints[present, 0], keypoints[present, 1], s=10, color="0.6", label="detector joints")
     _draw_2d(ax, model_points[0], model_visible[0], linewidth=2.5)
     _draw_2d(ax, reprojection, np.ones(17, bool), linewidth=1.2, linestyle="--")
     ax.scatter(reprojection[imputed, 0], reprojection[imputed, 1], marker="x", color="k", s=40)
-    shown = np.concatenate([keypoints[present], reprojection])  # a square window around both
-    centre, half = (shown.max(axis=0) + shown.min(axis=0)) / 2, np.ptp(shown, axis=0).max() * 0.6 + 1
+    centre, half = window or _square(np.concatenate([keypoints[present], reprojection]), 0.6, 1)
     ax.set_xlim(centre[0] - half, centre[0] + half)
     ax.set_ylim(centre[1] + half, centre[1] - half)  # image y points down
     ax.set_aspect("equal")
@@ -89,25 +110,90 @@ def plot_pose(
         Line2D([], [], marker="x", color="k", linestyle="", label="imputed"),
     ], loc="lower left", fontsize="small", framealpha=0.6)  # fmt: skip
     pose_camera = np.asarray(pose["pose_3d_camera"], dtype=np.float64)  # (17, 3)
-    _draw_3d(
-        fig.add_subplot(1, 3, 2, projection="3d"), pose_camera, imputed, "3D, seen from the camera", 10, -90
-    )
-    _draw_3d(fig.add_subplot(1, 3, 3, projection="3d"), pose_camera, imputed, "3D, seen from the side", 10, 0)
+    _draw_3d(axes[1], pose_camera, imputed, "3D, seen from the camera", 10, -90, box)
+    _draw_3d(axes[2], pose_camera, imputed, "3D, seen from the side", 10, 0, box)
+
+
+def plot_pose(
+    output: Path, fmt_name: str, keypoints: np.ndarray, pose: dict[str, Any], model_id: str
+) -> None:
+    """Write a figure of one lifted pose: `keypoints` (K, 2) in `fmt_name`, NaN where missing;
+    `pose` the reply's fields (pose_3d_camera, reprojection, imputed, reprojection_error_px)."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = _figure()
+    _draw(axes, fmt_name, keypoints, pose)
     fig.suptitle(f"RepNet lift, model {model_id}")
     fig.savefig(output, dpi=100)
     plt.close(fig)
 
 
-def plot_lift_file(path: Path, output: Path, index: int = 0) -> None:
-    """Plot pose `index` of a `repnet lift` output file. Raises ValueError on a malformed file."""
+def _writer(output: Path, fps: int) -> Any:
+    """The matplotlib writer for an animation file: GIF (Pillow), or MP4 where ffmpeg exists."""
+    from matplotlib import animation
+
+    if output.suffix == ".gif":
+        return animation.PillowWriter(fps=fps)
+    if not animation.writers.is_available("ffmpeg"):
+        raise ValueError(f"{output}: writing .mp4 needs ffmpeg on the PATH; write a .gif instead")
+    return animation.FFMpegWriter(fps=fps)
+
+
+def animate_poses(output: Path, fmt_name: str, frames: Sequence[tuple[np.ndarray, dict[str, Any], str]],
+                  model_id: str, fps: int = 10,
+                  progress: Callable[[int, int], None] | None = None) -> None:  # fmt: skip
+    """Write an animation (.gif, or .mp4 with ffmpeg) of lifted poses, one per frame: each item is
+    (keypoints (K, 2) NaN where missing, the reply's fields, a caption). The views stay fixed."""
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation
+
+    writer = _writer(output, fps)
+    shown = np.concatenate([np.concatenate([k[~np.isnan(k).any(axis=1)], np.asarray(p["reprojection"])])
+                            for k, p, _ in frames])  # fmt: skip
+    window = _square(shown, 0.6, 1)
+    views = np.concatenate([_view_3d(np.asarray(p["pose_3d_camera"], float)) for _, p, _ in frames])
+    box = _square(views, 0.5, 50)
+    fig, axes = _figure()
+
+    def update(i: int) -> list[Any]:
+        keypoints, pose, caption = frames[i]
+        for ax in axes:
+            ax.cla()
+        _draw(axes, fmt_name, keypoints, pose, window, box)
+        fig.suptitle(f"RepNet lift, model {model_id}: {caption}")
+        return []
+
+    animation = FuncAnimation(fig, update, frames=len(frames), blit=False, repeat=False)
+    animation.save(str(output), writer=writer, dpi=60, progress_callback=progress)
+    plt.close(fig)
+
+
+ANIMATIONS = (".gif", ".mp4")
+
+
+def plot_lift_file(path: Path, output: Path, index: int = 0, person: int = 0, fps: int = 10,
+                   progress: Callable[[int, int], None] | None = None) -> int:  # fmt: skip
+    """Plot pose `index` of a `repnet lift` output file, or, when `output` is a .gif or .mp4, animate
+    the poses of `person` frame by frame. Returns the number of poses drawn. Raises ValueError on
+    a malformed file."""
     data = json.loads(path.read_text())
     poses = data.get("poses") if isinstance(data, dict) else None
     if not isinstance(poses, list) or data.get("format") not in FORMATS:
         raise ValueError(f"{path}: not a `repnet lift` output (needs 'format' and 'poses')")
+    model_id = str(data.get("model_id", ""))
+
+    def keypoints(pose: dict[str, Any]) -> np.ndarray:
+        rows = pose["input"]["keypoints"]
+        return np.array([[np.nan, np.nan] if p is None else p for p in rows], dtype=float)
+
+    if output.suffix in ANIMATIONS:
+        chosen = [(i, p) for i, p in enumerate(poses) if p.get("person", 0) == person]
+        if not chosen:
+            raise ValueError(f"{path}: no pose of person {person}")
+        frames = [(keypoints(p), p, f"frame {p.get('frame', i)}, person {person}") for i, p in chosen]
+        animate_poses(output, data["format"], frames, model_id, fps, progress)
+        return len(frames)
     if not -len(poses) <= index < len(poses):
         raise ValueError(f"{path}: pose index {index} out of range, the file has {len(poses)} poses")
-    pose = poses[index]
-    keypoints = np.array(
-        [[np.nan, np.nan] if p is None else p for p in pose["input"]["keypoints"]], dtype=float
-    )
-    plot_pose(output, data["format"], keypoints, pose, str(data.get("model_id", "")))
+    plot_pose(output, data["format"], keypoints(poses[index]), poses[index], model_id)
+    return 1

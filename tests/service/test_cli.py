@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import io
 import json
+import shutil
 import socket
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from service.cli import EXIT_OK, EXIT_REJECTED, EXIT_UNREACHABLE, EXIT_USAGE, load_poses, main
+from service import cli
+from service.cli import EXIT_OK, EXIT_REJECTED, EXIT_UNREACHABLE, EXIT_USAGE, load_poses, main, progress_bar
 from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
 from tests.conftest import POSE_2D, POSE_3D, LiveService, project
 
@@ -146,3 +150,146 @@ def test_plot_rejects_a_file_that_is_not_a_lift_output(
     assert main(["plot", str(_coco_file(tmp_path)), "-o", str(tmp_path / "x.png")]) == EXIT_USAGE
     assert "not a `repnet lift` output" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def _openpose_frame(path: Path, people: list[np.ndarray]) -> None:
+    """An OpenPose --write_json frame: (25, 2) BODY_25 points per person, NaN = not detected (c 0)."""
+    rows = [np.concatenate([np.nan_to_num(p), (~np.isnan(p).any(axis=1))[:, None] * 0.9], axis=1)
+            for p in people]  # fmt: skip
+    found = [{"pose_keypoints_2d": r.ravel().tolist()} for r in rows]
+    path.write_text(json.dumps({"version": 1.3, "people": found}))
+
+
+def _body25(shift: float) -> np.ndarray:
+    points, _ = from_model_joints(FORMATS["body25"], (POSE_2D + [shift, 0.0])[None])
+    return points[0].astype(np.float64)
+
+
+def _openpose_folder(tmp_path: Path) -> Path:
+    """Frames 1 (two people), 2 (nobody) and 10 (one person), named so that name order is wrong."""
+    folder = tmp_path / "openpose"
+    folder.mkdir()
+    _openpose_frame(folder / "clip_10_keypoints.json", [_body25(100.0)])
+    _openpose_frame(folder / "clip_1_keypoints.json", [_body25(0.0), _body25(800.0)])
+    _openpose_frame(folder / "clip_2_keypoints.json", [])
+    return folder
+
+
+@pytest.mark.parametrize("pattern", ["", "clip_*_keypoints.json"], ids=["folder", "glob"])
+def test_lift_reads_openpose_frames_by_frame_number_with_every_person(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], pattern: str
+) -> None:
+    folder, out = _openpose_folder(tmp_path), tmp_path / "out.json"
+    source = str(folder / pattern) if pattern else str(folder)
+    assert main(["lift", source, "--local", "-o", str(out)]) == EXIT_OK
+    data = json.loads(out.read_text())
+    assert data["format"] == "body25"
+    assert [(p["frame"], p["person"]) for p in data["poses"]] == [(1, 0), (1, 1), (10, 0)]
+    pelvis = FORMATS["body25"].joint_names.index("mid_hip")
+    xs = [p["input"]["keypoints"][pelvis][0] for p in data["poses"]]
+    np.testing.assert_allclose(xs, [POSE_2D[0, 0], POSE_2D[0, 0] + 800, POSE_2D[0, 0] + 100], atol=1e-3)
+    assert "lifted 3 poses of 2 frames" in capsys.readouterr().err
+
+
+def test_a_missing_joint_is_echoed_as_missing(tmp_path: Path) -> None:
+    """Joints OpenPose did not detect (c = 0) and null rows: null keypoint and null confidence."""
+    path, out = tmp_path / "frame_000000000007_keypoints.json", tmp_path / "out.json"
+    _openpose_frame(path, [_body25(0.0), _body25(300.0)])
+    assert main(["lift", str(path), "--local", "-o", str(out)]) == EXIT_OK
+    poses = json.loads(out.read_text())["poses"]
+    assert [(p["frame"], p["person"]) for p in poses] == [(7, 0), (7, 1)]
+    ear = FORMATS["body25"].joint_names.index("left_ear")  # BODY_25 joint with no model counterpart
+    assert poses[0]["input"]["keypoints"][ear] is None and poses[0]["input"]["confidence"][ear] is None
+    assert poses[0]["input"]["confidence"][0] == pytest.approx(0.9)
+    rows: list[object] = np.concatenate([POSE_2D, np.full((17, 1), 0.8)], axis=1).tolist()
+    rows[4] = None
+    (tmp_path / "rows.json").write_text(json.dumps({"keypoints": rows}))
+    assert main(["lift", str(tmp_path / "rows.json"), "--local", "-o", str(out)]) == EXIT_OK
+    echoed = json.loads(out.read_text())["poses"][0]["input"]
+    assert echoed["keypoints"][4] is None and echoed["confidence"][4] is None
+    assert echoed["confidence"][3] == 0.8
+
+
+def test_lift_warns_on_stderr_when_the_format_looks_wrong(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    coco = json.loads(_coco_file(tmp_path).read_text())
+    path, out = tmp_path / "unlabelled.json", tmp_path / "out.json"
+    path.write_text(json.dumps({"keypoints": coco["keypoints"]}))  # no format: read as h36m17
+    assert main(["lift", str(path), "--local", "-o", str(out)]) == EXIT_OK
+    err = capsys.readouterr().err
+    assert "repnet: warning: 3 of 3 poses: format: these keypoints look like coco17, not h36m17" in err
+    assert all(p["warnings"] for p in json.loads(out.read_text())["poses"])
+    assert main(["lift", str(_coco_file(tmp_path)), "--local", "-o", str(out)]) == EXIT_OK
+    assert "warning" not in capsys.readouterr().err
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_bar_shows_on_a_terminal_only() -> None:
+    shown, hidden = _Terminal(), io.StringIO()
+    for stream in (shown, hidden):
+        bar = progress_bar(4, "pose", file=stream)
+        bar.update(1)
+        time.sleep(0.6)  # bars of short work stay hidden (delay 0.5 s)
+        bar.update(3)
+        bar.close()
+    assert "pose" in shown.getvalue() and hidden.getvalue() == ""
+
+
+def test_lift_reports_progress_over_files_and_poses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    bars: list[tuple[int, str, list[int]]] = []
+
+    class Bar:
+        def __init__(self, total: int, unit: str) -> None:
+            bars.append((total, unit, []))
+
+        def update(self, n: int) -> None:
+            bars[-1][2].append(n)
+
+        def close(self) -> None:
+            pass
+
+        def __enter__(self) -> Bar:
+            return self
+
+        def __exit__(self, *_: object) -> None:
+            pass
+
+    monkeypatch.setattr(cli, "progress_bar", Bar)
+    folder, out = _openpose_folder(tmp_path), tmp_path / "out.json"
+    args = ["lift", str(folder), "--local", "--batch-size", "2", "-o", str(out)]
+    assert main(args) == EXIT_OK
+    assert bars == [(3, "file", [1, 1, 1]), (3, "pose", [2, 1])]
+
+
+def test_plot_of_a_sequence_writes_an_animated_gif(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out, gif = tmp_path / "out.json", tmp_path / "walk.gif"
+    assert main(["lift", str(_openpose_folder(tmp_path)), "--local", "-o", str(out)]) == EXIT_OK
+    assert main(["plot", str(out), "-o", str(gif), "--fps", "5"]) == EXIT_OK
+    assert "wrote" in capsys.readouterr().err
+    from PIL import Image
+
+    with Image.open(gif) as image:
+        assert image.format == "GIF" and image.n_frames == 2  # person 0 of frames 1 and 10
+    assert main(["plot", str(out), "-o", str(gif), "--person", "1"]) == EXIT_OK
+    with Image.open(gif) as image:
+        assert image.n_frames == 1
+
+
+@pytest.mark.skipif(shutil.which("ffmpeg") is not None, reason="ffmpeg is installed: .mp4 works")
+def test_plot_to_mp4_without_ffmpeg_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out.json"
+    assert main(["lift", str(_openpose_folder(tmp_path)), "--local", "-o", str(out)]) == EXIT_OK
+    assert main(["plot", str(out), "-o", str(tmp_path / "walk.mp4")]) == EXIT_USAGE
+    assert "needs ffmpeg" in capsys.readouterr().err and not (tmp_path / "walk.mp4").exists()
+
+
+def test_an_empty_folder_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["lift", str(tmp_path), "--local"]) == EXIT_USAGE
+    assert "no .json files" in capsys.readouterr().err

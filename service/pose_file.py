@@ -1,0 +1,181 @@
+"""Pose files for the `repnet` command: JSON, NPZ and folders (or globs) of OpenPose frames."""
+
+from __future__ import annotations
+
+import glob
+import json
+import re
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+Progress = Callable[[Sequence[Path]], Iterable[Path]]
+
+
+class InputFileError(Exception):
+    """The input file cannot be read as poses."""
+
+
+@dataclass(frozen=True)
+class Poses:
+    """Poses read from a file or a folder of frames, in frame order."""
+
+    points: np.ndarray  # (N, J, 2) px, NaN where a joint is missing
+    confidence: np.ndarray | None  # (N, J) in [0, 1], or None
+    format: str | None  # the format the file names, if any
+    frame: np.ndarray  # (N,) int: the frame of each pose (file number, else its index in the file)
+    person: np.ndarray  # (N,) int: the pose's index among the people of its frame
+
+
+def _pose_array(rows: Any, where: str) -> np.ndarray:
+    """One pose of J rows ([x, y], [x, y, c] or null) -> (J, 3): NaN rows for null, c NaN if not given."""
+    if not isinstance(rows, list) or not rows:
+        raise InputFileError(f"{where}: expected a non-empty list of joints, got {type(rows).__name__}")
+    out = np.full((len(rows), 3), np.nan)
+    for j, row in enumerate(rows):
+        if row is None:
+            continue
+        numbers = isinstance(row, list) and all(isinstance(v, int | float) for v in row)
+        if not numbers or len(row) not in (2, 3):
+            raise InputFileError(f"{where}[{j}]: expected [x, y], [x, y, confidence] or null, got {row!r}")
+        out[j, : len(row)] = row
+    return out
+
+
+def _stack(poses: Sequence[np.ndarray], confidence: Any, fmt: Any, where: str) -> Poses:
+    """(J, 3) poses from _pose_array, with `confidence` (N, J) overriding their third column; one
+    frame per pose."""
+    if not poses:
+        raise InputFileError(f"{where}: no poses")
+    if len({p.shape for p in poses}) != 1:
+        raise InputFileError(f"{where}: poses have different joint counts {sorted({len(p) for p in poses})}")
+    data = np.stack(poses)  # (N, J, 3)
+    if confidence is None and not np.isnan(data[..., 2]).all():
+        confidence = np.nan_to_num(data[..., 2], nan=1.0)  # a joint given without confidence counts as sure
+    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64).reshape(data.shape[:2])
+    n = len(poses)
+    return Poses(data[..., :2], conf, None if fmt is None else str(fmt), np.arange(n), np.zeros(n, int))
+
+
+def _openpose_people(data: dict[str, Any]) -> list[np.ndarray]:
+    """OpenPose --write_json people as (J, 3) x, y, c arrays; c = 0 marks a missing joint (NaN)."""
+    people = [np.asarray(p["pose_keypoints_2d"], dtype=np.float64).reshape(-1, 3) for p in data["people"]]
+    return [np.where(p[:, 2:] > 0, p, np.nan) for p in people]
+
+
+def _openpose_format(people: Sequence[np.ndarray]) -> str | None:
+    return "body25" if people and len(people[0]) == 25 else None
+
+
+def _read_json(data: Any) -> Poses:
+    if isinstance(data, dict) and "people" in data:  # one OpenPose frame: every person a pose
+        people = _openpose_people(data)
+        poses = _stack(people, None, _openpose_format(people), "people")
+        return replace(poses, frame=np.zeros(len(people), int), person=np.arange(len(people)))
+    if isinstance(data, dict) and "poses" in data:  # the POST /lift body
+        items = data["poses"] if isinstance(data["poses"], list) else []
+        arrays = [_pose_array(p.get("keypoints") if isinstance(p, dict) else None, f"poses[{i}].keypoints")
+                  for i, p in enumerate(items)]  # fmt: skip
+        for pose, item in zip(arrays, items, strict=True):
+            if isinstance(item, dict) and item.get("confidence") is not None:
+                pose[:, 2] = np.asarray(item["confidence"], dtype=np.float64)
+        return _stack(arrays, None, data.get("format"), "poses")
+    body = data if isinstance(data, dict) else {"keypoints": data}
+    keypoints, fmt = body.get("keypoints"), body.get("format")
+    many = isinstance(keypoints, list) and bool(keypoints) and isinstance(keypoints[0], list) and \
+        any(isinstance(row, list) for row in keypoints[0])  # fmt: skip
+    rows: list[Any] = keypoints if many and isinstance(keypoints, list) else [keypoints]
+    return _stack([_pose_array(r, f"keypoints[{i}]") for i, r in enumerate(rows)], body.get("confidence"),
+                  fmt, "keypoints")  # fmt: skip
+
+
+def frame_number(path: Path) -> int | None:
+    """The frame number in a file name: its last run of digits (OpenPose: video_000000000012_keypoints)."""
+    digits = re.findall(r"\d+", path.stem)
+    return int(digits[-1]) if digits else None
+
+
+def load_poses(path: Path) -> Poses:
+    """Poses from a .json (a pose, a list of poses, a POST /lift body or OpenPose output) or .npz
+    (`keypoints` (N, J, 2|3) or (J, 2|3) with NaN for missing joints, optional `confidence`, `format`)."""
+    try:
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as npz:
+                if "keypoints" not in npz:
+                    raise InputFileError(f"{path}: no 'keypoints' array (has {', '.join(npz.files)})")
+                keypoints = np.asarray(npz["keypoints"], dtype=np.float64)
+                conf = npz["confidence"] if "confidence" in npz else None
+                fmt = npz["format"] if "format" in npz else None
+            keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
+            if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3):
+                raise InputFileError(f"expected keypoints (N, J, 2) or (N, J, 3), got {keypoints.shape}")
+            padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
+            return _stack(list(padded), conf, fmt, str(path))
+        if path.suffix == ".json":
+            data = json.loads(path.read_text())
+            poses = _read_json(data)
+            if isinstance(data, dict) and "people" in data and (number := frame_number(path)) is not None:
+                poses = replace(poses, frame=np.full(len(poses.frame), number))  # one OpenPose frame
+            return poses
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        raise InputFileError(f"{path}: {err}") from err
+    raise InputFileError(f"{path}: expected a .json or .npz file")
+
+
+def _frame_files(spec: str) -> list[Path]:
+    """The .json files of a folder, or the files a glob pattern matches, by frame number then name."""
+    path = Path(spec)
+    if path.is_dir():
+        files = sorted(path.glob("*.json"))
+        where = f"{path}: no .json files in the folder"
+    else:
+        files = [Path(p) for p in glob.glob(spec)]
+        where = f"{spec}: no file matches"
+    if not files:
+        raise InputFileError(where)
+    return sorted(files, key=lambda f: (frame_number(f) is None, frame_number(f) or 0, f.name))
+
+
+def load_frames(files: Sequence[Path], progress: Progress) -> Poses:
+    """Every person of every frame file (OpenPose per-frame JSON, or any pose file), in frame order;
+    a frame without people gives no pose."""
+    parts: list[np.ndarray] = []
+    frames: list[int] = []
+    persons: list[int] = []
+    fmt: str | None = None
+    for index, path in enumerate(progress(files)):
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            raise InputFileError(f"{path}: {err}") from err
+        number = frame_number(path)
+        if isinstance(data, dict) and "people" in data:
+            try:
+                people = _openpose_people(data)
+            except (KeyError, ValueError, TypeError) as err:
+                raise InputFileError(f"{path}: {err}") from err
+            fmt = fmt or _openpose_format(people)
+            rows = people
+        else:
+            poses = load_poses(path)
+            fmt = fmt or poses.format
+            conf = np.full(poses.points.shape[:2], np.nan) if poses.confidence is None else poses.confidence
+            rows = list(np.concatenate([poses.points, conf[..., None]], axis=-1))
+        parts += rows
+        frames += [index if number is None else number] * len(rows)
+        persons += range(len(rows))
+    poses = _stack(parts, None, fmt, f"{len(files)} files")
+    return replace(poses, frame=np.array(frames), person=np.array(persons))
+
+
+def read_input(spec: str, progress: Progress) -> Poses:
+    """Poses from one file, or from every frame file of a folder or a glob pattern."""
+    path = Path(spec)
+    if path.is_file():
+        return load_poses(path)
+    if path.is_dir() or any(c in spec for c in "*?["):
+        return load_frames(_frame_files(spec), progress)
+    raise InputFileError(f"{spec}: No such file or folder")
