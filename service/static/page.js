@@ -15,6 +15,7 @@ function text(id, value) {
 
 function clearErrors() {
   for (const slot of SLOTS) text(`${slot}-error`, "");
+  text("status", "");
   $("format-warnings").replaceChildren();
 }
 
