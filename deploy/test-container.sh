@@ -111,7 +111,7 @@ user=$("${PODMAN[@]}" image inspect "$IMAGE" --format '{{.Config.User}}')
 
 HTTP_PORT=$(free_port)
 GRPC_PORT=$(free_port)
-# As deploy/k8s/deployment.yaml runs it: read-only root, /tmp writable, no capabilities, 2 CPUs, 1 GiB.
+# As deploy/k8s/base/deployment.yaml runs it: read-only root, /tmp writable, no capabilities, 2 CPUs, 1 GiB.
 log "starting $NAME (HTTP $HTTP_PORT, gRPC $GRPC_PORT, --network host, read-only, 2 CPUs, 1 GiB)"
 "${PODMAN[@]}" run -d --name "$NAME" --network host "${LIMITS[@]}" --health-interval disable \
     --read-only --tmpfs /tmp --cap-drop ALL --security-opt no-new-privileges --cpus 2 --memory 1g \

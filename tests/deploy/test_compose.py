@@ -72,11 +72,27 @@ def test_prometheus_config_passes_promtool() -> None:
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-def test_dashboard_uses_the_provisioned_datasource() -> None:
+def _datasources(node: Any) -> list[dict[str, Any]]:
+    """Every `datasource` reference in the dashboard (panels and their queries)."""
+    if isinstance(node, dict):
+        found = [node["datasource"]] if isinstance(node.get("datasource"), dict) else []
+        return found + [d for value in node.values() for d in _datasources(value)]
+    if isinstance(node, list):
+        return [d for value in node for d in _datasources(value)]
+    return []
+
+
+def test_dashboard_imports_into_any_grafana_through_a_datasource_variable() -> None:
+    """No hard-coded datasource uid: every query uses ${datasource}, a variable of Prometheus data
+    sources, which the provisioned (default) Prometheus fills in the compose stack."""
+    dashboard = json.loads(DASHBOARD.read_text())
+    [variable] = [v for v in dashboard["templating"]["list"] if v["type"] == "datasource"]
+    assert variable["name"] == "datasource" and variable["query"] == "prometheus"
+    references = _datasources(dashboard["panels"])
+    assert len(references) > len(dashboard["panels"])  # the panels and their queries
+    assert all(d == {"type": "prometheus", "uid": "${datasource}"} for d in references), references
     provisioned = yaml.safe_load((DEPLOY / "grafana/provisioning/datasources/prometheus.yml").read_text())
-    uids = {d["uid"] for d in provisioned["datasources"]}
-    panels = json.loads(DASHBOARD.read_text())["panels"]
-    assert {p["datasource"]["uid"] for p in panels} <= uids
+    assert [d["type"] for d in provisioned["datasources"] if d.get("isDefault")] == ["prometheus"]
 
 
 def test_dashboard_covers_latency_throughput_batch_size_and_errors() -> None:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import re
+import shutil
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -17,22 +19,27 @@ from service.config import Settings  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 K8S = ROOT / "deploy" / "k8s"
+WITH_MONITOR = K8S / "with-servicemonitor"
 # The oldest and the newest Kubernetes whose schemas we check (all bundled with kubernetes-validate).
 VERSIONS = ["1.29.0", "1.37.0"]
 CRD_KINDS = {"ServiceMonitor"}
-NOT_API_OBJECTS = {"kustomization.yaml"}
 
 
-def load_resources() -> list[tuple[str, dict[str, Any]]]:
+def kustomize(folder: Path) -> list[tuple[str, dict[str, Any]]]:
+    """(file, object) for every object the kustomization in `folder` gives: its resources (files or
+    folders with their own kustomization) and components, as `kubectl kustomize` gathers them."""
+    spec = yaml.safe_load((folder / "kustomization.yaml").read_text())
     docs = []
-    for path in sorted(K8S.glob("*.yaml")):
-        if path.name in NOT_API_OBJECTS:
-            continue
-        docs += [(path.name, doc) for doc in yaml.safe_load_all(path.read_text()) if doc]
+    for entry in [*spec.get("resources", []), *spec.get("components", [])]:
+        path = (folder / entry).resolve()
+        if path.is_dir():
+            docs += kustomize(path)
+        else:
+            docs += [(str(path.relative_to(K8S)), d) for d in yaml.safe_load_all(path.read_text()) if d]
     return docs
 
 
-RESOURCES = load_resources()
+RESOURCES = kustomize(WITH_MONITOR)  # everything, the ServiceMonitor included
 
 
 def one(kind: str, name: str = "repnet") -> dict[str, Any]:
@@ -69,15 +76,56 @@ def test_manifest_is_valid_against_kubernetes_schema(
 
 
 def test_validator_rejects_an_unknown_field() -> None:
-    broken = yaml.safe_load((K8S / "deployment.yaml").read_text())
+    broken = yaml.safe_load((K8S / "base" / "deployment.yaml").read_text())
     broken["spec"]["template"]["spec"]["containers"][0]["readinessprobe"] = {}
     with pytest.raises(kubernetes_validate.ValidationError):
         kubernetes_validate.validate(broken, VERSIONS[-1], strict=True)
 
 
-def test_every_manifest_is_listed_in_kustomization() -> None:
-    listed = set(yaml.safe_load((K8S / "kustomization.yaml").read_text())["resources"])
-    assert listed == {p.name for p in K8S.glob("*.yaml")} - NOT_API_OBJECTS
+def test_every_manifest_is_listed_in_its_kustomization() -> None:
+    for kustomization in K8S.rglob("kustomization.yaml"):
+        spec = yaml.safe_load(kustomization.read_text())
+        listed = {r for r in spec.get("resources", []) if (kustomization.parent / r).is_file()}
+        present = {p.name for p in kustomization.parent.glob("*.yaml")} - {"kustomization.yaml"}
+        assert listed == present, kustomization
+
+
+def test_default_apply_needs_no_prometheus_operator() -> None:
+    """`kubectl apply -k deploy/k8s` must work on any cluster: no object of a CRD kind in it."""
+    kinds = {doc["kind"] for _, doc in kustomize(K8S)}
+    assert kinds == {"Deployment", "Service", "HorizontalPodAutoscaler", "PodDisruptionBudget"}
+
+
+def test_servicemonitor_comes_with_its_overlay_only() -> None:
+    default = {(d["kind"], d["metadata"]["name"]) for _, d in kustomize(K8S)}
+    overlay = {(d["kind"], d["metadata"]["name"]) for _, d in RESOURCES}
+    assert overlay - default == {("ServiceMonitor", "repnet")}
+    component = yaml.safe_load((K8S / "components/servicemonitor/kustomization.yaml").read_text())
+    assert component["kind"] == "Component"
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl is not installed")
+@pytest.mark.parametrize("folder", [K8S, WITH_MONITOR], ids=["default", "with-servicemonitor"])
+def test_kubectl_builds_each_kustomization_as_read_here(folder: Path) -> None:
+    built = subprocess.run(["kubectl", "kustomize", str(folder)], capture_output=True, text=True,
+                           timeout=60, check=True).stdout  # fmt: skip
+    got = sorted((d["kind"], d["metadata"]["name"]) for d in yaml.safe_load_all(built) if d)
+    assert got == sorted((d["kind"], d["metadata"]["name"]) for _, d in kustomize(folder))
+
+
+def test_readme_says_how_to_get_the_image_into_a_cluster() -> None:
+    """The Deployment runs an image no registry has: the README must say how to push or load it."""
+    image = container()["image"]
+    readme = (ROOT / "README.md").read_text()
+    commands = [
+        f"docker push registry.example.com/{image}",
+        f"kind load docker-image {image}",
+        f"minikube image load {image}",
+        "kubectl apply -k deploy/k8s/with-servicemonitor",
+    ]
+    for command in commands:
+        assert command in readme, command
+    assert "kustomize edit set image" in readme  # pointing the Deployment at a pushed image
 
 
 def test_ports_match_service_defaults_and_dockerfile() -> None:
