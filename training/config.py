@@ -12,8 +12,10 @@ class RepNetConfig:
     num_joints: int = 17
     width: int = 1000  # units of every generator layer
     num_blocks: int = 2  # residual blocks of two layers each, per generator branch
-    critic_width: int = 1000  # units of the critic's fully connected pose path
-    kcs_width: int = 100  # units of the layers after the KCS layer (paper: 100, authors' code: 1000)
+    # The authors' released code has a 100-unit pose path and a 1000-unit KCS path; the
+    # previous default model had them the other way round (1000 / 100).
+    critic_width: int = 100  # units of the critic's fully connected pose path
+    kcs_width: int = 1000  # units of the layers after the KCS layer (paper figure: 100)
     leaky_slope: float = 0.01
     # Feed the visibility mask to the generator beside the normalised coordinates, so a
     # missing joint is not mistaken for a joint at the centroid.
@@ -30,14 +32,20 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda
     threads: int = 0  # torch intra-op threads on the CPU; 0 = torch's default
-    iterations: int = 20000  # generator steps
+    iterations: int = 20000  # generator steps, warm start included; the schedule counts these
     max_minutes: float = 0.0  # stop (and checkpoint) after this wall time; 0 = no limit
+    stop_step: int = 0  # stop (and checkpoint) at this step, schedule unchanged; 0 = at iterations
     batch_size: int = 256
     critic_steps: int = 5  # critic updates per generator update
     # The critic judges the poses of the last generator step instead of generating new ones
     # for each critic step: a generator pass costs four critic passes on the CPU.
     reuse_fakes: bool = True
     lr: float = 1e-4
+    # The learning rate follows the step count alone (never the wall time), so a resumed run
+    # continues the same schedule. cosine: from lr to lr * lr_decay over `iterations`;
+    # step: divided by 10 after 1/4, 2/4 and 3/4 of them (the authors' epochs 5, 10, 15 of 20);
+    # constant: lr throughout.
+    schedule: str = "cosine"
     lr_decay: float = 0.1  # final learning rate as a fraction of lr (cosine)
     beta1: float = 0.5
     beta2: float = 0.9
@@ -45,6 +53,24 @@ class TrainConfig:
     reprojection_weight: float = 1.0
     camera_weight: float = 1.0
     adversarial_weight: float = 1.0
+    # Linear ramp of the adversarial weight from 0 over this many steps after the warm start,
+    # so the critic learns before it pulls on a generator that already fits the 2D.
+    adversarial_ramp: int = 0
+    # fro: ||W - KX||_F and ||.||_F of the camera term (the paper's text); l1: the authors'
+    # code, sum |W - KX| / 2J with per-joint weights and sum |entries| of the camera term.
+    reprojection_norm: str = "fro"
+    camera_norm: str = "fro"
+    # Synthetic warm start: generator steps before the adversarial phase, supervised on the
+    # unpaired training 3D poses projected through random cameras (never the real ones, and
+    # never an image's 2D matched to its own 3D). 0 = the paper's recipe from scratch.
+    warm_start_steps: int = 0
+    # Weight of the same synthetic loss during the adversarial phase (0 = off).
+    synthetic_weight: float = 0.0
+    # Bone-length prior: mean |length - mean length of that bone over the real 3D poses| (m) of
+    # the generated poses, all 16 bones; one person's bones keep their length and left equals
+    # right, which the critic alone teaches slowly. 0 = off (the paper).
+    bone_weight: float = 0.0
+    synthetic_noise_px: float = 8.0  # synthetic 2D gets N(0, u) px noise, u ~ U(0, this) per pose
     noise_px: float = 0.0  # std of Gaussian pixel noise added to the 2D inputs
     mask_prob: float = 0.5  # chance that a 2D sample has 1..mask_max random joints hidden
     mask_max: int = 3
@@ -54,4 +80,5 @@ class TrainConfig:
     val_size: int = 4000  # validation poses per evaluation
     val_every: int = 500
     checkpoint_every: int = 500
+    checkpoint_minutes: float = 10.0  # also checkpoint after this much wall time since the last
     log_every: int = 50

@@ -166,6 +166,9 @@ class LiftingSet:
     poses_3d: np.ndarray  # (M, 17, 3) float32: template-aligned (training) or camera-frame (validation) mm
     points_2d: np.ndarray  # (K, 17, 2) float32 pixels
     visible: np.ndarray  # (K, 17) float32 in {0, 1}
+    # Training only: poses_3d before the alignment, world mm (Z up) with the pelvis at the origin;
+    # the synthetic warm start projects these through random cameras.
+    poses_world: np.ndarray | None = None
 
 
 def _split(n: int, val_fraction: float) -> int:
@@ -210,10 +213,12 @@ def build_training_sets(
                 train_2d["sh"].append((pts[: min(split, n) : frame_step], vis[: min(split, n) : frame_step]))
                 val["sh"].append((gt_cam[split:n], pts[split:n], vis[split:n]))
     pairs = train_2d["gt"] + train_2d["sh"]
+    world = np.concatenate(train_3d)
     train = LiftingSet(
-        poses_3d=align_to_template(np.concatenate(train_3d)),
+        poses_3d=align_to_template(world),
         points_2d=np.concatenate([p for p, _ in pairs]),
         visible=np.concatenate([v for _, v in pairs]),
+        poses_world=(world - world[:, skeleton.ROOT : skeleton.ROOT + 1]).astype(np.float32),
     )
     val_sets = {
         kind: LiftingSet(*(np.concatenate(arrays) for arrays in zip(*items, strict=True)))

@@ -13,14 +13,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import skeleton
+from training import data, skeleton
 from training.config import RepNetConfig
-from training.model import LiftingGraph, RepNet
+from training.model import MM_PER_UNIT, Critic, LiftingGraph, Plausibility, RepNet
 
 log = logging.getLogger(__name__)
 
 OPSET = 17
 IR_VERSION = 8  # loadable by every onnxruntime >= 1.14
+CALIBRATION_LEVELS = 1001  # quantiles of the critic's real-pose scores: 0.1 % steps
 LICENCE = (
     "Weights trained on Human3.6M (Ionescu et al., TPAMI 2014): academic, non-commercial "
     "research use only, under the Human3.6M licence. The code is Apache-2.0."
@@ -35,17 +36,36 @@ def load_generator(checkpoint: Path) -> tuple[RepNet, dict[str, Any]]:
     return generator.eval(), state
 
 
-def export_onnx(generator: RepNet, path: Path, metadata: dict[str, str]) -> None:
+def load_critic(state: dict[str, Any]) -> Critic:
+    """The trained critic of a checkpoint's state (load_generator's second value)."""
+    critic = Critic(RepNetConfig(**state["model_config"]))
+    critic.load_state_dict(state["critic"])
+    return critic.eval()
+
+
+def calibrate(critic: Critic, real_poses_mm: np.ndarray, levels: int = CALIBRATION_LEVELS) -> np.ndarray:
+    """The critic's scores of real template-aligned (N, J, 3) poses (mm) at `levels` evenly spaced
+    quantiles, 0 to 100 %: the table that turns a score into its percentile among real poses."""
+    with torch.no_grad():
+        scores = critic(torch.from_numpy(real_poses_mm.astype(np.float32) / MM_PER_UNIT)).numpy()
+    return np.quantile(scores.astype(np.float64), np.linspace(0.0, 1.0, levels)).astype(np.float32)
+
+
+def export_onnx(
+    generator: RepNet, path: Path, metadata: dict[str, str], plausibility: Plausibility | None = None
+) -> None:
     """Write the LiftingGraph of `generator` to `path` with the ONNX contract of the service.
 
     Inputs keypoints_2d (N, 17, 2) px and visibility (N, 17); outputs pose_3d (N, 17, 3) mm
-    and camera (N, 2, 3). N is dynamic.
+    and camera (N, 2, 3), and plausibility (N,) in [0, 1] when a calibrated critic is given.
+    N is dynamic.
     """
     import onnx
 
-    graph = LiftingGraph(generator.eval()).eval()
+    graph = LiftingGraph(generator.eval(), plausibility).eval()
     j = generator.config.num_joints
     example = (torch.randn(2, j, 2) * 100 + 500, torch.ones(2, j))
+    outputs = ["pose_3d", "camera"] + (["plausibility"] if plausibility is not None else [])
     path.parent.mkdir(parents=True, exist_ok=True)
     with torch.no_grad(), warnings.catch_warnings():
         # The TorchScript exporter is deprecated but gives a plain, small opset-17 graph.
@@ -55,8 +75,8 @@ def export_onnx(generator: RepNet, path: Path, metadata: dict[str, str]) -> None
             example,
             str(path),
             input_names=["keypoints_2d", "visibility"],
-            output_names=["pose_3d", "camera"],
-            dynamic_axes={name: {0: "N"} for name in ("keypoints_2d", "visibility", "pose_3d", "camera")},
+            output_names=outputs,
+            dynamic_axes={name: {0: "N"} for name in ["keypoints_2d", "visibility", *outputs]},
             opset_version=OPSET,
             dynamo=False,
         )
@@ -77,8 +97,25 @@ def build_metadata(
     train_command: str = "",
     training_data: str = "",
     evaluation: dict[str, Any] | None = None,
+    calibration: np.ndarray | None = None,
 ) -> dict[str, str]:
-    """ONNX custom metadata: joints, skeleton, provenance, licence and evaluation figures."""
+    """ONNX custom metadata: joints, skeleton, provenance, licence, evaluation figures and, with
+    a plausibility output, its calibration table."""
+    extra: dict[str, str] = {}
+    if calibration is not None:
+        extra["plausibility"] = (
+            "plausibility (N,) in [0, 1]: the share of real Human3.6M validation poses (template-aligned "
+            "ground truth of held-out training-subject frames) that the trained critic scores at most as "
+            "high as this pose_3d; 0.5 is a typical real pose, below 0.05 fewer than 1 in 20 real poses "
+            "look as implausible"
+        )
+        extra["plausibility_calibration"] = json.dumps(
+            {
+                "levels": len(calibration),
+                "critic_scores_at_quantiles": [round(float(v), 6) for v in calibration],
+                "reference": "critic scores of real validation poses, at quantiles 0..1 evenly spaced",
+            }
+        )
     return {
         "model_id": model_id,
         "joint_names": json.dumps(list(skeleton.JOINT_NAMES)),
@@ -92,6 +129,7 @@ def build_metadata(
         "licence": LICENCE,
         "train_command": train_command,
         "evaluation": json.dumps(evaluation or {}),
+        **extra,
     }
 
 
@@ -100,9 +138,9 @@ def check_parity(generator: RepNet, path: Path, points: np.ndarray, visible: np.
     import onnxruntime as ort
 
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    pose_ort, _ = session.run(None, {"keypoints_2d": points, "visibility": visible})
+    pose_ort = session.run(["pose_3d"], {"keypoints_2d": points, "visibility": visible})[0]
     with torch.no_grad():
-        pose_torch, _ = LiftingGraph(generator)(torch.from_numpy(points), torch.from_numpy(visible))
+        pose_torch = LiftingGraph(generator)(torch.from_numpy(points), torch.from_numpy(visible))[0]
     return float(np.abs(pose_ort - pose_torch.numpy()).max())
 
 
@@ -112,20 +150,38 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--output", type=Path, required=True)
     parser.add_argument("--model-id", default="")
     parser.add_argument("--evaluation", type=Path, help="JSON of evaluation figures to embed")
+    parser.add_argument(
+        "--plausibility",
+        type=lambda v: v.lower() in ("1", "true", "yes"),
+        default=True,
+        help="add the critic's calibrated plausibility output (needs the Human3.6M data; default true)",
+    )
+    parser.add_argument(
+        "--data-dir", default=None, help="Human3.6M folder (default: $REPNET_H36M_DIR, ../shared)"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     generator, state = load_generator(args.checkpoint)
     evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else None
     train = state.get("train_config", {})
+    plausibility, table = None, None
+    if args.plausibility:
+        _, val_sets = data.build_training_sets(
+            data.resolve_data_dir(args.data_dir), "gt", val_fraction=train.get("val_fraction", 0.1)
+        )
+        table = calibrate(load_critic(state), data.align_to_template(val_sets["gt"].poses_3d))
+        plausibility = Plausibility(load_critic(state), torch.from_numpy(table))
+        log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_3d))
     metadata = build_metadata(
         generator.config,
         model_id=args.model_id or args.output.stem,
         train_command=state.get("command", ""),
         training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
         evaluation=evaluation,
+        calibration=table,
     )
-    export_onnx(generator, args.output, metadata)
+    export_onnx(generator, args.output, metadata, plausibility)
     rng = np.random.default_rng(0)
     points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
     visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)

@@ -6,33 +6,67 @@ from collections.abc import Callable
 
 import torch
 
+from training import skeleton
 from training.camera import masked_centre, project_weak_perspective
 
 
 def reprojection_loss(
-    points_2d: torch.Tensor, visible: torch.Tensor, pose: torch.Tensor, camera: torch.Tensor
+    points_2d: torch.Tensor,
+    visible: torch.Tensor,
+    pose: torch.Tensor,
+    camera: torch.Tensor,
+    norm: str = "fro",
 ) -> torch.Tensor:
     """Mean over the batch of ||W - K X||_F with missing joints' columns zeroed (Eq. 3).
 
     points_2d -- (N, J, 2) normalised input W (centred on its visible joints);
     visible -- (N, J); pose -- (N, J, 3); camera -- (N, 2, 3).
     Weak perspective leaves the translation free, so K X is centred on the same visible
-    joints as W before the difference.
+    joints as W before the difference. norm "l1" is the authors' code instead: the sum of
+    |W - K X| over the coordinates, weighted per joint (skeleton.REPROJECTION_WEIGHTS),
+    divided by 2J.
     """
     reprojected = masked_centre(project_weak_perspective(camera, pose), visible)  # (N, J, 2)
     diff = (points_2d - reprojected) * visible.unsqueeze(-1)
+    if norm == "l1":
+        weights = torch.as_tensor(skeleton.REPROJECTION_WEIGHTS, dtype=diff.dtype, device=diff.device)
+        return (diff.abs() * weights[:, None]).sum(dim=(1, 2)).mean() / (2 * diff.shape[1])
+    if norm != "fro":
+        raise ValueError(f"reprojection norm must be fro or l1, got {norm!r}")
     return diff.pow(2).sum(dim=(1, 2)).add(1e-12).sqrt().mean()
 
 
-def camera_loss(camera: torch.Tensor) -> torch.Tensor:
-    """Mean of ||(2 / trace(K K^T)) K K^T - I_2||_F over (N, 2, 3) K (Eq. 6).
+def camera_loss(camera: torch.Tensor, norm: str = "fro") -> torch.Tensor:
+    """Mean of ||(2 / trace(K K^T)) K K^T - I_2||_F over (N, 2, 3) K (Eq. 6); norm "l1" sums
+    the absolute entries instead (the authors' code).
 
     Zero exactly when K is a scaled orthographic projection (rows orthogonal, equal norm).
     """
     kkt = camera @ camera.transpose(1, 2)  # (N, 2, 2)
     trace = kkt.diagonal(dim1=1, dim2=2).sum(dim=1).clamp_min(1e-12)  # (N,)
     eye = torch.eye(2, dtype=camera.dtype, device=camera.device)
-    return ((2.0 / trace)[:, None, None] * kkt - eye).pow(2).sum(dim=(1, 2)).add(1e-12).sqrt().mean()
+    residual = (2.0 / trace)[:, None, None] * kkt - eye
+    if norm == "l1":
+        return residual.abs().sum(dim=(1, 2)).mean()
+    if norm != "fro":
+        raise ValueError(f"camera norm must be fro or l1, got {norm!r}")
+    return residual.pow(2).sum(dim=(1, 2)).add(1e-12).sqrt().mean()
+
+
+def bone_lengths(pose: torch.Tensor) -> torch.Tensor:
+    """(N, J, 3) poses -> (N, B) lengths of the skeleton's bones (child minus parent)."""
+    parents, children = zip(*skeleton.BONES, strict=True)
+    return (pose[:, list(children)] - pose[:, list(parents)]).pow(2).sum(dim=-1).add(1e-12).sqrt()
+
+
+def bone_loss(pose: torch.Tensor, mean_lengths: torch.Tensor) -> torch.Tensor:
+    """Mean |bone length - its mean over real poses| of (N, J, 3) poses; mean_lengths (B,)."""
+    return (bone_lengths(pose) - mean_lengths).abs().mean()
+
+
+def pose_loss(pose: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean per-joint Euclidean distance of (N, J, 3) poses (the synthetic warm start)."""
+    return (pose - target).pow(2).sum(dim=-1).add(1e-12).sqrt().mean()
 
 
 def gradient_penalty(

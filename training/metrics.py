@@ -104,3 +104,15 @@ def summarize(
         "gt_symmetry_std": float(gt_symmetry.std()),
         "gt_symmetry_max": float(gt_symmetry.max()),
     }
+
+
+LIMB_BONES: tuple[tuple[int, int], ...] = tuple(bone for pair in skeleton.SYMMETRIC_BONES for bone in pair)
+
+
+def limb_length_std(pose: np.ndarray) -> np.ndarray:
+    """(8,) standard deviation over (N, J, 3) poses of each arm and leg bone's length.
+
+    One subject's bones keep their length; a lifter whose limbs stretch and shrink from
+    pose to pose shows it here (the ground truth of one subject: a few mm).
+    """
+    return bone_lengths(pose, LIMB_BONES).std(axis=0)

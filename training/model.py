@@ -99,7 +99,8 @@ class Critic(nn.Module):
         )
         self.kcs = KCS()
         nb = skeleton.NUM_BONES
-        self.kcs_path = nn.Sequential(nn.Linear(nb * nb, k), act, nn.Linear(k, k), act)
+        # Dense k, then Dense k twice with a skip from the first (the authors' code).
+        self.kcs_path = nn.Sequential(nn.Linear(nb * nb, k), act, ResidualBlock(k, slope))
         self.head = nn.Sequential(nn.Linear(100 + k, 100), act, nn.Linear(100, 1))
 
     def forward(self, pose: torch.Tensor) -> torch.Tensor:
@@ -110,16 +111,36 @@ class Critic(nn.Module):
         return self.head(torch.cat([a, b], dim=1)).squeeze(1)
 
 
-class LiftingGraph(nn.Module):
-    """What is exported: pixels and visibility in, pose_3d (mm) and camera out (ONNX contract)."""
+class Plausibility(nn.Module):
+    """The critic's score calibrated to [0, 1]: its percentile among real validation poses.
 
-    def __init__(self, generator: RepNet) -> None:
+    table -- the critic's scores of real poses, sorted; a pose scores the share of them it
+    reaches or beats, so 0.5 is a typical real pose and 0.01 one that 99 % of them beat.
+    """
+
+    def __init__(self, critic: Critic, table: torch.Tensor) -> None:
+        super().__init__()
+        self.critic = critic
+        self.register_buffer("table", table.reshape(1, -1).to(torch.float32))
+
+    def forward(self, pose: torch.Tensor) -> torch.Tensor:
+        """(N, J, 3) pose in metres -> (N,) plausibility."""
+        score = self.critic(pose).unsqueeze(1)  # (N, 1)
+        return (score >= self.table).to(pose.dtype).mean(dim=1)
+
+
+class LiftingGraph(nn.Module):
+    """What is exported: pixels and visibility in, pose_3d (mm) and camera out (ONNX contract),
+    and with a calibrated critic also plausibility (N,) in [0, 1]."""
+
+    def __init__(self, generator: RepNet, plausibility: Plausibility | None = None) -> None:
         super().__init__()
         self.generator = generator
+        self.plausibility = plausibility
 
-    def forward(
-        self, keypoints_2d: torch.Tensor, visibility: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, keypoints_2d: torch.Tensor, visibility: torch.Tensor) -> tuple[torch.Tensor, ...]:
         visible = (visibility > 0.5).to(keypoints_2d.dtype)
         pose, camera = self.generator(normalize_keypoints(keypoints_2d, visible), visible)
-        return pose * MM_PER_UNIT, camera / MM_PER_UNIT
+        if self.plausibility is None:
+            return pose * MM_PER_UNIT, camera / MM_PER_UNIT
+        return pose * MM_PER_UNIT, camera / MM_PER_UNIT, self.plausibility(pose)

@@ -32,6 +32,12 @@ SPINE = 7
 RIGHT_HIP, LEFT_HIP, LEFT_SHOULDER, RIGHT_SHOULDER = 1, 4, 11, 14
 TORSO_JOINTS: tuple[int, ...] = (RIGHT_HIP, LEFT_HIP, LEFT_SHOULDER, RIGHT_SHOULDER)
 
+# Per-joint weights of the L1 reprojection (the authors' code): the pelvis 0, the neck and head
+# 0.1 (detectors place them least consistently), every other joint 1.
+REPROJECTION_WEIGHTS: tuple[float, ...] = tuple(
+    0.0 if j == ROOT else 0.1 if name in ("neck", "head") else 1.0 for j, name in enumerate(JOINT_NAMES)
+)
+
 # One bone per non-root joint, from its parent to itself.
 BONES: tuple[tuple[int, int], ...] = tuple((p, j) for j, p in enumerate(PARENTS) if p >= 0)
 NUM_BONES = len(BONES)

@@ -18,9 +18,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from training import data, metrics, skeleton
+from training import data, metrics, skeleton, synthetic
 from training.config import RepNetConfig, TrainConfig
-from training.losses import camera_loss, critic_loss, reprojection_loss
+from training.losses import bone_lengths, bone_loss, camera_loss, critic_loss, pose_loss, reprojection_loss
 from training.model import MM_PER_UNIT, Critic, LiftingGraph, RepNet, normalize_keypoints
 
 log = logging.getLogger(__name__)
@@ -60,7 +60,7 @@ def sample_2d(
 
 
 def validate(generator: RepNet, val: data.LiftingSet, device: torch.device) -> dict[str, float]:
-    """Protocol I and II MPJPE (mm) and symmetry error of the generator on a validation set."""
+    """Protocol I and II MPJPE, symmetry error and limb bone length std (mm) on a validation set."""
     generator.eval()
     graph = LiftingGraph(generator)
     poses, cameras = [], []
@@ -69,7 +69,7 @@ def validate(generator: RepNet, val: data.LiftingSet, device: torch.device) -> d
             sl = slice(start, start + 4096)
             pose, cam = graph(
                 torch.from_numpy(val.points_2d[sl]).to(device), torch.from_numpy(val.visible[sl]).to(device)
-            )
+            )[:2]
             poses.append(pose.cpu().numpy())
             cameras.append(cam.cpu().numpy())
     generator.train()
@@ -78,65 +78,213 @@ def validate(generator: RepNet, val: data.LiftingSet, device: torch.device) -> d
         "mpjpe": metrics.mpjpe(metrics.to_camera_frame(pose, camera), val.poses_3d),
         "pa_mpjpe": metrics.pa_mpjpe(pose, val.poses_3d),
         "symmetry": float(metrics.symmetry_error(pose).mean()),
+        "bone_std": float(metrics.limb_length_std(pose).mean()),
     }
 
 
-def learning_rate(config: TrainConfig, step: int, elapsed_s: float) -> float:
-    """Cosine decay from lr to lr * lr_decay over the run's iterations or wall time."""
-    progress = step / config.iterations
-    if config.max_minutes > 0:
-        progress = max(progress, elapsed_s / (60 * config.max_minutes))
-    progress = min(progress, 1.0)
-    return config.lr * (config.lr_decay + (1 - config.lr_decay) * 0.5 * (1 + math.cos(math.pi * progress)))
+def learning_rate(config: TrainConfig, step: int) -> float:
+    """The learning rate at generator step `step`: a function of the step count only."""
+    progress = min(step / max(config.iterations, 1), 1.0)
+    if config.schedule == "cosine":
+        cosine = 0.5 * (1 + math.cos(math.pi * progress))
+        return config.lr * (config.lr_decay + (1 - config.lr_decay) * cosine)
+    if config.schedule == "step":
+        return config.lr * 0.1 ** min(int(progress * 4), 3)
+    if config.schedule == "constant":
+        return config.lr
+    raise ValueError(f"schedule must be cosine, step or constant, got {config.schedule!r}")
+
+
+def adversarial_weight(config: TrainConfig, step: int) -> float:
+    """0 during the warm start, then ramped linearly to adversarial_weight."""
+    if step < config.warm_start_steps:
+        return 0.0
+    if config.adversarial_ramp <= 0:
+        return config.adversarial_weight
+    ramp = (step - config.warm_start_steps + 1) / config.adversarial_ramp
+    return config.adversarial_weight * min(1.0, ramp)
+
+
+def resolve_resume(resume: str | Path | None, out_dir: Path) -> Path | None:
+    """--resume: a checkpoint path, or "auto" for out_dir/last.pt when it exists (else a fresh start)."""
+    if resume is None or str(resume) == "":
+        return None
+    if str(resume) == "auto":
+        last = out_dir / "last.pt"
+        return last if last.is_file() else None
+    path = Path(resume)
+    if not path.is_file():
+        raise FileNotFoundError(f"--resume {path}: no such checkpoint")
+    return path
+
+
+class Trainer:
+    """The networks, their optimisers and one training step; train() adds data, logs and checkpoints.
+
+    pool -- training LiftingSet (template-aligned 3D, 2D inputs, world poses for the synthetic
+    warm start); gen -- the generator every random draw of the step comes from.
+    """
+
+    def __init__(
+        self,
+        config: TrainConfig,
+        model_config: RepNetConfig,
+        pool: data.LiftingSet,
+        device: torch.device,
+        gen: torch.Generator,
+    ) -> None:
+        self.config, self.pool, self.device, self.gen = config, pool, device, gen
+        self.real_pool = torch.from_numpy(pool.poses_3d / MM_PER_UNIT).to(device)  # (M, J, 3) metres
+        world = pool.poses_world if pool.poses_world is not None else pool.poses_3d
+        self.world_pool = torch.from_numpy(world)  # (M, J, 3) mm, world frame
+        self.mean_bones = bone_lengths(self.real_pool).mean(dim=0)  # (B,) metres
+        self.generator = RepNet(model_config).to(device)
+        self.critic = Critic(model_config).to(device)
+        betas = (config.beta1, config.beta2)
+        self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=config.lr, betas=betas)
+        self.opt_c = torch.optim.Adam(self.critic.parameters(), lr=config.lr, betas=betas)
+        # Poses of the last generator step, judged by the next critic steps (reuse_fakes).
+        self.fakes: torch.Tensor | None = None
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "generator": self.generator.state_dict(),
+            "critic": self.critic.state_dict(),
+            "opt_g": self.opt_g.state_dict(),
+            "opt_c": self.opt_c.state_dict(),
+            "rng": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "fakes": self.fakes,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.generator.load_state_dict(state["generator"])
+        self.critic.load_state_dict(state["critic"])
+        self.opt_g.load_state_dict(state["opt_g"])
+        self.opt_c.load_state_dict(state["opt_c"])
+        self.gen.set_state(state["rng"])
+        if "torch_rng" in state:
+            torch.set_rng_state(state["torch_rng"])
+        self.fakes = state.get("fakes")
+
+    def synthetic_terms(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Warm-start loss on a synthetic batch: the pose error, and the reprojection of the
+        true pose through the predicted camera plus the camera term (which teach the camera),
+        and the generated poses."""
+        config = self.config
+        pixels, target = synthetic.sample(
+            self.world_pool, self.real_pool, config.batch_size, config.synthetic_noise_px, self.gen
+        )
+        visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
+        points = normalize_keypoints(pixels.to(self.device), visible)
+        pose, camera = self.generator(points, visible)
+        fit = reprojection_loss(points, visible, target, camera, config.reprojection_norm)
+        return (
+            pose_loss(pose, target),
+            fit + config.camera_weight * camera_loss(camera, config.camera_norm),
+            pose,
+        )
+
+    def critic_step(self) -> torch.Tensor:
+        """One WGAN-GP update of the critic; returns the Wasserstein estimate."""
+        config = self.config
+        if self.fakes is None:
+            points, visible = sample_2d(self.pool, config, self.device, self.gen)
+            with torch.no_grad():
+                self.fakes, _ = self.generator(points, visible)
+        idx = torch.randint(0, len(self.real_pool), (config.batch_size,), generator=self.gen).to(self.device)
+        loss_c, wasserstein = critic_loss(self.critic, self.real_pool[idx], self.fakes, config.gp_weight)
+        self.opt_c.zero_grad(set_to_none=True)
+        loss_c.backward()
+        self.opt_c.step()
+        if not config.reuse_fakes:
+            self.fakes = None
+        return wasserstein
+
+    def step(self, step: int) -> dict[str, torch.Tensor]:
+        """Generator step number `step` (0-based), after its critic steps; returns the losses."""
+        config = self.config
+        lr = learning_rate(config, step)
+        for opt in (self.opt_g, self.opt_c):
+            for group in opt.param_groups:
+                group["lr"] = lr
+        zero = torch.zeros((), device=self.device)
+        terms = dict.fromkeys(("rep", "cam", "adv", "bone", "synthetic_pose", "w_dist"), zero)
+        if step < config.warm_start_steps:
+            terms["synthetic_pose"], fit, synthetic_pose = self.synthetic_terms()
+            terms["bone"] = bone_loss(synthetic_pose, self.mean_bones)
+            loss_g = terms["synthetic_pose"] + fit + config.bone_weight * terms["bone"]
+            pose = None
+        else:
+            for _ in range(config.critic_steps):
+                terms["w_dist"] = self.critic_step()
+            points, visible = sample_2d(self.pool, config, self.device, self.gen)
+            pose, camera = self.generator(points, visible)
+            terms["rep"] = reprojection_loss(points, visible, pose, camera, config.reprojection_norm)
+            terms["cam"] = camera_loss(camera, config.camera_norm)
+            terms["adv"] = -self.critic(pose).mean()
+            terms["bone"] = bone_loss(pose, self.mean_bones)
+            loss_g = (
+                config.reprojection_weight * terms["rep"]
+                + config.camera_weight * terms["cam"]
+                + adversarial_weight(config, step) * terms["adv"]
+                + config.bone_weight * terms["bone"]
+            )
+            if config.synthetic_weight > 0:
+                terms["synthetic_pose"], fit, _ = self.synthetic_terms()
+                loss_g = loss_g + config.synthetic_weight * (terms["synthetic_pose"] + fit)
+        self.opt_g.zero_grad(set_to_none=True)
+        loss_g.backward()
+        self.opt_g.step()
+        # The next critic steps judge these poses: no generator pass of their own.
+        self.fakes = pose.detach() if (config.reuse_fakes and pose is not None) else None
+        return terms
 
 
 def train(
-    config: TrainConfig, model_config: RepNetConfig, resume: Path | None = None, command: str = ""
+    config: TrainConfig,
+    model_config: RepNetConfig,
+    resume: str | Path | None = None,
+    command: str = "",
 ) -> Path:
-    """Run training; returns the path of the best checkpoint (by validation PA-MPJPE)."""
+    """Run training; returns the path of the best checkpoint (by validation PA-MPJPE).
+
+    resume -- a checkpoint, or "auto" for out_dir/last.pt if there is one. A resumed run
+    continues bit for bit: weights, optimiser moments, every random generator, the step
+    count (which alone drives the schedules) and the poses the next critic step judges.
+    """
     torch.manual_seed(config.seed)
     if config.threads:
         torch.set_num_threads(config.threads)
     device = pick_device(config.device)
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    resume_path = resolve_resume(resume, out)
     data_dir = data.resolve_data_dir(config.data_dir or None)
     pool, val_sets = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)
     rng = np.random.default_rng(config.seed)
     val_sets = {k: _subsample(v, config.val_size, rng) for k, v in val_sets.items()}
-    real_pool = torch.from_numpy(pool.poses_3d / MM_PER_UNIT).to(device)  # (M, J, 3) metres
     log.info(
         "training on %s: %d 3D poses, %d 2D poses, device %s",
         config.inputs,
-        len(real_pool),
+        len(pool.poses_3d),
         len(pool.points_2d),
         device,
     )
-
-    generator, critic = RepNet(model_config).to(device), Critic(model_config).to(device)
-    betas = (config.beta1, config.beta2)
-    opt_g = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=betas)
-    opt_c = torch.optim.Adam(critic.parameters(), lr=config.lr, betas=betas)
-    gen = torch.Generator().manual_seed(config.seed)
+    trainer = Trainer(config, model_config, pool, device, torch.Generator().manual_seed(config.seed))
     step, elapsed, best = 0, 0.0, math.inf
-    if resume is not None:
-        state = torch.load(resume, map_location=device, weights_only=False)
-        generator.load_state_dict(state["generator"])
-        critic.load_state_dict(state["critic"])
-        opt_g.load_state_dict(state["opt_g"])
-        opt_c.load_state_dict(state["opt_c"])
-        gen.set_state(state["rng"])
+    if resume_path is not None:
+        state = torch.load(resume_path, map_location=device, weights_only=False)
+        trainer.load_state_dict(state)
         step, elapsed, best = state["step"], state["elapsed_s"], state["best"]
-        log.info("resumed from %s at step %d (%.1f min)", resume, step, elapsed / 60)
+        _truncate_history(out / "history.jsonl", step)
+        log.info("resumed from %s at step %d (%.1f min)", resume_path, step, elapsed / 60)
 
     def save(path: Path) -> None:
+        tmp = path.with_suffix(".tmp")
         torch.save(
             {
-                "generator": generator.state_dict(),
-                "critic": critic.state_dict(),
-                "opt_g": opt_g.state_dict(),
-                "opt_c": opt_c.state_dict(),
-                "rng": gen.get_state(),
+                **trainer.state_dict(),
                 "step": step,
                 "elapsed_s": elapsed,
                 "best": best,
@@ -144,44 +292,17 @@ def train(
                 "model_config": asdict(model_config),
                 "train_config": asdict(config),
             },
-            path,
+            tmp,
         )
+        tmp.replace(path)  # never a half-written checkpoint, even if killed mid-save
 
     history = (out / "history.jsonl").open("a")
     bar = tqdm(total=config.iterations, initial=step, desc="train", mininterval=10, file=sys.stderr)
     start = time.monotonic() - elapsed
-    fakes: torch.Tensor | None = None
-    while step < config.iterations and not (config.max_minutes and elapsed >= 60 * config.max_minutes):
-        lr = learning_rate(config, step, elapsed)
-        for opt in (opt_g, opt_c):
-            for group in opt.param_groups:
-                group["lr"] = lr
-        for _ in range(config.critic_steps):
-            if fakes is None:
-                points, visible = sample_2d(pool, config, device, gen)
-                with torch.no_grad():
-                    fakes, _ = generator(points, visible)
-            real = real_pool[torch.randint(0, len(real_pool), (config.batch_size,), generator=gen).to(device)]
-            loss_c, wasserstein = critic_loss(critic, real, fakes, config.gp_weight)
-            opt_c.zero_grad(set_to_none=True)
-            loss_c.backward()
-            opt_c.step()
-            fakes = fakes if config.reuse_fakes else None
-        points, visible = sample_2d(pool, config, device, gen)
-        pose, camera = generator(points, visible)
-        loss_rep = reprojection_loss(points, visible, pose, camera)
-        loss_cam = camera_loss(camera)
-        loss_adv = -critic(pose).mean()
-        loss_g = (
-            config.reprojection_weight * loss_rep
-            + config.camera_weight * loss_cam
-            + config.adversarial_weight * loss_adv
-        )
-        opt_g.zero_grad(set_to_none=True)
-        loss_g.backward()
-        opt_g.step()
-        # The next critic steps judge these poses: no generator pass of their own.
-        fakes = pose.detach() if config.reuse_fakes else None
+    last_save = time.monotonic()
+    stop = min(config.iterations, config.stop_step or config.iterations)
+    while step < stop and not (config.max_minutes and elapsed >= 60 * config.max_minutes):
+        terms = trainer.step(step)
         step += 1
         elapsed = time.monotonic() - start
         bar.update(1)
@@ -189,16 +310,14 @@ def train(
             record: dict[str, Any] = {
                 "step": step,
                 "minutes": round(elapsed / 60, 2),
-                "lr": lr,
-                "rep": loss_rep.item(),
-                "cam": loss_cam.item(),
-                "adv": loss_adv.item(),
-                "w_dist": wasserstein.item(),
+                "lr": learning_rate(config, step - 1),
+                "adv_weight": adversarial_weight(config, step - 1),
+                **{name: value.item() for name, value in terms.items()},
             }
-            bar.set_postfix({k: f"{record[k]:.3f}" for k in ("rep", "cam", "w_dist")})
+            bar.set_postfix({k: f"{record[k]:.3f}" for k in ("rep", "cam", "w_dist", "synthetic_pose")})
             if step % config.val_every == 0:
                 for kind, val in val_sets.items():
-                    for name, value in validate(generator, val, device).items():
+                    for name, value in validate(trainer.generator, val, device).items():
                         record[f"val_{kind}_{name}"] = round(value, 2)
                 score = record[f"val_{next(iter(val_sets))}_pa_mpjpe"]
                 if score < best:
@@ -207,15 +326,26 @@ def train(
                 log.info(json.dumps(record))
             history.write(json.dumps(record) + "\n")
             history.flush()
-        if step % config.checkpoint_every == 0:
+        due = time.monotonic() - last_save >= 60 * config.checkpoint_minutes
+        if step % config.checkpoint_every == 0 or due:
             save(out / "last.pt")
+            last_save = time.monotonic()
     bar.close()
     save(out / "last.pt")
     for kind, val in val_sets.items():
-        log.info("final validation on %s: %s", kind, validate(generator, val, device))
+        log.info("final validation on %s: %s", kind, validate(trainer.generator, val, device))
     if not (out / "best.pt").exists():
         save(out / "best.pt")
     return out / "best.pt"
+
+
+def _truncate_history(path: Path, step: int) -> None:
+    """Drop the records an interrupted run wrote after the checkpoint it resumes from."""
+    if not path.is_file():
+        return
+    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    kept = [line for line in lines if json.loads(line)["step"] <= step]
+    path.write_text("".join(line + "\n" for line in kept))
 
 
 def _subsample(val: data.LiftingSet, size: int, rng: np.random.Generator) -> data.LiftingSet:
@@ -237,7 +367,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     _add_flags(parser, TrainConfig)
     _add_flags(parser, RepNetConfig)
-    parser.add_argument("--resume", type=Path, help="checkpoint to continue from (e.g. runs/x/last.pt)")
+    parser.add_argument(
+        "--resume",
+        default="",
+        help="checkpoint to continue from (e.g. runs/x/last.pt), or 'auto': out-dir/last.pt when it exists",
+    )
     args = parser.parse_args(argv)
     values = vars(args)
     config = TrainConfig(**{f.name: values[f.name] for f in dataclasses.fields(TrainConfig)})

@@ -13,7 +13,7 @@ import torch
 from tests.training.conftest import STANDING
 from training import data, export, skeleton
 from training.config import RepNetConfig
-from training.model import RepNet
+from training.model import Critic, Plausibility, RepNet
 
 
 @pytest.fixture(scope="module")
@@ -56,3 +56,33 @@ def test_torch_and_onnxruntime_agree_on_real_poses(tiny_onnx: tuple[RepNet, Path
     visible = np.ones(points.shape[:2], np.float32)
     visible[::3, 7] = 0
     assert export.check_parity(generator, path, points, visible) <= 0.01
+
+
+def test_plausibility_output_is_the_calibrated_percentile_of_the_critic(tmp_path: Path) -> None:
+    torch.manual_seed(1)
+    config = RepNetConfig(width=32, critic_width=32, kcs_width=8)
+    generator, critic = RepNet(config).eval(), Critic(config).eval()
+    rng = np.random.default_rng(0)
+    real = (STANDING[None] + rng.normal(0, 20, (400, 17, 3))).astype(np.float32)
+    table = export.calibrate(critic, real, levels=101)
+    assert table.shape == (101,) and np.all(np.diff(table) >= 0)
+    path = tmp_path / "plausible.onnx"
+    meta = export.build_metadata(config, "tiny-plausible", calibration=table)
+    export.export_onnx(generator, path, meta, Plausibility(critic, torch.from_numpy(table)))
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert [o.name for o in session.get_outputs()] == ["pose_3d", "camera", "plausibility"]
+    calibration = json.loads(session.get_modelmeta().custom_metadata_map["plausibility_calibration"])
+    assert calibration["levels"] == 101 and len(calibration["critic_scores_at_quantiles"]) == 101
+    points = (rng.normal(0, 100, (64, 17, 2)) + 500).astype(np.float32)
+    pose, _, plausibility = session.run(None, {"keypoints_2d": points, "visibility": np.ones((64, 17), "f4")})
+    assert plausibility.shape == (64,) and np.all((plausibility >= 0) & (plausibility <= 1))
+    # The same number as the critic's score looked up in the table by hand.
+    with torch.no_grad():
+        scores = critic(torch.from_numpy(pose) / 1000).numpy()
+    np.testing.assert_allclose(plausibility, (scores[:, None] >= table[None]).mean(axis=1), atol=1e-6)
+    # Real poses spread over [0, 1] around 0.5.
+    with torch.no_grad():
+        real_plausibility = Plausibility(critic, torch.from_numpy(table))(
+            torch.from_numpy(real) / 1000
+        ).numpy()
+    assert 0.4 < real_plausibility.mean() < 0.6

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from training import train
@@ -51,6 +53,78 @@ def test_resume_continues_from_the_checkpoint(synthetic_h36m: Path, tmp_path: Pa
     steps = [record["step"] for record in _history(tmp_path)]
     assert steps == [10, 20, 30, 40]
     assert torch.load(tmp_path / "last.pt", weights_only=False)["step"] == 40
+
+
+def _recipe(data_dir: Path, out: Path) -> TrainConfig:
+    """Warm start for 15 steps, then the adversarial phase with the synthetic term; the schedule
+    runs over 40 steps whatever stretch of them one call trains."""
+    return dataclasses.replace(
+        _config(data_dir, out, 40),
+        warm_start_steps=15,
+        synthetic_weight=0.5,
+        adversarial_ramp=10,
+        schedule="step",
+        log_every=5,
+        val_every=1000,
+        checkpoint_every=1000,
+        max_minutes=0.0,
+    )
+
+
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    state = torch.load(path, weights_only=False)
+    return {f"g.{k}": v for k, v in state["generator"].items()} | {
+        f"c.{k}": v for k, v in state["critic"].items()
+    }
+
+
+def test_a_resumed_run_continues_bit_for_bit(synthetic_h36m: Path, tmp_path: Path) -> None:
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    config = _recipe(synthetic_h36m, whole)
+    train.train(config, TINY)
+    # The same run stopped at step 25 (mid adversarial ramp, after the warm start) and resumed
+    # with --resume auto: the schedule position comes from the step count in the checkpoint.
+    stopped = dataclasses.replace(config, out_dir=str(parts), stop_step=25)
+    train.train(stopped, TINY)
+    assert torch.load(parts / "last.pt", weights_only=False)["step"] == 25
+    # A record written after the checkpoint by the interrupted run is dropped on resume.
+    with (parts / "history.jsonl").open("a") as history:
+        history.write(json.dumps({"step": 30, "rep": -1.0}) + "\n")
+    train.train(dataclasses.replace(config, out_dir=str(parts)), TINY, resume="auto")
+    assert _history(parts) == [
+        {**r, "minutes": p["minutes"]} for r, p in zip(_history(whole), _history(parts), strict=True)
+    ]
+    for name, value in _weights(whole / "last.pt").items():
+        assert torch.equal(value, _weights(parts / "last.pt")[name]), name
+
+
+def test_resume_auto_starts_fresh_without_a_checkpoint_and_a_named_one_must_exist(tmp_path: Path) -> None:
+    assert train.resolve_resume("auto", tmp_path) is None
+    (tmp_path / "last.pt").write_bytes(b"")
+    assert train.resolve_resume("auto", tmp_path) == tmp_path / "last.pt"
+    assert train.resolve_resume(None, tmp_path) is None
+    with pytest.raises(FileNotFoundError, match="no such checkpoint"):
+        train.resolve_resume(tmp_path / "missing.pt", tmp_path)
+
+
+def test_schedules_follow_the_step_count_alone() -> None:
+    step = TrainConfig(lr=1e-3, iterations=200, schedule="step", max_minutes=1.0)
+    assert [train.learning_rate(step, s) for s in (0, 49, 50, 100, 150, 199)] == pytest.approx(
+        [1e-3, 1e-3, 1e-4, 1e-5, 1e-6, 1e-6]
+    )
+    cosine = TrainConfig(lr=1e-3, iterations=100, schedule="cosine", lr_decay=0.1)
+    assert train.learning_rate(cosine, 0) == pytest.approx(1e-3)
+    assert train.learning_rate(cosine, 50) == pytest.approx(0.55e-3)
+    assert train.learning_rate(cosine, 100) == pytest.approx(1e-4)
+    ramp = TrainConfig(warm_start_steps=10, adversarial_ramp=4, adversarial_weight=0.5)
+    assert [train.adversarial_weight(ramp, s) for s in (0, 9, 10, 11, 13, 50)] == [
+        0,
+        0,
+        0.125,
+        0.25,
+        0.5,
+        0.5,
+    ]
 
 
 def test_visibility_augmentation_hides_joints_but_never_the_root() -> None:

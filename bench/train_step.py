@@ -1,0 +1,146 @@
+"""Training throughput against this machine's fp32 matmul roof, per recipe (a benchmark: it prints).
+
+For each recipe: samples/s (2D samples through the generator per second), the FLOPs of one
+step (counted by torch's FlopCounterMode) and the FLOP rate that makes, as a share of the
+roof: the best rate of a plain (batch, 1000) x (1000, 1000) matmul at the same batch, with
+the same threads. Data are random arrays of the right shapes: the step does not depend on them.
+
+    python -m bench.train_step --threads 2 --seconds 20 --out runs/bench/train_step.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from bench.stats import write_json
+from training import data, skeleton
+from training.config import RepNetConfig, TrainConfig
+from training.train import Trainer
+
+J = skeleton.NUM_JOINTS
+
+
+@dataclass(frozen=True)
+class Recipe:
+    name: str
+    config: TrainConfig
+    model: RepNetConfig
+
+
+# The previous default (repnet-h36m-v1): 5 critic steps per generator step on reused fakes,
+# critic 1000 wide on the pose path, 100 on the KCS path.
+V1 = Recipe(
+    "v1: 5 critic steps, critic 1000/100, batch 256",
+    TrainConfig(batch_size=256, critic_steps=5),
+    RepNetConfig(critic_width=1000, kcs_width=100),
+)
+RECIPES: tuple[Recipe, ...] = (
+    V1,
+    Recipe(
+        "authors: 1:1, critic 100/1000, L1, batch 32",
+        TrainConfig(batch_size=32, critic_steps=1, reprojection_norm="l1", camera_norm="l1"),
+        RepNetConfig(),
+    ),
+    Recipe("1:1, critic 100/1000, batch 256", TrainConfig(batch_size=256, critic_steps=1), RepNetConfig()),
+    Recipe(
+        "synthetic warm start, batch 256", TrainConfig(batch_size=256, warm_start_steps=10**9), RepNetConfig()
+    ),
+    Recipe(
+        "1:1 + synthetic term, batch 256",
+        TrainConfig(batch_size=256, critic_steps=1, synthetic_weight=1.0),
+        RepNetConfig(),
+    ),
+    Recipe(
+        "1:1 + synthetic term, generator 512, batch 256",
+        TrainConfig(batch_size=256, critic_steps=1, synthetic_weight=1.0),
+        RepNetConfig(width=512),
+    ),
+)
+
+
+def random_pool(rng: np.random.Generator, n: int = 20000) -> data.LiftingSet:
+    poses = rng.normal(0, 300, (n, J, 3)).astype(np.float32)
+    poses -= poses[:, :1]
+    points = rng.uniform(300, 700, (n, J, 2)).astype(np.float32)
+    return data.LiftingSet(poses, points, np.ones((n, J), np.float32), poses_world=poses)
+
+
+def matmul_roof(batch: int, seconds: float) -> float:
+    """Best GFLOP/s of a (batch, 1000) x (1000, 1000) float32 matmul over a few timed bursts."""
+    a, w = torch.randn(batch, 1000), torch.randn(1000, 1000)
+    best = 0.0
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        t = time.perf_counter()
+        for _ in range(10):
+            a @ w
+        best = max(best, 10 * 2 * batch * 1000 * 1000 / (time.perf_counter() - t) / 1e9)
+    return best
+
+
+def measure(recipe: Recipe, seconds: float, compile_model: bool = False) -> dict[str, float | str]:
+    gen = torch.Generator().manual_seed(0)
+    trainer = Trainer(
+        recipe.config, recipe.model, random_pool(np.random.default_rng(0)), torch.device("cpu"), gen
+    )
+    if compile_model:
+        trainer.generator = torch.compile(trainer.generator)  # type: ignore[assignment]
+        trainer.critic = torch.compile(trainer.critic)  # type: ignore[assignment]
+    for step in range(3):  # warm-up
+        trainer.step(step)
+    with FlopCounterMode(display=False) as counter:
+        trainer.step(3)
+    flops = counter.get_total_flops()
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds or steps < 3:
+        trainer.step(4 + steps)
+        steps += 1
+    dt = (time.perf_counter() - start) / steps
+    return {
+        "recipe": recipe.name + (" (torch.compile)" if compile_model else ""),
+        "batch": recipe.config.batch_size,
+        "ms_per_step": 1e3 * dt,
+        "samples_per_s": recipe.config.batch_size / dt,
+        "gflop_per_step": flops / 1e9,
+        "gflop_per_s": flops / dt / 1e9,
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seconds", type=float, default=20.0, help="timed seconds per recipe")
+    parser.add_argument("--compile", action="store_true", help="also measure each recipe under torch.compile")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    roofs = {b: matmul_roof(b, 3.0) for b in sorted({r.config.batch_size for r in RECIPES})}
+    rows = []
+    for recipe in RECIPES:
+        for compiled in (False, True) if args.compile else (False,):
+            row = measure(recipe, args.seconds, compiled)
+            row["roof_gflop_per_s"] = roofs[recipe.config.batch_size]
+            row["share_of_roof"] = float(row["gflop_per_s"]) / roofs[recipe.config.batch_size]
+            rows.append(row)
+            print(
+                f"{row['recipe']:<55} {row['samples_per_s']:8.0f} samples/s"
+                f"  {row['ms_per_step']:7.1f} ms/step"
+                f"  {row['gflop_per_step']:6.2f} GFLOP/step  {row['gflop_per_s']:6.1f} GFLOP/s"
+                f" = {row['share_of_roof']:.2f} of the roof ({row['roof_gflop_per_s']:.0f})",
+                flush=True,
+            )
+    if args.out:
+        write_json(args.out, {"threads": args.threads, "roof_gflop_per_s": roofs, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,66 @@
+"""Synthetic warm start: random cameras look at an upright person the way Human3.6M's do."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from tests.training.conftest import STANDING
+from training import data, skeleton, synthetic
+
+HEAD, LEFT_ANKLE, RIGHT_ANKLE = 10, 6, 3
+
+
+def _world_standing() -> np.ndarray:
+    # Template (x right, y down, z away) -> world (Z up): the person stands facing world -Y.
+    return (STANDING[:, [0, 2, 1]] * [1, 1, -1]).astype(np.float32)
+
+
+def test_random_views_are_rotations_and_keep_the_person_in_front_of_the_camera() -> None:
+    rot, position = synthetic.random_views(2000, torch.Generator().manual_seed(0))
+    eye = torch.eye(3, dtype=rot.dtype).expand_as(rot)
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), eye)
+    torch.testing.assert_close(torch.linalg.det(rot), torch.ones(2000, dtype=rot.dtype))
+    assert position[:, 2].min() >= synthetic.DISTANCE_M[0] and position[:, 2].max() <= synthetic.DISTANCE_M[1]
+
+
+def test_projected_people_stand_upright_inside_the_image_at_a_plausible_size() -> None:
+    gen = torch.Generator().manual_seed(1)
+    world = torch.from_numpy(np.repeat(_world_standing()[None], 500, axis=0))
+    rot, position = synthetic.random_views(500, gen)
+    pixels = synthetic.project(world, rot, position).numpy()
+    feet = pixels[:, [LEFT_ANKLE, RIGHT_ANKLE], 1].mean(axis=1)
+    assert np.all(pixels[:, HEAD, 1] < feet)  # image y points down: the head is above the feet
+    height = feet - pixels[:, HEAD, 1]
+    # Human3.6M: up to ~420 px tall, median 327; this 1.57 m person at 3.5-6.5 m: 280-520 px
+    assert 200 < height.min() and height.max() < 600
+    assert np.all((pixels > -200) & (pixels < 1200))
+
+
+def test_a_level_camera_in_front_sees_the_right_side_on_the_image_left() -> None:
+    # Azimuth 0, elevation 0: the camera looks along world +Y at a person facing -Y, i.e. at
+    # the camera, so the person's right hip appears on the image's left, as in the template.
+    level = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]], dtype=torch.float64)
+    pixels = synthetic.project(
+        torch.from_numpy(_world_standing()[None]), level, torch.tensor([[0.0, 0.0, 5.0]], dtype=torch.float64)
+    )[0]
+    assert pixels[skeleton.RIGHT_HIP, 0] < pixels[skeleton.LEFT_HIP, 0]
+    template = data.align_to_template(_world_standing()[None].astype(np.float64))[0]
+    assert template[skeleton.RIGHT_HIP, 0] < 0 < template[skeleton.LEFT_HIP, 0]
+
+
+def test_sample_pairs_each_view_with_the_aligned_pose_of_the_same_frame() -> None:
+    rng = np.random.default_rng(0)
+    world = np.stack([_world_standing() + rng.normal(0, 30, (17, 3)).astype(np.float32) for _ in range(50)])
+    world -= world[:, :1]
+    aligned = torch.from_numpy(data.align_to_template(world) / 1000)
+    gen = torch.Generator().manual_seed(3)
+    pixels, target = synthetic.sample(torch.from_numpy(world), aligned, 64, 0.0, gen)
+    assert pixels.shape == (64, 17, 2) and target.shape == (64, 17, 3)
+    # Every target is one of the aligned poses, and noise-free pixels are those of its world pose.
+    gen = torch.Generator().manual_seed(3)
+    idx = torch.randint(0, 50, (64,), generator=gen)
+    torch.testing.assert_close(target, aligned[idx])
+    noisy, _ = synthetic.sample(torch.from_numpy(world), aligned, 64, 8.0, torch.Generator().manual_seed(3))
+    spread = (noisy - pixels).abs()
+    assert 0 < spread.mean() < 8

@@ -1,0 +1,78 @@
+"""Synthetic warm start: unpaired training 3D poses seen through random perspective cameras.
+
+The cameras are drawn here, not taken from Human3.6M, so no image's 2D is ever paired with its
+own 3D pose: the generator learns what a body looks like from many views before the
+adversarial phase adapts it to real 2D inputs. Training images of Human3.6M are 1000 px wide,
+filmed from 4-6 m at about the height of the subject's chest; the ranges below cover that and
+more.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+FOCAL_PX = 1150.0
+CENTRE_PX = 500.0
+AZIMUTH_DEG = (-180.0, 180.0)  # turn of the body about the vertical
+ELEVATION_DEG = (-10.0, 30.0)  # camera looking down (positive) or up at the pelvis
+ROLL_STD_DEG = 3.0
+DISTANCE_M = (3.5, 6.5)  # pelvis to camera, along the optical axis
+OFFSET_M = (1.0, 0.5)  # largest sideways and vertical offset of the pelvis from the axis
+
+
+def _uniform(low: float, high: float, n: int, gen: torch.Generator) -> torch.Tensor:
+    return low + (high - low) * torch.rand(n, generator=gen, dtype=torch.float64)
+
+
+def _rotation(axis: int, angle: torch.Tensor) -> torch.Tensor:
+    """(N,) angles in radians -> (N, 3, 3) rotations about coordinate axis 0, 1 or 2."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    i, j = [a for a in range(3) if a != axis]
+    rot = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype)
+    rot[:, axis, axis] = 1.0
+    rot[:, i, i], rot[:, i, j], rot[:, j, i], rot[:, j, j] = c, -s, s, c
+    return rot
+
+
+def random_views(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """n random world-to-camera rotations (N, 3, 3) and pelvis positions (N, 3) in metres.
+
+    The camera frame is x right, y down, z forward (as Human3.6M's); the world is Z up.
+    """
+    deg = math.pi / 180.0
+    azimuth = _uniform(*AZIMUTH_DEG, n, gen) * deg
+    elevation = _uniform(*ELEVATION_DEG, n, gen) * deg
+    roll = torch.randn(n, generator=gen, dtype=torch.float64) * ROLL_STD_DEG * deg
+    # Level camera looking along world +Y: camera x = X, y = -Z, z = Y.
+    level = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    rot = _rotation(2, roll) @ _rotation(0, elevation) @ level @ _rotation(2, azimuth)
+    distance = _uniform(*DISTANCE_M, n, gen)
+    offset_x = _uniform(-OFFSET_M[0], OFFSET_M[0], n, gen)
+    offset_y = _uniform(-OFFSET_M[1], OFFSET_M[1], n, gen)
+    return rot, torch.stack([offset_x, offset_y, distance], dim=1)
+
+
+def project(poses_world_mm: torch.Tensor, rot: torch.Tensor, position_m: torch.Tensor) -> torch.Tensor:
+    """(N, J, 3) world poses (mm, pelvis at origin) -> (N, J, 2) pixels of a pinhole camera."""
+    x_cam = poses_world_mm.to(torch.float64) / 1000.0 @ rot.transpose(1, 2) + position_m[:, None]
+    return (FOCAL_PX * x_cam[..., :2] / x_cam[..., 2:3] + CENTRE_PX).to(torch.float32)
+
+
+def sample(
+    poses_world_mm: torch.Tensor,
+    poses_aligned_m: torch.Tensor,
+    batch: int,
+    noise_px: float,
+    gen: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A synthetic batch: (B, J, 2) pixels with detector-like noise and the (B, J, 3) target,
+    the same pose aligned to the template (metres), which is what the generator outputs."""
+    idx = torch.randint(0, poses_world_mm.shape[0], (batch,), generator=gen)
+    rot, position = random_views(batch, gen)
+    pixels = project(poses_world_mm[idx], rot, position)
+    if noise_px > 0:
+        sigma = noise_px * torch.rand(batch, 1, 1, generator=gen)
+        pixels = pixels + sigma * torch.randn(pixels.shape, generator=gen)
+    return pixels, poses_aligned_m[idx]
