@@ -170,13 +170,20 @@ class Engine:
         prepare: Callable[[], ModelInput],
         reply: Callable[[ModelInput, Prediction], Reply],
         transport: str,
+        started: float | None = None,
     ) -> Reply:
         """prepare() the `count` poses of a request, queue them, await their runs and build the
         reply, for adapters on an event loop. Up to INLINE_POSES poses are converted on the loop;
-        larger requests on a worker thread, so that the loop keeps serving the others."""
+        larger requests on a worker thread, so that the loop keeps serving the others. The parse
+        histogram gets the time from `started` (time.perf_counter(), default now) to prepared inputs."""
         loop = asyncio.get_running_loop()
+        started = time.perf_counter() if started is None else started
         inline = count <= INLINE_POSES
-        inputs = prepare() if inline else await loop.run_in_executor(None, prepare)
+        try:
+            inputs = prepare() if inline else await loop.run_in_executor(None, prepare)
+        finally:
+            if self.metrics is not None:
+                self.metrics.parse_seconds.labels(transport=transport).observe(time.perf_counter() - started)
         prediction = concat_rows([await asyncio.wrap_future(f) for f in self.submit(inputs, transport)])
         return (
             reply(inputs, prediction)

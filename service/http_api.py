@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Sequence
 from functools import partial
 from typing import Any
@@ -29,7 +30,7 @@ from service.errors import (
     clip,
 )
 from service.formats import FORMATS
-from service.http_middleware import OUTCOME_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
+from service.http_middleware import OUTCOME_KEY, STARTED_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
 from service.keypoints import Limits, ModelInput, PoseInput, pose_field, prepare_poses
 from service.lifter import ModelInfo, Prediction
 from service.metrics import INVALID, Metrics, outcome_of
@@ -165,6 +166,18 @@ def violations_of(errors: Sequence[Any]) -> list[Violation]:
     return found
 
 
+def content_type_violation(content_type: str | None, violations: Sequence[Violation]) -> Violation | None:
+    """What to say when the body was not read as JSON because its content-type is not JSON (FastAPI
+    then validates the raw body and says "Input should be a valid dictionary"); None otherwise."""
+    if (content_type and "json" in content_type.lower()) or not any(v.field == "body" for v in violations):
+        return None
+    got = f"content-type: {clip(content_type, MAX_ECHO_CHARS)}" if content_type else "no content-type"
+    reason = f"expected a JSON body with content-type: application/json, got {got}"
+    if content_type and "form" in content_type:
+        reason += " (curl -d sends a form: add -H 'content-type: application/json')"
+    return Violation("body", reason, "content_type")
+
+
 def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
     formats = [
         FormatInfo(
@@ -228,7 +241,11 @@ def create_app(
 
     @app.exception_handler(RequestValidationError)
     async def handle_validation_error(request: Request, err: Exception) -> JSONResponse:
+        if (started := getattr(request.state, STARTED_KEY, None)) is not None:  # rejected while parsed
+            metrics.parse_seconds.labels(transport="http").observe(time.perf_counter() - started)
         violations = violations_of(err.errors() if isinstance(err, RequestValidationError) else [])
+        if not_json := content_type_violation(request.headers.get("content-type"), violations):
+            violations = [not_json]
         setattr(request.state, OUTCOME_KEY, INVALID)
         metrics.reject("http", violations)
         return JSONResponse(error_body(violations), status_code=422)
@@ -267,9 +284,10 @@ def create_app(
         return LiftJSONResponse(body)
 
     @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
-    async def lift(request: LiftRequest) -> Response:
+    async def lift(request: LiftRequest, http: Request) -> Response:
         """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
-        return await engine.lift_async(len(request.poses), partial(prepare, request), reply, "http")
+        started = getattr(http.state, STARTED_KEY, None)  # the body was read and parsed since then
+        return await engine.lift_async(len(request.poses), partial(prepare, request), reply, "http", started)
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:

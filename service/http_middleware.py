@@ -13,6 +13,8 @@ from service.metrics import ERROR, INVALID, OK, UNAVAILABLE, Metrics
 
 # Key in the ASGI scope's state where exception handlers leave the outcome of a request.
 OUTCOME_KEY = "repnet_outcome"
+# Key in the ASGI scope's state: time.perf_counter() when a POST /lift arrived (the parse histogram).
+STARTED_KEY = "repnet_started"
 LIFT_PATH = "/lift"
 
 
@@ -133,6 +135,7 @@ class LiftMetricsMiddleware:
         gauge = self.metrics.in_flight.labels(transport="http")
         gauge.inc()
         start = time.perf_counter()
+        state[STARTED_KEY] = start
         try:
             await self.app(scope, receive, recording_send)
         finally:

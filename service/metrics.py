@@ -73,6 +73,15 @@ class Metrics:
             registry=registry,
         )
         self.open_streams = Gauge("repnet_open_streams", "LiftStream calls open now.", registry=registry)
+        self.parse_seconds = Histogram(
+            "repnet_request_parse_seconds",
+            "Time to read, parse and check a lift request's poses and convert them to the model's "
+            "joints (HTTP: from the request's arrival, so a slow upload shows; gRPC Lift: after "
+            "protobuf decoding), valid or not.",
+            ["transport"],
+            buckets=LATENCY_BUCKETS,
+            registry=registry,
+        )
         self.queue_wait_seconds = Histogram(
             "repnet_batch_queue_wait_seconds",
             "Time a chunk of poses waited in the batch queue.",

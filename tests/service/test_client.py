@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import socket
 from collections.abc import Iterator
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -194,3 +196,21 @@ def test_stream_can_be_left_early(live_service: LiveService) -> None:
         results.close()  # cancels the call; the endless request iterator is no longer read
     assert [r.frame_id for r in first] == [0, 1, 2]
     assert all(r.result is not None for r in first)
+
+
+def test_readme_client_snippet_runs_as_written(
+    live_service: LiveService, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's Python example, run as it stands (only the addresses point at the test server)."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = readme[readme.index("## Python client and command line") :]
+    snippet = section[section.index("```python\n") + len("```python\n") : section.index("\n```\n")]
+    snippet = snippet.replace("http://localhost:8000", live_service.http_url)
+    snippet = snippet.replace('"localhost:50051"', repr(live_service.grpc_target))
+    exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
+    out = capsys.readouterr().out
+    assert out.startswith("(17, 3) [")  # the lift: pose_3d shape, imputed flags, error, warnings
+    frames = re.findall(r"^(\d+) \[([^\]]*)\]$", out, re.MULTILINE)  # then one line per stream frame
+    assert [int(f) for f, _ in frames] == list(range(10))
+    wrists = [np.array(values.split(), float) for _, values in frames]
+    assert all(np.linalg.norm(w) > 100 for w in wrists)  # mm from the pelvis: not joint 0

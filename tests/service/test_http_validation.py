@@ -139,3 +139,23 @@ def test_lift_never_answers_5xx(client: TestClient, body: bytes) -> None:
     response = post_raw(client, body)
     assert 400 <= response.status_code < 500, response.text
     assert response.json()["detail"]
+
+
+@pytest.mark.parametrize(
+    ("headers", "got"),
+    [
+        ({}, "got no content-type"),
+        ({"content-type": "text/plain"}, "got content-type: text/plain"),
+        ({"content-type": "application/x-www-form-urlencoded"}, "curl -d sends a form"),
+    ],
+    ids=["none", "text", "form"],
+)
+def test_a_body_that_is_not_sent_as_json_is_told_so(
+    client: TestClient, headers: dict[str, str], got: str
+) -> None:
+    """Not "Input should be a valid dictionary": the content-type is what is wrong."""
+    body = json.dumps({"keypoints": POSE_2D.tolist()})
+    item = only_item(client.post("/lift", content=body, headers=headers))
+    assert (item["field"], item["code"]) == ("body", "content_type")
+    assert "expected a JSON body with content-type: application/json" in item["reason"]
+    assert got in item["reason"]

@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+import json
+import time
+from collections.abc import Iterator
+
 import pytest
+from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry, generate_latest
 
+from service._proto.repnet.v1 import lifter_pb2_grpc
 from service.errors import InvalidKeypoints, ModelNotReady, Overloaded, Violation
 from service.metrics import Metrics
+from tests.conftest import POSE_2D
+from tests.service.invalid_inputs import good, to_proto_request
 
 NAMES = {
     "repnet_requests_total", "repnet_request_duration_seconds", "repnet_rejected_inputs_total",
     "repnet_in_flight_requests", "repnet_open_streams", "repnet_batch_queue_wait_seconds",
     "repnet_inference_seconds", "repnet_batch_size_poses", "repnet_batch_queue_poses", "repnet_model_info",
-    "repnet_pose_plausibility_ratio",
+    "repnet_pose_plausibility_ratio", "repnet_request_parse_seconds",
 }  # fmt: skip
 
 
@@ -72,3 +80,31 @@ def test_model_info_names_the_current_model(registry: CollectorRegistry) -> None
     text = generate_latest(registry).decode()
     assert 'repnet_model_info{model_id="repnet-h36m-v1",skeleton="h36m17"} 1.0' in text
     assert 'model_id="old"' not in text
+
+
+def test_parse_histogram_times_each_request_from_its_arrival(
+    client: TestClient, stub: lifter_pb2_grpc.PoseLifterStub, registry: CollectorRegistry
+) -> None:
+    """repnet_request_parse_seconds: valid and rejected HTTP requests and gRPC Lift calls, a slow
+    upload included (the time from the request's arrival until its poses are checked)."""
+
+    def count(transport: str) -> float | None:
+        return registry.get_sample_value("repnet_request_parse_seconds_count", {"transport": transport})
+
+    assert client.post("/lift", json={"keypoints": POSE_2D.tolist()}).status_code == 200
+    assert client.post("/lift", json={"keypoints": [[1.0, 2.0, 3.0, 4.0, 5.0]] * 17}).status_code == 422
+    assert count("http") == 2
+    body = json.dumps({"keypoints": POSE_2D.tolist()}).encode()
+
+    def slow_upload() -> Iterator[bytes]:
+        for start in range(0, len(body), len(body) // 3 + 1):
+            time.sleep(0.15)
+            yield body[start : start + len(body) // 3 + 1]
+
+    before = registry.get_sample_value("repnet_request_parse_seconds_sum", {"transport": "http"}) or 0.0
+    response = client.post("/lift", content=slow_upload(), headers={"content-type": "application/json"})
+    assert response.status_code == 200
+    after = registry.get_sample_value("repnet_request_parse_seconds_sum", {"transport": "http"}) or 0.0
+    assert after - before >= 0.3  # the upload's three pauses
+    stub.Lift(to_proto_request({"poses": [good()]}), timeout=10)
+    assert count("grpc") == 1
