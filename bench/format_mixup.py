@@ -32,7 +32,7 @@ from service.keypoints import Limits, PoseInput, prepare_poses
 from service.lifter import Lifter
 from service.lookalike import GEOMETRY_WEIGHT, THRESHOLD, format_warnings, lookalike_of, relative_error
 from training import data
-from training.evaluate import build_test_set, select_sequences
+from training.evaluate import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.format_mixup")
 BATCH = 4096
@@ -76,20 +76,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     split = "test" if set(args.subjects) <= set(data.TEST_SUBJECTS) else "train"
     poses = select_sequences(data.load_poses(data_dir, split), args.subjects, [])
     test = build_test_set(poses, data.load_cameras(data_dir), None, args.frame_step)
+    points_2d = test.points.astype(np.float64)  # (M, 17, 2) px
+    if args.noise > 0:  # detector-like jitter: a fraction of each pose's spread, per coordinate
+        spread = points_2d.reshape(len(points_2d), -1).std(axis=1)  # (M,)
+        jitter = np.random.default_rng(0).normal(size=points_2d.shape)
+        points_2d = points_2d + jitter * (args.noise * spread)[:, None, None]
     lifter = Lifter.load(args.model, args.threads)
     log.info(
         "%d poses from %d camera sequences, model %s", len(test.gt), test.sequences, lifter.info.model_id
     )
     rows = []
     for truth in FORMATS_17:
-        points, present = detector_poses(truth, test.points)
+        points, present = detector_poses(truth, points_2d)
         for label in FORMATS_17:
             log.info("%s poses sent as %s", truth, label)
             out = send(lifter, points, present, label)
             toward_other = out["height"] if label == "h36m17" else -out["height"]
             rows.append({
                 "truth": truth, "label": label, "poses": len(points), "wrong": truth != label,
-                "fired": out["fired"],
+                "fired": out["fired"], "fired_count": int(out["fired"].sum()),
                 # Each part of the score alone, at the same threshold.
                 "reprojection_only": out["relative"] > THRESHOLD,
                 "geometry_only": np.nan_to_num(toward_other, nan=-1.0) > 0,
@@ -105,7 +110,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             row[key] = float(row[key].mean())
     return {
         "command": " ".join(["python -m bench.format_mixup", *sys.argv[1:]]),
-        "dataset": f"Human3.6M {','.join(args.subjects)} ({split} split), ground-truth 2D, all 4 cameras",
+        "dataset": f"Human3.6M {DATASET_LABEL if split == 'test' else ','.join(args.subjects)}, "
+        f"ground-truth 2D{f' + {args.noise:.0%} noise' if args.noise else ''}, all 4 cameras",
+        "noise": args.noise,
         "model": str(args.model),
         "model_id": lifter.info.model_id,
         "plausibility": lifter.has_plausibility,
@@ -126,21 +133,21 @@ def markdown(result: dict[str, Any]) -> str:
         f"({result['poses_per_format']:,} poses per format and label), model `{result['model_id']}`"
         f"{' with' if result['plausibility'] else ', no'} plausibility output.",
         "",
-        "| poses in | sent as | poses | warning fires | reprojection alone | geometry alone "
+        "| poses in | sent as | poses | warning fires (poses) | reprojection alone | geometry alone "
         "| relative reprojection error p0.5 / p50 / p99.5 |",
         "|---|---|---:|---:|---:|---:|---|",
     ]
     for r in result["rows"]:
         p = r["relative_p"]
         lines.append(
-            f"| {r['truth']} | {r['label']} | {r['poses']:,} | {r['fired']:.2%} "
+            f"| {r['truth']} | {r['label']} | {r['poses']:,} | {r['fired']:.3%} ({r['fired_count']:,}) "
             f"| {r['reprojection_only']:.2%} | {r['geometry_only']:.2%} "
             f"| {p[1]:.3f} / {p[2]:.3f} / {p[3]:.3f} |"
         )
     lines += [
         "",
-        f"Warning (score > {result['threshold']}): fires on {s['fired']['fires_when_wrong']:.2%} of wrongly "
-        f"labelled poses (target >= 99 %) and {s['fired']['fires_when_right']:.2%} of correctly labelled "
+        f"Warning (score > {result['threshold']}): fires on {s['fired']['fires_when_wrong']:.3%} of wrongly "
+        f"labelled poses (target >= 99 %) and {s['fired']['fires_when_right']:.3%} of correctly labelled "
         "ones (target <= 0.5 %).",
     ]
     return "\n".join(lines)
@@ -159,6 +166,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--subjects", default=",".join(data.TEST_SUBJECTS), help="comma-separated subjects")
     parser.add_argument("--frame-step", type=int, default=1, help="use every n-th frame (default: all)")
     parser.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0: one per core)")
+    parser.add_argument(
+        "--noise", type=float, default=0.0, help="Gaussian 2D noise, a fraction of each pose's spread (0.05)"
+    )
     parser.add_argument("--out", type=Path, default=Path("runs/bench/format_mixup.json"))
     args = parser.parse_args(argv)
     if args.frame_step < 1:
