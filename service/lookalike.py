@@ -66,12 +66,17 @@ def nose_height(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.float
     return np.where(ok, height, np.nan).astype(np.float32)
 
 
-def _evidence(given: str, height: float) -> float:
-    """The geometric evidence in [-1, 1] that a pose labelled `given` is in its lookalike."""
-    if np.isnan(height):
-        return 0.0
-    toward_coco = float(np.clip(height, -1.0, 1.0))
-    return toward_coco if given == H36M17.name else -toward_coco if given == COCO17.name else 0.0
+# Per format in FORMAT_NAMES: it has a lookalike, and the sign that turns nose_height into evidence
+# for that lookalike (a nose above the shoulders says coco17; below, h36m17).
+_HAS_LOOKALIKE = np.array([lookalike_of(name) is not None for name in FORMAT_NAMES])
+_TOWARD_LOOKALIKE = np.array([{H36M17.name: 1.0, COCO17.name: -1.0}.get(name, 0.0) for name in FORMAT_NAMES])
+
+
+def geometric_evidence(inputs: ModelInput) -> npt.NDArray[np.float64]:
+    """(N,) the evidence in [-1, 1] from nose_height that each pose is in its format's lookalike
+    (0 where it cannot be read)."""
+    height = np.clip(np.nan_to_num(inputs.nose_height.astype(np.float64), nan=0.0), -1.0, 1.0)
+    return height * _TOWARD_LOOKALIKE[inputs.format_index]
 
 
 def relative_error(inputs: ModelInput, prediction: Prediction) -> npt.NDArray[np.float64]:
@@ -80,30 +85,30 @@ def relative_error(inputs: ModelInput, prediction: Prediction) -> npt.NDArray[np
     return prediction.reprojection_error_px.astype(np.float64) / np.maximum(spread, 1e-9)
 
 
-def mixup_scores(inputs: ModelInput, prediction: Prediction) -> npt.NDArray[np.float64]:
-    """(N,) the mix-up score of each pose (NaN for a format without a lookalike)."""
-    relative = relative_error(inputs, prediction)
-    scores = np.full(len(inputs), np.nan)
-    for i, (index, height) in enumerate(zip(inputs.format_index, inputs.nose_height, strict=True)):
-        given = FORMAT_NAMES[index]
-        if lookalike_of(given) is not None:
-            scores[i] = relative[i] + GEOMETRY_WEIGHT * _evidence(given, float(height))
+def mixup_scores(
+    inputs: ModelInput, prediction: Prediction, relative: npt.NDArray[np.float64] | None = None
+) -> npt.NDArray[np.float64]:
+    """(N,) the mix-up score of each pose (NaN for a format without a lookalike); `relative`:
+    relative_error, when the caller has it."""
+    relative = relative_error(inputs, prediction) if relative is None else relative
+    scores = relative + GEOMETRY_WEIGHT * geometric_evidence(inputs)
     if prediction.plausibility is not None:
-        scores += PLAUSIBILITY_WEIGHT * (prediction.plausibility < PLAUSIBILITY_FLOOR)
-    return scores
+        scores = scores + PLAUSIBILITY_WEIGHT * (prediction.plausibility < PLAUSIBILITY_FLOOR)
+    return np.where(_HAS_LOOKALIKE[inputs.format_index], scores, np.nan)
 
 
 def format_warnings(inputs: ModelInput, prediction: Prediction) -> list[list[str]]:
     """Per pose, the warnings of its reply: today at most one, that the format looks wrong."""
-    scores = mixup_scores(inputs, prediction)
     relative = relative_error(inputs, prediction)
     out: list[list[str]] = [[] for _ in range(len(inputs))]
-    for i in np.flatnonzero(scores > THRESHOLD):  # NaN compares False
+    flagged = np.flatnonzero(mixup_scores(inputs, prediction, relative) > THRESHOLD)  # NaN: False
+    if not len(flagged):
+        return out
+    evidence = geometric_evidence(inputs)
+    for i in flagged:
         given = FORMAT_NAMES[inputs.format_index[i]]
         other = lookalike_of(given)
-        geometry = ""
-        if _evidence(given, float(inputs.nose_height[i])) > 0:
-            geometry = "; " + _GEOMETRY_NOTE[given]
+        geometry = "; " + _GEOMETRY_NOTE[given] if evidence[i] > 0 else ""
         out[i].append(
             f"format: these keypoints look like {other}, not {given} (reprojection error "
             f"{relative[i]:.0%} of the pose's size, rare above {THRESHOLD:.0%} in the right format"
