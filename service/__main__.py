@@ -16,6 +16,7 @@ from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 from types import FrameType
 
+import numpy as np
 import uvicorn
 from fastapi import FastAPI
 from prometheus_client import CollectorRegistry
@@ -30,6 +31,7 @@ from service.http_api import create_app
 from service.keypoints import Limits
 from service.lifter import Lifter
 from service.metrics import Metrics
+from service.schemas import EXAMPLE_KEYPOINTS
 
 log = logging.getLogger("service")
 
@@ -102,7 +104,18 @@ def load_lifter(settings: Settings) -> Lifter:
             f"{settings.model_path}: joints {list(lifter.info.joint_names)} are not the h36m17 joints "
             f"{list(MODEL_JOINTS)} that the keypoint formats map onto"
         )
+    lifter.check_outputs(*known_poses())
     return lifter
+
+
+def known_poses() -> tuple[np.ndarray, np.ndarray]:
+    """The check every model passes at start: the OpenAPI example person (N, 17, 2) px, its mirror
+    image, and the person without spine and head (as COCO detectors give it), with visibility."""
+    person = np.array(EXAMPLE_KEYPOINTS, dtype=np.float32)  # (17, 2)
+    mirrored = person * [-1.0, 1.0] + [2 * person[:, 0].mean(), 0.0]
+    visibility = np.ones((3, len(MODEL_JOINTS)), dtype=bool)
+    visibility[2, [MODEL_JOINTS.index("spine"), MODEL_JOINTS.index("head")]] = False
+    return np.stack([person, mirrored, person]).astype(np.float32), visibility
 
 
 def limits_of(settings: Settings) -> Limits:
@@ -204,13 +217,22 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
         queue_size=settings.queue_size,
     )
     limits = limits_of(settings)
-    app = create_app(engine, metrics, limits, settings.max_body_bytes, ui=settings.ui)
+    app = create_app(
+        engine,
+        metrics,
+        limits,
+        settings.max_body_bytes,
+        ui=settings.ui,
+        max_in_flight=settings.http_max_in_flight,
+    )
     grpc_server = create_server(
         engine,
         metrics,
         limits,
         f"{settings.host}:{settings.grpc_port}",
         workers=settings.grpc_workers,
+        max_streams=settings.grpc_max_streams,
+        stream_idle_timeout_s=settings.stream_idle_timeout_s,
         max_message_bytes=settings.max_body_bytes,
         stream_window=settings.stream_window,
     )

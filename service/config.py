@@ -34,7 +34,23 @@ class Settings(BaseSettings):
     grpc_workers: int = Field(
         default=32,
         ge=1,
-        description="most gRPC calls at once, open streams included; beyond: RESOURCE_EXHAUSTED",
+        description="most gRPC Lift calls in progress at once; beyond: RESOURCE_EXHAUSTED (streams "
+        "have their own limit, health checks none)",
+    )
+    grpc_max_streams: int = Field(
+        default=64, ge=1, description="most LiftStream calls open at once; beyond: RESOURCE_EXHAUSTED"
+    )
+    stream_idle_timeout_s: float = Field(
+        default=60.0,
+        gt=0,
+        description="a LiftStream with nothing in progress that sends no frame for this long is "
+        "closed with DEADLINE_EXCEEDED",
+    )
+    http_max_in_flight: int = Field(
+        default=128,
+        ge=1,
+        description="most POST /lift requests in progress at once; beyond: 503 with Retry-After at "
+        "once, before the body is read (health, readiness and metrics are never refused)",
     )
     max_batch: int = Field(default=256, ge=1, description="most poses in one onnxruntime run")
     max_wait_ms: float = Field(

@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from service.errors import ModelNotReady, Overloaded
+from service.errors import ModelNotReady, ModelOutputError, Overloaded
 from service.keypoints import ModelInput
 from service.lifter import Lifter, Prediction
 from service.lookalike import format_warnings
@@ -293,10 +293,18 @@ class Engine:
                 self.metrics.queue_wait_seconds.labels(transport=chunk.transport).observe(
                     start - chunk.enqueued
                 )
+        failed = np.zeros(0, dtype=np.int64)  # rows of the batch the model failed on
         try:
             keypoints = np.concatenate([c.keypoints_2d for c in batch])  # (B, J, 2)
             visible = np.concatenate([c.visible for c in batch])  # (B, J)
-            prediction = self.lifter.lift(keypoints, visible)
+            try:
+                prediction = self.lifter.lift(keypoints, visible)
+            except ModelOutputError as err:
+                if self.metrics is not None:
+                    self.metrics.model_output_errors.inc(len(err.rows))
+                if not isinstance(err.partial, Prediction):
+                    raise
+                prediction, failed = err.partial, np.array(err.rows, dtype=np.int64)
         except Exception as err:  # handed to every caller of the batch; each adapter logs it once
             for chunk in batch:
                 chunk.future.set_exception(err)
@@ -304,9 +312,16 @@ class Engine:
         if self.metrics is not None:
             self.metrics.inference_seconds.observe(time.monotonic() - start)
             self.metrics.batch_size.observe(len(prediction))
-            if prediction.plausibility is not None:
+            if prediction.plausibility is not None and not len(failed):
                 self.metrics.observe_plausibility(prediction.plausibility)
         offset = 0
         for chunk in batch:
-            chunk.future.set_result(prediction.slice(offset, offset + len(chunk)))
-            offset += len(chunk)
+            stop = offset + len(chunk)
+            mine = failed[(failed >= offset) & (failed < stop)]
+            if len(mine):  # the requests the failed poses belong to fail; the others are answered
+                chunk.future.set_exception(
+                    ModelOutputError((mine - offset).tolist(), prediction.slice(offset, stop))
+                )
+            else:
+                chunk.future.set_result(prediction.slice(offset, stop))
+            offset = stop

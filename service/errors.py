@@ -4,9 +4,31 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 # How many violations one error message lists; the rest are counted, not spelled out.
 MAX_LISTED_VIOLATIONS = 10
+# How many violations one reply lists as items (HTTP `detail`, a stream frame's `violations`); the
+# rest are counted: a request whose every value is wrong must not get a reply larger than itself.
+MAX_ERROR_ITEMS = 20
+# A value from the request quoted in an error (a format name, an unknown key) is cut to this many
+# characters, so that no reply echoes a client's input in full.
+MAX_ECHO_CHARS = 100
+# The longest field name and reason a Violation keeps: the bound behind every echo, whatever built it.
+MAX_FIELD_CHARS = 200
+MAX_REASON_CHARS = 400
+
+
+def echo(value: str) -> str:
+    """`value` quoted for an error message, cut to MAX_ECHO_CHARS characters with its length."""
+    if len(value) <= MAX_ECHO_CHARS:
+        return repr(value)
+    return f"{value[:MAX_ECHO_CHARS]!r}… ({len(value)} characters)"
+
+
+def clip(text: str, limit: int) -> str:
+    """`text` cut to at most `limit` characters, marked where it was cut."""
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 @dataclass(frozen=True)
@@ -19,6 +41,10 @@ class Violation:
     pose: int | None = None  # index of the pose in the request, when the field is in one
     joint: int | None = None  # index of the joint in the pose's format, when the field is one
     joint_name: str | None = None  # the joint's name in the pose's format
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "field", clip(self.field, MAX_FIELD_CHARS))
+        object.__setattr__(self, "reason", clip(self.reason, MAX_REASON_CHARS))
 
     @property
     def message(self) -> str:
@@ -50,6 +76,22 @@ class ModelNotReady(LiftError):
 
 class Overloaded(LiftError):
     """The batch queue is full; retry later (HTTP 503, RESOURCE_EXHAUSTED)."""
+
+
+# The stable message of every ModelOutputError, on both transports.
+MODEL_OUTPUT_MESSAGE = "the model produced non-finite output for this input; this is a server fault"
+
+
+class ModelOutputError(LiftError):
+    """The model produced non-finite output for some poses: a server fault (HTTP 500, INTERNAL).
+
+    `rows` are the failed poses of the run; `partial` is the run's Prediction with those rows
+    replaced, so that the other requests of the batch can still be answered."""
+
+    def __init__(self, rows: Sequence[int], partial: Any = None) -> None:
+        self.rows = tuple(rows)
+        self.partial = partial
+        super().__init__(MODEL_OUTPUT_MESSAGE)
 
 
 class ModelLoadError(LiftError):

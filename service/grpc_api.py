@@ -21,10 +21,19 @@ from grpc_reflection.v1alpha import reflection
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 from service.engine import Engine, concat_rows, result_columns
-from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Overloaded, Violation
+from service.errors import (
+    MAX_ERROR_ITEMS,
+    InvalidKeypoints,
+    LiftError,
+    ModelNotReady,
+    ModelOutputError,
+    Overloaded,
+    Violation,
+    clip,
+)
 from service.keypoints import DEFAULT_FORMAT, Limits, ModelInput, PoseInput, pose_field, prepare_poses
 from service.lifter import Prediction
-from service.metrics import Metrics, outcome_of
+from service.metrics import OVERLOADED, Metrics, outcome_of
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +41,14 @@ TRANSPORT = "grpc"
 # A stream frame that finds the batch queue full waits this long for room before its error result.
 STREAM_QUEUE_WAIT_S = 5.0
 SERVICE_NAME = lifter_pb2.DESCRIPTOR.services_by_name["PoseLifter"].full_name
+# The longest status message: it travels in a header, and one over grpc's metadata limit (8 KiB
+# soft, 16 KiB hard, after percent-encoding) reaches the client as RESOURCE_EXHAUSTED instead.
+MAX_STATUS_CHARS = 1000
+INTERNAL_MESSAGE = "internal error while lifting; this is a server fault"
+
+
+def status_message(err: Exception) -> str:
+    return clip(str(err), MAX_STATUS_CHARS)
 
 
 def status_of(err: LiftError) -> grpc.StatusCode:
@@ -90,12 +107,12 @@ def frame_error(err: LiftError) -> lifter_pb2.FrameError:
     violations = err.violations if isinstance(err, InvalidKeypoints) else ()
     return lifter_pb2.FrameError(
         code=status_of(err).value[0],
-        message=str(err),
+        message=status_message(err),
         violations=[
             lifter_pb2.FieldViolation(
                 field=v.field, reason=v.reason, code=v.code, joint_name=v.joint_name or "", joint=v.joint
             )
-            for v in violations
+            for v in violations[:MAX_ERROR_ITEMS]
         ],
     )
 
@@ -119,26 +136,62 @@ class PoseLifterServicer:
 
     Every call runs on the gRPC server's event loop; only onnxruntime runs elsewhere (the engine's
     worker thread), and a large unary request is converted on a worker thread.
+
+    Lift calls and open streams have limits of their own (the server's maximum_concurrent_rpcs
+    would count health checks too, and let idle streams lock everything out); a call beyond its
+    limit is refused with RESOURCE_EXHAUSTED and counted. A stream with nothing in progress that
+    sends no frame for `stream_idle_timeout_s` is closed with DEADLINE_EXCEEDED.
     """
 
-    def __init__(self, engine: Engine, metrics: Metrics, limits: Limits, stream_window: int = 256) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        metrics: Metrics,
+        limits: Limits,
+        stream_window: int = 256,
+        *,
+        max_unary: int = 32,
+        max_streams: int = 64,
+        stream_idle_timeout_s: float = 60.0,
+    ) -> None:
         self.engine = engine
         self.metrics = metrics
         self.limits = limits
         self.stream_window = stream_window
+        self.max_unary = max_unary
+        self.max_streams = max_streams
+        self.stream_idle_timeout_s = stream_idle_timeout_s
         self.model_id = engine.lifter.info.model_id
         self.joints = list(engine.lifter.info.joint_names)
+        self._unary = 0  # Lift calls in progress; both counters live on the server's one event loop
+        self._streams = 0  # LiftStream calls open
+
+    async def _refuse(self, context: grpc.aio.ServicerContext[Any, Any], method: str, message: str) -> None:
+        self.metrics.finish(TRANSPORT, method, OVERLOADED, 0.0)
+        await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, message)
 
     async def Lift(
         self, request: lifter_pb2.LiftRequest, context: grpc.aio.ServicerContext[Any, Any]
     ) -> lifter_pb2.LiftResponse:
+        if self._unary >= self.max_unary:
+            await self._refuse(
+                context, "Lift", f"too many Lift calls in progress (limit {self.max_unary}); retry later"
+            )
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
         prepare = partial(self._prepare_request, request, threshold)
+        self._unary += 1
         try:
             with self.metrics.track(TRANSPORT, "Lift"):
                 results = await self.engine.lift_async(len(request.poses), prepare, pose_results, TRANSPORT)
         except LiftError as err:
-            await context.abort(status_of(err), str(err))
+            if isinstance(err, ModelOutputError):  # counted by the engine; one line, no traceback
+                log.error("Lift: %s", err)
+            await context.abort(status_of(err), status_message(err))
+        except Exception:  # counted as an error by track(); the client gets no exception class
+            log.exception("Lift failed")
+            await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_MESSAGE)
+        finally:
+            self._unary -= 1
         return lifter_pb2.LiftResponse(model_id=self.model_id, joints=self.joints, poses=results)
 
     def _prepare_request(self, request: lifter_pb2.LiftRequest, threshold: float | None) -> ModelInput:
@@ -156,6 +209,10 @@ class PoseLifterServicer:
         arrive during a run become the next group: the per-frame cost stays small and one stream
         fills batches instead of waiting for each frame's run. At most stream_window frames are read
         and not yet answered (backpressure: the reader stops reading)."""
+        if self._streams >= self.max_streams:
+            await self._refuse(
+                context, "LiftStream", f"too many open streams (limit {self.max_streams}); retry later"
+            )
         loop = asyncio.get_running_loop()
         inbox: list[tuple[lifter_pb2.LiftFrame, float]] = []
         wake = asyncio.Event()  # something may be actionable: frames, a finished run, the end
@@ -183,6 +240,7 @@ class PoseLifterServicer:
         gauge = self.metrics.in_flight.labels(transport=TRANSPORT)
         pending: deque[_Group] = deque()
         in_flight = 0  # frames taken from the inbox and not yet answered
+        self._streams += 1
         self.metrics.open_streams.inc()
         reader = asyncio.create_task(read())
         try:
@@ -214,11 +272,28 @@ class PoseLifterServicer:
                         await context.abort(grpc.StatusCode.INVALID_ARGUMENT, reason)
                     return
                 if not can_take() and not (pending and pending[0].done()):
-                    await wake.wait()
+                    if in_flight or inbox or ended:
+                        await wake.wait()
+                    elif not await self._wait_for_frames(wake):
+                        self.metrics.idle_streams_closed.inc()
+                        reason = (
+                            f"no frame for {self.stream_idle_timeout_s:g} s: the stream is closed as idle "
+                            "(REPNET_STREAM_IDLE_TIMEOUT_S)"
+                        )
+                        await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, reason)
         finally:
             reader.cancel()
+            self._streams -= 1
             self.metrics.open_streams.dec()
             gauge.dec(in_flight)  # frames queued but never answered (the client went away)
+
+    async def _wait_for_frames(self, wake: asyncio.Event) -> bool:
+        """Wait for `wake` on an idle stream; False if stream_idle_timeout_s passed first."""
+        try:
+            await asyncio.wait_for(wake.wait(), self.stream_idle_timeout_s)
+        except asyncio.TimeoutError:
+            return False
+        return True
 
     def _prepare(
         self, poses: list[PoseInput], threshold: float | None, frames: list[int], group: _Group
@@ -273,19 +348,39 @@ class PoseLifterServicer:
             group.rows[k] = row
         return group
 
+    def _results(self, group: _Group, failed_rows: set[int]) -> list[Prediction]:
+        """The group's Predictions; rows the model failed on are added to `failed_rows` (their
+        stand-in values are never sent), so that only their frames get an error result."""
+        parts, offset = [], 0
+        for future in group.futures:
+            try:
+                part = future.result()
+            except ModelOutputError as err:  # counted by the engine; one line, no traceback
+                if not isinstance(err.partial, Prediction):
+                    raise
+                log.error("LiftStream: frames %d..: %s", group.frames[0][0], err)
+                part = err.partial
+                failed_rows.update(offset + r for r in err.rows)
+            parts.append(part)
+            offset += len(part)
+        return parts
+
     def _answer(self, group: _Group) -> Iterator[lifter_pb2.LiftFrameResult]:
         """The group's results in frame order; a failed run gives its frames an error result."""
         columns: dict[str, list[Any]] = {}
         failure: LiftError | None = None
+        failed_rows: set[int] = set()  # rows the model gave non-finite output for
         if group.inputs is not None:
             try:
-                prediction = concat_rows([f.result() for f in group.futures])
+                prediction = concat_rows(self._results(group, failed_rows))
                 columns = result_columns(group.inputs, prediction, flat=True)
             except Exception:  # one run's fault must not end the stream
                 log.exception("LiftStream: lifting frames %d.. failed", group.frames[0][0])
                 failure = LiftError("internal error while lifting this frame")
         for k, (frame_id, start) in enumerate(group.frames):
             error, row = group.errors[k], group.rows[k]
+            if row in failed_rows:
+                error = ModelOutputError([row])
             if error is None and row >= 0 and failure is None:
                 pose = lifter_pb2.PoseResult(**{name: values[row] for name, values in columns.items()})
                 result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=self.model_id, pose=pose)
@@ -397,22 +492,31 @@ def create_server(
     address: str,
     *,
     workers: int = 32,
+    max_streams: int = 64,
+    stream_idle_timeout_s: float = 60.0,
     max_message_bytes: int = 4 << 20,
     stream_window: int = 256,
 ) -> GrpcServer:
     """A gRPC server (not started) bound to `address`, with health (`.health`) and reflection.
 
-    At most `workers` calls (open streams included) run at once; calls beyond that get
-    RESOURCE_EXHAUSTED.
+    At most `workers` Lift calls and `max_streams` open streams at once; calls beyond get
+    RESOURCE_EXHAUSTED. Health and reflection have no limit: a health check always answers.
     """
 
     async def build(status: Health) -> tuple[grpc.aio.Server, int]:
         server = grpc.aio.server(
-            maximum_concurrent_rpcs=workers,
             # so_reuseport 0: a second server on a taken port fails instead of sharing it.
             options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.so_reuseport", 0)],
         )
-        servicer = PoseLifterServicer(engine, metrics, limits, stream_window)
+        servicer = PoseLifterServicer(
+            engine,
+            metrics,
+            limits,
+            stream_window,
+            max_unary=workers,
+            max_streams=max_streams,
+            stream_idle_timeout_s=stream_idle_timeout_s,
+        )
         lifter_pb2_grpc.add_PoseLifterServicer_to_server(servicer, server)  # type: ignore[no-untyped-call]
         health_pb2_grpc.add_HealthServicer_to_server(status.servicer, server)
         names = (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME)

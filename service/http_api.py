@@ -30,13 +30,20 @@ from service.errors import (
     clip,
 )
 from service.formats import FORMATS
-from service.http_middleware import OUTCOME_KEY, STARTED_KEY, BodyLimitMiddleware, LiftMetricsMiddleware
+from service.http_middleware import (
+    OUTCOME_KEY,
+    STARTED_KEY,
+    BodyLimitMiddleware,
+    LiftMetricsMiddleware,
+    LoadShedMiddleware,
+)
 from service.keypoints import Limits, ModelInput, PoseInput, pose_field, prepare_poses
 from service.lifter import ModelInfo, Prediction
 from service.metrics import INVALID, Metrics, outcome_of
 from service.page import add_page
 from service.schemas import (
     FRAME_DOC,
+    UNKNOWN_FIELD,
     ErrorResponse,
     FormatInfo,
     LiftRequest,
@@ -146,6 +153,8 @@ def violations_of(errors: Sequence[Any]) -> list[Violation]:
     found = []
     for error in errors:
         loc = [p for p in error.get("loc", ()) if p != "body"]
+        if error.get("type") == UNKNOWN_FIELD:  # the key the error is about
+            loc.append(str((error.get("ctx") or {}).get("key", "")))
         if error.get("type") == "json_invalid":
             loc = []
         field = "".join(_loc_part(p) for p in loc).lstrip(".") or "body"
@@ -212,10 +221,16 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
 
 
 def create_app(
-    engine: Engine, metrics: Metrics, limits: Limits, max_body_bytes: int = 4 << 20, ui: bool = True
+    engine: Engine,
+    metrics: Metrics,
+    limits: Limits,
+    max_body_bytes: int = 4 << 20,
+    ui: bool = True,
+    max_in_flight: int = 128,
 ) -> FastAPI:
     """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
-    `ui`: also serve the web page at GET / (service/page.py)."""
+    `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
+    requests in progress, the next is answered 503 at once."""
     info = engine.lifter.info
     app = FastAPI(
         title="RepNet pose lifting",
@@ -224,6 +239,7 @@ def create_app(
         "(RepNet, Wandt & Rosenhahn, CVPR 2019).\n\n" + FRAME_DOC,
     )
     app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
+    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
     app.add_middleware(LiftMetricsMiddleware, metrics=metrics)  # added last: outermost
 
     @app.exception_handler(LiftError)

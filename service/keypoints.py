@@ -9,7 +9,7 @@ from functools import cache
 import numpy as np
 import numpy.typing as npt
 
-from service.errors import InvalidKeypoints, Violation
+from service.errors import InvalidKeypoints, Violation, echo
 from service.formats import FORMATS, MODEL_JOINTS, KeypointFormat, to_model_joints
 from service.geometry import BoolArray, FloatArray
 from service.lookalike import FORMAT_NAMES, lookalike_of, nose_height
@@ -90,7 +90,7 @@ def _shape_violations(pose: PoseInput, i: int, prefix: str) -> list[Violation]:
     base = pose_field(prefix, i)
     fmt = FORMATS.get(pose.format)
     if fmt is None:
-        reason = f"unknown format {pose.format!r}; expected one of {', '.join(FORMATS)}"
+        reason = f"unknown format {echo(pose.format)}; expected one of {', '.join(FORMATS)}"
         return [Violation(f"{base}.format", reason, "unknown_format", pose=i)]
     joints = len(fmt.joint_names)
     if pose.points.shape[0] != joints:

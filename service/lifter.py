@@ -12,7 +12,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service import geometry
-from service.errors import InvalidKeypoints, ModelLoadError, Violation
+from service.errors import InvalidKeypoints, ModelLoadError, ModelOutputError, Violation
 from service.geometry import FloatArray
 
 log = logging.getLogger(__name__)
@@ -23,6 +23,19 @@ OUTPUTS = ("pose_3d", "camera")
 # validation poses; its calibration is the JSON metadata entry PLAUSIBILITY_CALIBRATION.
 PLAUSIBILITY = "plausibility"
 PLAUSIBILITY_CALIBRATION = "plausibility_calibration"
+# What a row the model failed on holds while the rest of its run is derived (never returned).
+STAND_IN_CAMERA = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=np.float32)
+# The start-up check's bounds for a person: the 3D pose spans this much (mm) along its longest
+# axis, and its reprojection misses the input by at most this fraction of the input's spread.
+PERSON_EXTENT_MM = (300.0, 5000.0)
+MAX_REPROJECTION_SPREAD = 0.25
+
+
+def non_finite_rows(*arrays: np.ndarray) -> np.ndarray:
+    """(N,) True for each pose with a NaN or infinity in any of the (N, ...) arrays."""
+    n = arrays[0].shape[0]
+    finite = [np.isfinite(a.reshape(n, -1)).all(axis=1) for a in arrays]
+    return ~np.logical_and.reduce(finite)
 
 
 @dataclass(frozen=True)
@@ -136,6 +149,8 @@ class Lifter:
         cls, path: Path, intra_op_threads: int = 0, inter_op_threads: int = 1, spinning: bool = True
     ) -> Lifter:
         """Open the model at `path`; raise ModelLoadError saying what is wrong with it."""
+        if path.is_dir():
+            raise ModelLoadError(f"model path is a directory, not an ONNX file: {path}")
         if not path.is_file():
             raise ModelLoadError(f"model file not found: {path}")
         options = ort.SessionOptions()
@@ -150,6 +165,32 @@ class Lifter:
         lifter = cls(session, path)
         log.info("loaded model %s (%s) from %s", lifter.info.model_id, lifter.info.skeleton, path)
         return lifter
+
+    def check_outputs(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> None:
+        """Lift known (N, J, 2) poses of people; ModelLoadError if the outputs are not finite or not
+        a person that explains its input. A model with broken weights loads without complaint."""
+        where = f"{self.path}: the model fails its check on {len(keypoints_2d)} known poses"
+        try:
+            prediction = self.lift(keypoints_2d, visibility)
+        except ModelOutputError as err:
+            raise ModelLoadError(f"{where}: non-finite output for poses {list(err.rows)}") from None
+        except Exception as err:  # onnxruntime's own untyped errors: a graph that loads but cannot run
+            message = " ".join(str(err).split())  # one line
+            raise ModelLoadError(f"{where}: the run failed: {message}") from None
+        extent = np.ptp(prediction.pose_3d, axis=1).max(axis=1)  # (N,) mm
+        low, high = PERSON_EXTENT_MM
+        if not ((extent >= low) & (extent <= high)).all():
+            found = ", ".join(f"{e:.0f}" for e in extent)
+            raise ModelLoadError(f"{where}: pose_3d spans {found} mm, a person spans {low:.0f} to {high:.0f}")
+        pairs = zip(keypoints_2d, visibility, strict=True)
+        spread = np.array([points[seen].std(axis=0).mean() for points, seen in pairs])  # (N,) px
+        error = prediction.reprojection_error_px
+        if not (error <= MAX_REPROJECTION_SPREAD * spread).all():
+            found = ", ".join(f"{e:.1f}" for e in error)
+            raise ModelLoadError(
+                f"{where}: reprojection errors {found} px, more than {MAX_REPROJECTION_SPREAD:g} of "
+                f"the inputs' spread ({', '.join(f'{s:.0f}' for s in spread)} px)"
+            )
 
     @property
     def num_joints(self) -> int:
@@ -184,6 +225,29 @@ class Lifter:
         pose_3d, camera, *plausibility = self.session.run(
             self._outputs, {"keypoints_2d": points, "visibility": visible.astype(np.float32)}
         )
+        failed = non_finite_rows(pose_3d, camera, *plausibility)  # (N,)
+        if failed.any():
+            # The geometry cannot take them (an SVD of NaN does not converge): stand-ins for the
+            # failed rows, reported below, so that the other poses of the run are still answered.
+            pose_3d = np.where(failed[:, None, None], 0.0, pose_3d).astype(np.float32)
+            camera = np.where(failed[:, None, None], STAND_IN_CAMERA, camera).astype(np.float32)
+            plausibility = [np.where(failed, 0.0, p).astype(np.float32) for p in plausibility]
+        prediction = self._derive(pose_3d, camera, plausibility, points, visible)
+        failed |= non_finite_rows(
+            prediction.rotation, prediction.reprojection, prediction.reprojection_error_px
+        )
+        if failed.any():
+            raise ModelOutputError(np.flatnonzero(failed).tolist(), prediction)
+        return prediction
+
+    def _derive(
+        self,
+        pose_3d: np.ndarray,
+        camera: np.ndarray,
+        plausibility: list[np.ndarray],
+        points: np.ndarray,
+        visible: np.ndarray,
+    ) -> Prediction:
         rotation = geometry.camera_rotation(camera)
         reprojection = geometry.reproject(camera, pose_3d, points, visible)
         return Prediction(

@@ -73,6 +73,16 @@ class Metrics:
             registry=registry,
         )
         self.open_streams = Gauge("repnet_open_streams", "LiftStream calls open now.", registry=registry)
+        self.idle_streams_closed = Counter(
+            "repnet_idle_streams_closed",
+            "LiftStream calls closed by the server after stream_idle_timeout_s without a frame.",
+            registry=registry,
+        )
+        self.model_output_errors = Counter(
+            "repnet_model_output_errors",
+            "Poses for which the model produced non-finite output (answered 500 / INTERNAL).",
+            registry=registry,
+        )
         self.parse_seconds = Histogram(
             "repnet_request_parse_seconds",
             "Time to read, parse and check a lift request's poses and convert them to the model's "

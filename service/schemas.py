@@ -37,18 +37,27 @@ PLAUSIBILITY_DOC = (
 )
 
 
+UNKNOWN_FIELD = "unknown_field"  # pydantic error type of reject_unknown_keys
+
+
 def reject_unknown_keys(model: type[BaseModel], data: Any) -> None:
     """All unknown keys of one object as one error naming the first (cut short) and counting the
-    rest: pydantic's extra="forbid" gives one error per key, and echoes each key in full."""
+    rest: pydantic's extra="forbid" gives one error per key, and echoes each key in full. The
+    error's context `key` is the first unknown key, which the adapter appends to the field."""
     if not isinstance(data, dict):
         return
     unknown = [key for key in data if key not in model.model_fields]
     if unknown:
-        more = f" and {len(unknown) - 1} more" if len(unknown) > 1 else ""
+        more = f" (and {len(unknown) - 1} more unknown fields)" if len(unknown) > 1 else ""
         raise PydanticCustomError(
-            "extra_forbidden",
-            "unknown field {name}{more}; expected {expected}",
-            {"name": echo(str(unknown[0])), "more": more, "expected": ", ".join(model.model_fields)},
+            UNKNOWN_FIELD,
+            "unknown field {name} is not permitted{more}; expected one of {expected}",
+            {
+                "key": str(unknown[0]),
+                "name": echo(str(unknown[0])),
+                "more": more,
+                "expected": ", ".join(model.model_fields),
+            },
         )
 
 

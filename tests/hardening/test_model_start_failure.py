@@ -13,6 +13,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench.server import ROOT
@@ -58,6 +59,22 @@ def _with_metadata(change: Callable[[dict[str, str]], object]) -> Callable[[Path
     return write
 
 
+def _weights_overwritten(dtypes: tuple[type, ...]) -> Callable[[Path], None]:
+    """The bundled model with every initializer of these dtypes overwritten with 0xFF bytes (NaN
+    for floats): a valid ONNX file that loads but cannot answer."""
+
+    def write(path: Path) -> None:
+        model = onnx.load(str(BUNDLED_MODEL))
+        for tensor in model.graph.initializer:
+            array = onnx.numpy_helper.to_array(tensor)
+            if array.dtype.type in dtypes:
+                broken = np.frombuffer(b"\xff" * array.nbytes, dtype=array.dtype).reshape(array.shape)
+                tensor.CopyFrom(onnx.numpy_helper.from_array(broken, tensor.name))
+        onnx.save(model, str(path))
+
+    return write
+
+
 CASES = {
     "empty_file": (_empty, "cannot load model"),
     "not_onnx": (_not_onnx, "cannot load model"),
@@ -86,6 +103,31 @@ def test_broken_model_fails_at_start_with_a_clear_message(
     text = record.getMessage()
     assert text.startswith("cannot start:") and str(path) in text and message in text, text
     assert record.exc_info is None  # a message, not a traceback
+
+
+@pytest.mark.parametrize("dtypes", [(np.float32,), (np.float32, np.int64)], ids=["floats", "all"])
+def test_a_model_that_loads_but_cannot_infer_refuses_to_start(
+    dtypes: tuple[type, ...], tmp_path: Path
+) -> None:
+    """A child process: a server that started anyway would serve until the timeout."""
+    path = tmp_path / "weights_0xff.onnx"
+    _weights_overwritten(dtypes)(path)
+    flags = ["--model-path", str(path), "--host", "127.0.0.1", "--http-port", "0", "--grpc-port", "0"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    command = [sys.executable, "-m", "service", *flags]
+    done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1, done.stderr[-2000:]
+    (error,) = [line for line in (done.stderr + done.stdout).splitlines() if " ERROR " in line]
+    assert f"cannot start: {path}: the model fails its check on 3 known poses" in error, error
+    assert "non-finite output for poses [0, 1, 2]" in error and "Traceback" not in done.stderr
+
+
+def test_a_directory_as_model_path_is_named_a_directory(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    assert main(["--model-path", str(tmp_path), "--http-port", "0", "--grpc-port", "0"]) == 1
+    (record,) = [r for r in caplog.records if r.levelname == "ERROR"]
+    assert record.getMessage() == f"cannot start: model path is a directory, not an ONNX file: {tmp_path}"
 
 
 def test_model_path_from_the_environment_that_does_not_exist_exits_1(tmp_path: Path) -> None:
