@@ -70,6 +70,9 @@ class TrainConfig:
     # the generated poses, all 16 bones; one person's bones keep their length and left equals
     # right, which the critic alone teaches slowly. 0 = off (the paper).
     bone_weight: float = 0.0
+    # Train the critic alone on the generator's poses, the generator frozen: a last stage that
+    # fits the plausibility score to the generator that ships (resume from its checkpoint).
+    critic_only: bool = False
     synthetic_noise_px: float = 8.0  # synthetic 2D gets N(0, u) px noise, u ~ U(0, this) per pose
     noise_px: float = 0.0  # std of Gaussian pixel noise added to the 2D inputs
     mask_prob: float = 0.5  # chance that a 2D sample has 1..mask_max random joints hidden

@@ -27,36 +27,65 @@ def markdown_table(records: list[dict[str, float]]) -> str:
 
 
 def plot(records: list[dict[str, float]], path: Path) -> None:
-    """Validation MPJPE (Protocol I and II) against wall time."""
+    """Validation error (Protocol I and II) and skeleton consistency (symmetry, bone length std)
+    against wall time, one run."""
+    plot_runs({"": records}, path)
+
+
+PANELS = (
+    ("pose error (mm)", ("gt_pa_mpjpe", "gt_mpjpe", "sh_pa_mpjpe", "sh_mpjpe")),
+    ("skeleton (mm)", ("gt_symmetry", "gt_bone_std")),
+)
+
+
+def plot_runs(runs: dict[str, list[dict[str, float]]], path: Path) -> None:
+    """The validation figures of several runs against wall time: one colour per run, one line
+    style per figure; left panel pose errors, right panel symmetry and limb bone length std."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    minutes = [r["minutes"] for r in records]
-    for key in sorted({k for r in records for k in r if k.startswith("val_") and "symmetry" not in k}):
-        values = [r.get(key, float("nan")) for r in records]
-        ax.plot(minutes, values, marker="o", label=key.removeprefix("val_"))
-    ax.set_xlabel("training wall time (min)")
-    ax.set_ylabel("validation error (mm)")
-    ax.set_title("RepNet validation on held-out training-subject frames")
-    ax.grid(alpha=0.3)
-    ax.legend()
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    styles = ("-", "--", ":", "-.")
+    for ax, (ylabel, keys) in zip(axes, PANELS, strict=True):
+        for colour, (name, records) in enumerate(runs.items()):
+            minutes = [r["minutes"] for r in records]
+            for style, key in zip(styles, keys, strict=False):
+                values = [r.get(f"val_{key}", float("nan")) for r in records]
+                if all(v != v for v in values):  # no such figure in this run
+                    continue
+                label = f"{name}: {key}" if name else key
+                ax.plot(minutes, values, style, marker="o", ms=3, color=f"C{colour}", label=label)
+        ax.set_xlabel("training wall time (min)")
+        ax.set_ylabel(f"validation {ylabel}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("RepNet validation on held-out training-subject frames (gt: GT 2D, sh: SH detections)")
     fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--history", type=Path, required=True, help="runs/<name>/history.jsonl")
+    parser.add_argument(
+        "--history",
+        nargs="+",
+        required=True,
+        help="runs/<name>/history.jsonl, or several as NAME=PATH to draw them side by side",
+    )
     parser.add_argument("--png", type=Path, help="write the curve here")
     args = parser.parse_args(argv)
-    records = read_validations(args.history)
-    print(markdown_table(records))
+    runs = {}
+    for item in args.history:
+        name, _, path = item.rpartition("=")
+        runs[name] = read_validations(Path(path))
+    for name, records in runs.items():
+        print(f"{name or args.history[0]}:\n{markdown_table(records)}\n")
     if args.png:
-        plot(records, args.png)
+        plot_runs(runs, args.png)
 
 
 if __name__ == "__main__":

@@ -210,6 +210,12 @@ class Trainer:
                 group["lr"] = lr
         zero = torch.zeros((), device=self.device)
         terms = dict.fromkeys(("rep", "cam", "adv", "bone", "synthetic_pose", "w_dist"), zero)
+        if config.critic_only:
+            for _ in range(config.critic_steps):
+                self.fakes = None  # fresh poses of the frozen generator for every update
+                terms["w_dist"] = self.critic_step()
+            self.fakes = None
+            return terms
         if step < config.warm_start_steps:
             terms["synthetic_pose"], fit, synthetic_pose = self.synthetic_terms()
             terms["bone"] = bone_loss(synthetic_pose, self.mean_bones)

@@ -134,3 +134,17 @@ def test_visibility_augmentation_hides_joints_but_never_the_root() -> None:
     hidden = (visible == 0).sum(dim=1)
     assert hidden.min() >= 1 and hidden.max() <= 3
     assert torch.all(visible[:, 0] == 1)
+
+
+def test_critic_only_stage_trains_the_critic_and_leaves_the_generator(
+    synthetic_h36m: Path, tmp_path: Path
+) -> None:
+    first = _config(synthetic_h36m, tmp_path / "gen", 20)
+    train.train(first, TINY)
+    stage = dataclasses.replace(first, out_dir=str(tmp_path / "critic"), iterations=30, critic_only=True)
+    train.train(stage, TINY, resume=tmp_path / "gen" / "last.pt")
+    before = torch.load(tmp_path / "gen" / "last.pt", weights_only=False)
+    after = torch.load(tmp_path / "critic" / "last.pt", weights_only=False)
+    assert after["step"] == 30
+    assert all(torch.equal(v, after["generator"][k]) for k, v in before["generator"].items())
+    assert any(not torch.equal(v, after["critic"][k]) for k, v in before["critic"].items())

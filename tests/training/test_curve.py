@@ -1,0 +1,35 @@
+"""Validation curves: the table of one run and the side-by-side figure of several."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from training import curve
+
+
+def _history(path: Path, offset: float) -> Path:
+    records = [{"step": 50, "minutes": 0.5, "rep": 1.0}]
+    records += [
+        {"step": s, "minutes": s / 100, "val_gt_pa_mpjpe": 90 - s / 10 + offset, "val_gt_symmetry": 50.0}
+        for s in (200, 100)
+    ]
+    path.write_text("".join(json.dumps(r) + "\n" for r in records))
+    return path
+
+
+def test_table_has_one_row_per_validation_in_step_order(tmp_path: Path) -> None:
+    records = curve.read_validations(_history(tmp_path / "h.jsonl", 0.0))
+    assert [r["step"] for r in records] == [100, 200]
+    table = curve.markdown_table(records).splitlines()
+    assert table[0] == "| step | minutes | gt_pa_mpjpe | gt_symmetry |"
+    assert table[2] == "| 100 | 1.0 | 80.0 | 50.0 |"
+
+
+def test_several_runs_are_drawn_side_by_side(tmp_path: Path, capsys) -> None:
+    a, b = _history(tmp_path / "a.jsonl", 0.0), _history(tmp_path / "b.jsonl", 5.0)
+    png = tmp_path / "curves.png"
+    curve.main(["--history", f"arm a={a}", f"arm b={b}", "--png", str(png)])
+    out = capsys.readouterr().out
+    assert "arm a:" in out and "arm b:" in out and "| 100 | 1.0 | 85.0 | 50.0 |" in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
