@@ -26,6 +26,26 @@ def markdown_table(records: list[dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
+COMPARED = ("gt_pa_mpjpe", "gt_mpjpe", "gt_symmetry", "gt_bone_std", "sh_pa_mpjpe", "sh_mpjpe")
+
+
+def equal_time_table(runs: dict[str, list[dict[str, float]]], minutes: float) -> str:
+    """Each run's last validation at or before `minutes` of wall time, one row per run."""
+    lines = [
+        "| run | step | minutes | " + " | ".join(COMPARED) + " |",
+        "|---|---:|---:|" + "---:|" * len(COMPARED),
+    ]
+    for name, records in runs.items():
+        done = [r for r in records if r["minutes"] <= minutes + 1e-9]
+        if not done:
+            lines.append(f"| {name} | – | – | " + " | ".join("–" for _ in COMPARED) + " |")
+            continue
+        r = done[-1]
+        cells = [f"{r[f'val_{k}']:.1f}" if f"val_{k}" in r else "–" for k in COMPARED]
+        lines.append(f"| {name} | {r['step']} | {r['minutes']:.1f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def plot(records: list[dict[str, float]], path: Path) -> None:
     """Validation error (Protocol I and II) and skeleton consistency (symmetry, bone length std)
     against wall time, one run."""
@@ -77,6 +97,7 @@ def main(argv: list[str] | None = None) -> None:
         help="runs/<name>/history.jsonl, or several as NAME=PATH to draw them side by side",
     )
     parser.add_argument("--png", type=Path, help="write the curve here")
+    parser.add_argument("--at-minutes", type=float, help="also compare the runs at this wall time")
     args = parser.parse_args(argv)
     runs = {}
     for item in args.history:
@@ -84,6 +105,8 @@ def main(argv: list[str] | None = None) -> None:
         runs[name] = read_validations(Path(path))
     for name, records in runs.items():
         print(f"{name or args.history[0]}:\n{markdown_table(records)}\n")
+    if args.at_minutes is not None:
+        print(f"at {args.at_minutes:g} min of wall time:\n{equal_time_table(runs, args.at_minutes)}")
     if args.png:
         plot_runs(runs, args.png)
 

@@ -33,3 +33,13 @@ def test_several_runs_are_drawn_side_by_side(tmp_path: Path, capsys) -> None:
     out = capsys.readouterr().out
     assert "arm a:" in out and "arm b:" in out and "| 100 | 1.0 | 85.0 | 50.0 |" in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_equal_time_table_takes_each_runs_last_validation_within_the_time(tmp_path: Path) -> None:
+    runs = {
+        "a": curve.read_validations(_history(tmp_path / "a.jsonl", 0.0)),
+        "late": [{"step": 10, "minutes": 9.0, "val_gt_pa_mpjpe": 1.0}],
+    }
+    rows = curve.equal_time_table(runs, 1.5).splitlines()
+    assert rows[2].startswith("| a | 100 | 1.0 | 80.0 | – | 50.0 |")
+    assert rows[3].startswith("| late | – | – |")
