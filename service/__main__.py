@@ -3,16 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
-import ctypes
 import logging
 import signal
-import socket
-import struct
 import sys
 import threading
-from collections.abc import Generator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from types import FrameType
 
@@ -28,70 +23,13 @@ from service.errors import ModelLoadError
 from service.formats import MODEL_JOINTS
 from service.grpc_api import GrpcServer, create_server
 from service.http_api import create_app
+from service.http_server import HttpServer
 from service.keypoints import Limits
 from service.lifter import Lifter
 from service.metrics import Metrics
 from service.schemas import EXAMPLE_KEYPOINTS
 
 log = logging.getLogger("service")
-
-
-# How long shutdown waits for a connection accepted just before it to send its request.
-FIRST_REQUEST_WAIT_S = 2.0
-SO_ATTACH_FILTER = 26  # Linux <asm-generic/socket.h>; the socket module does not name it
-
-
-def stop_handshakes(listener: socket.socket) -> None:
-    """Make a listening socket drop every packet from now on (a classic BPF program "return 0"):
-    no handshake completes any more, so its backlog can be drained before it closes without a
-    connection slipping in to be reset. Clients whose SYN is dropped resend it and find the port
-    closed. Linux only; elsewhere nothing changes."""
-    if sys.platform != "linux":
-        return
-    drop_all = ctypes.create_string_buffer(struct.pack("HBBI", 0x06, 0, 0, 0))  # BPF_RET | BPF_K, k = 0
-    program = struct.pack("HL", 1, ctypes.addressof(drop_all))  # struct sock_fprog
-    with contextlib.suppress(OSError):
-        listener.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, program)
-
-
-class _HttpServer(uvicorn.Server):
-    """uvicorn without its own signal handlers (main() owns SIGTERM and SIGINT), whose shutdown
-    answers every connection the kernel accepted."""
-
-    @contextlib.contextmanager
-    def capture_signals(self) -> Generator[None, None, None]:
-        yield
-
-    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
-        """uvicorn's shutdown would reset connections still in the listen backlog when it closes
-        the listener, and close accepted connections whose request it has not read yet: their
-        clients saw the connection accepted and lose the request. Stop handshakes, accept the
-        backlog, close the listener, and wait for the first request of fresh connections."""
-        loop = asyncio.get_running_loop()
-        backlog: list[socket.socket] = []
-        for server in self.servers:
-            for listener in server.sockets:
-                with listener.dup() as sock:  # the same listening socket, already non-blocking
-                    stop_handshakes(sock)
-                    with contextlib.suppress(OSError):  # EAGAIN: the backlog is empty
-                        while True:
-                            backlog.append(sock.accept()[0])
-            server.close()
-        for sock in backlog:
-            await loop.connect_accepted_socket(self._create_protocol, sock, ssl=self.config.ssl)
-        deadline = loop.time() + min(FIRST_REQUEST_WAIT_S, self.config.timeout_graceful_shutdown or 0)
-        # `cycle` is None until a connection's first request arrives (h11 and httptools alike).
-        while any(getattr(c, "cycle", 0) is None for c in self.server_state.connections):
-            if loop.time() > deadline:
-                break
-            await asyncio.sleep(0.005)
-        await super().shutdown(sockets)
-
-    def _create_protocol(self) -> asyncio.Protocol:
-        """The protocol uvicorn's startup() gives each connection it accepts."""
-        return self.config.http_protocol_class(  # type: ignore[call-arg]
-            config=self.config, server_state=self.server_state, app_state=self.lifespan.state
-        )
 
 
 def load_lifter(settings: Settings) -> Lifter:
@@ -245,7 +183,7 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
         timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
         lifespan="off",
     )
-    return Service(settings, engine, metrics, app, grpc_server, _HttpServer(config))
+    return Service(settings, engine, metrics, app, grpc_server, HttpServer(config))
 
 
 def parse_settings(argv: Sequence[str] | None) -> Settings:

@@ -12,8 +12,9 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from service.__main__ import FIRST_REQUEST_WAIT_S, Service, build_service
+from service.__main__ import Service, build_service
 from service.config import Settings
+from service.http_server import FIRST_REQUEST_WAIT_S
 from service.lifter import Lifter
 from tests.conftest import POSE_2D
 
