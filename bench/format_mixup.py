@@ -126,10 +126,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def frames(step: int) -> str:
+    """'every frame', 'every 2nd frame', 'every 10th frame'."""
+    if step == 1:
+        return "every frame"
+    suffix = "th" if 10 <= step % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(step % 10, "th")
+    return f"every {step}{suffix} frame"
+
+
 def markdown(result: dict[str, Any]) -> str:
     s = result["summary"]
     lines = [
-        f"`{result['command']}`: {result['dataset']}, every {result['frame_step']}th frame "
+        f"`{result['command']}`: {result['dataset']}, {frames(result['frame_step'])} "
         f"({result['poses_per_format']:,} poses per format and label), model `{result['model_id']}`"
         f"{' with' if result['plausibility'] else ', no'} plausibility output.",
         "",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.format_mixup import detector_poses, markdown, parse_args, send
+from bench.format_mixup import detector_poses, frames, markdown, parse_args, send
 from service.lifter import Lifter
 from tests.conftest import POSE_3D, project
 
@@ -39,3 +39,10 @@ def test_subjects_must_all_be_training_or_all_test_subjects() -> None:
     assert parse_args(["--subjects", "S1,S5"]).subjects == ["S1", "S5"]
     with pytest.raises(SystemExit):
         parse_args(["--subjects", "S1,S9"])
+
+
+def test_frame_steps_read_as_english() -> None:
+    assert [frames(n) for n in (1, 2, 3, 10, 12, 22)] == [
+        "every frame", "every 2nd frame", "every 3rd frame", "every 10th frame", "every 12th frame",
+        "every 22nd frame",
+    ]  # fmt: skip
