@@ -73,6 +73,10 @@ class TrainConfig:
     # Train the critic alone on the generator's poses, the generator frozen: a last stage that
     # fits the plausibility score to the generator that ships (resume from its checkpoint).
     critic_only: bool = False
+    # Weight of the synthetic camera's rotation as a target for the camera branch: mean |K / s -
+    # the first two rows of the rotation from the template frame to the synthetic camera|. The
+    # reprojection alone leaves K's rotation ~9 degrees off on validation (its P-I gap to P-II).
+    camera_rotation_weight: float = 0.0
     synthetic_noise_px: float = 8.0  # synthetic 2D gets N(0, u) px noise, u ~ U(0, this) per pose
     noise_px: float = 0.0  # std of Gaussian pixel noise added to the 2D inputs
     mask_prob: float = 0.5  # chance that a 2D sample has 1..mask_max random joints hidden

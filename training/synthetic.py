@@ -66,13 +66,20 @@ def sample(
     batch: int,
     noise_px: float,
     gen: torch.Generator,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """A synthetic batch: (B, J, 2) pixels with detector-like noise and the (B, J, 3) target,
-    the same pose aligned to the template (metres), which is what the generator outputs."""
+    align_rotations: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """A synthetic batch: (B, J, 2) pixels with detector-like noise, the (B, J, 3) target (the
+    same pose aligned to the template, metres: what the generator outputs) and, given the
+    (M, 3, 3) rotations that aligned each world pose to the template, the (B, 3, 3) rotation
+    from the template frame into the synthetic camera (what the camera K should hold)."""
     idx = torch.randint(0, poses_world_mm.shape[0], (batch,), generator=gen)
     rot, position = random_views(batch, gen)
     pixels = project(poses_world_mm[idx], rot, position)
     if noise_px > 0:
         sigma = noise_px * torch.rand(batch, 1, 1, generator=gen)
         pixels = pixels + sigma * torch.randn(pixels.shape, generator=gen)
-    return pixels, poses_aligned_m[idx]
+    # aligned = s * world @ A^T, camera = world @ V^T, so camera = aligned @ (V A^T)^T / s.
+    to_camera = None
+    if align_rotations is not None:
+        to_camera = (rot @ align_rotations[idx].to(torch.float64).transpose(1, 2)).to(torch.float32)
+    return pixels, poses_aligned_m[idx], to_camera

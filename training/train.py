@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from training import data, metrics, skeleton, synthetic
+from training.camera import camera_scale
 from training.config import RepNetConfig, TrainConfig
 from training.losses import bone_lengths, bone_loss, camera_loss, critic_loss, pose_loss, reprojection_loss
 from training.model import MM_PER_UNIT, Critic, LiftingGraph, RepNet, normalize_keypoints
@@ -138,6 +139,11 @@ class Trainer:
         world = pool.poses_world if pool.poses_world is not None else pool.poses_3d
         self.world_pool = torch.from_numpy(world)  # (M, J, 3) mm, world frame
         self.mean_bones = bone_lengths(self.real_pool).mean(dim=0)  # (B,) metres
+        # The rotation that aligned each world pose to the template (exact: a similarity).
+        self.align_rotations: torch.Tensor | None = None
+        if config.camera_rotation_weight > 0:
+            _, rotations, _ = data.procrustes(world.astype(np.float64), pool.poses_3d.astype(np.float64))
+            self.align_rotations = torch.from_numpy(rotations)
         self.generator = RepNet(model_config).to(device)
         self.critic = Critic(model_config).to(device)
         betas = (config.beta1, config.beta2)
@@ -172,13 +178,21 @@ class Trainer:
         true pose through the predicted camera plus the camera term (which teach the camera),
         and the generated poses."""
         config = self.config
-        pixels, target = synthetic.sample(
-            self.world_pool, self.real_pool, config.batch_size, config.synthetic_noise_px, self.gen
+        pixels, target, to_camera = synthetic.sample(
+            self.world_pool,
+            self.real_pool,
+            config.batch_size,
+            config.synthetic_noise_px,
+            self.gen,
+            self.align_rotations,
         )
         visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
         points = normalize_keypoints(pixels.to(self.device), visible)
         pose, camera = self.generator(points, visible)
         fit = reprojection_loss(points, visible, target, camera, config.reprojection_norm)
+        if to_camera is not None:
+            rows = camera / camera_scale(camera).clamp_min(1e-6)[:, None, None]
+            fit = fit + config.camera_rotation_weight * (rows - to_camera[:, :2].to(self.device)).abs().mean()
         return (
             pose_loss(pose, target),
             fit + config.camera_weight * camera_loss(camera, config.camera_norm),

@@ -55,12 +55,39 @@ def test_sample_pairs_each_view_with_the_aligned_pose_of_the_same_frame() -> Non
     world -= world[:, :1]
     aligned = torch.from_numpy(data.align_to_template(world) / 1000)
     gen = torch.Generator().manual_seed(3)
-    pixels, target = synthetic.sample(torch.from_numpy(world), aligned, 64, 0.0, gen)
+    pixels, target, no_rotation = synthetic.sample(torch.from_numpy(world), aligned, 64, 0.0, gen)
+    assert no_rotation is None
     assert pixels.shape == (64, 17, 2) and target.shape == (64, 17, 3)
     # Every target is one of the aligned poses, and noise-free pixels are those of its world pose.
     gen = torch.Generator().manual_seed(3)
     idx = torch.randint(0, 50, (64,), generator=gen)
     torch.testing.assert_close(target, aligned[idx])
-    noisy, _ = synthetic.sample(torch.from_numpy(world), aligned, 64, 8.0, torch.Generator().manual_seed(3))
+    noisy, _, _ = synthetic.sample(
+        torch.from_numpy(world), aligned, 64, 8.0, torch.Generator().manual_seed(3)
+    )
     spread = (noisy - pixels).abs()
     assert 0 < spread.mean() < 8
+
+
+def test_the_camera_target_rotates_the_template_pose_into_the_synthetic_camera() -> None:
+    rng = np.random.default_rng(1)
+    world = np.stack([_world_standing() + rng.normal(0, 30, (17, 3)).astype(np.float32) for _ in range(20)])
+    world -= world[:, :1]
+    aligned = data.align_to_template(world).astype(np.float64)
+    _, align_rotations, _ = data.procrustes(world.astype(np.float64), aligned)
+    _, target, to_camera = synthetic.sample(
+        torch.from_numpy(world),
+        torch.from_numpy(aligned / 1000),
+        32,
+        0.0,
+        torch.Generator().manual_seed(5),
+        torch.from_numpy(align_rotations),
+    )
+    assert to_camera is not None
+    gen = torch.Generator().manual_seed(5)
+    idx = torch.randint(0, 20, (32,), generator=gen)
+    view, _ = synthetic.random_views(32, gen)
+    in_camera = torch.from_numpy(world)[idx].to(torch.float64) @ view.transpose(1, 2)  # (32, 17, 3) mm
+    from_template = target.to(torch.float64) @ to_camera.to(torch.float64).transpose(1, 2)  # metres, scaled
+    ratio = (in_camera * from_template).sum(dim=(1, 2)) / (from_template**2).sum(dim=(1, 2))
+    torch.testing.assert_close(from_template * ratio[:, None, None], in_camera, atol=0.5, rtol=0.0)
