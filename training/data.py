@@ -36,7 +36,9 @@ def resolve_data_dir(path: str | os.PathLike[str] | None = None) -> Path:
         candidates.append(Path(os.environ[DATA_ENV]))
     else:
         repo = Path(__file__).resolve().parent.parent
-        candidates += [repo.parent / "shared/data/h36m", Path.cwd().parent / "shared/data/h36m"]
+        for folder in (repo.parent / "shared/data/h36m", Path.cwd().parent / "shared/data/h36m"):
+            if folder.resolve() not in {c.resolve() for c in candidates}:  # the same folder once
+                candidates.append(folder)
     for candidate in candidates:
         if (candidate / "poses_3d_train.npz").is_file():
             return candidate

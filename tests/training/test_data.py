@@ -73,3 +73,16 @@ def test_training_sets_hold_out_the_tail_of_each_sequence(synthetic_h36m: Path) 
 def test_missing_data_dir_names_the_flag_and_variable(tmp_path: Path) -> None:
     with pytest.raises(data.DataNotFound, match="REPNET_H36M_DIR"):
         data.resolve_data_dir(tmp_path)
+
+
+def test_missing_default_folder_is_named_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    # From the repository root, ../shared/data/h36m by the code's place and by the working
+    # directory are the same folder: the message names it once.
+    monkeypatch.delenv(data.DATA_ENV, raising=False)
+    repo = Path(data.__file__).resolve().parent.parent
+    monkeypatch.chdir(repo)
+    monkeypatch.setattr(Path, "is_file", lambda self: False)
+    with pytest.raises(data.DataNotFound) as err:
+        data.resolve_data_dir()
+    message = str(err.value)
+    assert message.count("shared/data/h36m") == 1, message
