@@ -73,6 +73,11 @@ class TrainConfig:
     # Train the critic alone on the generator's poses, the generator frozen: a last stage that
     # fits the plausibility score to the generator that ships (resume from its checkpoint).
     critic_only: bool = False
+    # What the critic-only stage takes for fakes: "generator" (its poses) or "corrupted" (real
+    # poses with a limb stretched or shrunk, joints swapped or jittered). Against the generator
+    # alone a critic learns the generator's signature (e.g. its too-regular bone lengths), not
+    # what makes a pose implausible: garbage then scores as real.
+    critic_fakes: str = "generator"
     # Weight of the synthetic camera's rotation as a target for the camera branch: mean |K / s -
     # the first two rows of the rotation from the template frame to the synthetic camera|. The
     # reprojection alone leaves K's rotation ~9 degrees off on validation (its P-I gap to P-II).

@@ -106,6 +106,55 @@ def adversarial_weight(config: TrainConfig, step: int) -> float:
     return config.adversarial_weight * min(1.0, ramp)
 
 
+def _subtrees() -> torch.Tensor:
+    """(J, J) mask: row c marks joint c and every joint below it in the kinematic tree."""
+    mask = torch.eye(skeleton.NUM_JOINTS, dtype=torch.bool)
+    for joint in range(skeleton.NUM_JOINTS):  # parents come before their children
+        parent = skeleton.PARENTS[joint]
+        while parent >= 0:
+            mask[parent, joint] = True
+            parent = skeleton.PARENTS[parent]
+    return mask
+
+
+SUBTREES = _subtrees()
+LIMB_CHILDREN = torch.tensor([child for _, child in metrics.LIMB_BONES])
+
+
+def corrupt_poses(poses: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Implausible versions of (N, J, 3) real poses (metres), a third each way: one arm or leg
+    bone 25-50 % longer or 20-40 % shorter (the joints below it moved along); two non-root
+    joints swapped; every joint jittered by N(0, 3-8 cm)."""
+    n = poses.shape[0]
+    out = poses.clone()
+    kind = torch.randint(0, 3, (n,), generator=gen)
+    # 0: a limb bone stretched or shrunk
+    child = LIMB_CHILDREN[torch.randint(0, len(LIMB_CHILDREN), (n,), generator=gen)]
+    parent = torch.tensor(skeleton.PARENTS)[child]
+    longer = torch.rand(n, generator=gen) < 0.5
+    factor = torch.where(
+        longer, 1.25 + 0.25 * torch.rand(n, generator=gen), 0.6 + 0.2 * torch.rand(n, generator=gen)
+    )
+    rows = torch.arange(n)
+    bone = poses[rows, child] - poses[rows, parent]  # (N, 3)
+    moved = SUBTREES[child].to(poses.dtype)  # (N, J)
+    stretched = poses + (factor - 1)[:, None, None] * moved[:, :, None] * bone[:, None, :]
+    # 1: two joints swapped
+    a = torch.randint(1, skeleton.NUM_JOINTS, (n,), generator=gen)
+    b = 1 + (a - 1 + torch.randint(1, skeleton.NUM_JOINTS - 1, (n,), generator=gen)) % (
+        skeleton.NUM_JOINTS - 1
+    )
+    swapped = poses.clone()
+    swapped[rows, a], swapped[rows, b] = poses[rows, b], poses[rows, a]
+    # 2: jitter
+    sigma = 0.03 + 0.05 * torch.rand(n, 1, 1, generator=gen)
+    jittered = poses + sigma * torch.randn(poses.shape, generator=gen)
+    out = torch.where((kind == 0)[:, None, None], stretched, out)
+    out = torch.where((kind == 1)[:, None, None], swapped, out)
+    out = torch.where((kind == 2)[:, None, None], jittered, out)
+    return out - out[:, skeleton.ROOT : skeleton.ROOT + 1]
+
+
 def resolve_resume(resume: str | Path | None, out_dir: Path) -> Path | None:
     """--resume: a checkpoint path, or "auto" for out_dir/last.pt when it exists (else a fresh start)."""
     if resume is None or str(resume) == "":
@@ -227,6 +276,13 @@ class Trainer:
         if config.critic_only:
             for _ in range(config.critic_steps):
                 self.fakes = None  # fresh poses of the frozen generator for every update
+                if config.critic_fakes == "corrupted":
+                    idx = torch.randint(0, len(self.real_pool), (config.batch_size,), generator=self.gen)
+                    self.fakes = corrupt_poses(self.real_pool[idx.to(self.device)], self.gen)
+                elif config.critic_fakes != "generator":
+                    raise ValueError(
+                        f"critic_fakes must be generator or corrupted, got {config.critic_fakes!r}"
+                    )
                 terms["w_dist"] = self.critic_step()
             self.fakes = None
             return terms

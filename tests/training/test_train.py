@@ -6,10 +6,12 @@ import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from training import train
+from tests.training.conftest import STANDING
+from training import data, metrics, train
 from training.config import RepNetConfig, TrainConfig
 
 TINY = RepNetConfig(width=64, critic_width=64, kcs_width=16)
@@ -148,3 +150,52 @@ def test_critic_only_stage_trains_the_critic_and_leaves_the_generator(
     assert after["step"] == 30
     assert all(torch.equal(v, after["generator"][k]) for k, v in before["generator"].items())
     assert any(not torch.equal(v, after["critic"][k]) for k, v in before["critic"].items())
+
+
+def test_corrupted_poses_break_one_thing_and_keep_the_root() -> None:
+    gen = torch.Generator().manual_seed(0)
+    real = torch.from_numpy(np.repeat(STANDING[None] / 1000, 600, axis=0)).float()
+    fake = train.corrupt_poses(real, gen)
+    assert torch.all(fake[:, 0] == 0)
+    limbs = [(p, c) for p, c in metrics.LIMB_BONES]
+    lengths = torch.stack([(fake[:, c] - fake[:, p]).norm(dim=1) for p, c in limbs], dim=1)
+    true = torch.stack([(real[:, c] - real[:, p]).norm(dim=1) for p, c in limbs], dim=1)
+    ratio = lengths / true
+    changed = ((fake - real).norm(dim=2) > 1e-6).sum(dim=1)
+    assert torch.all(changed >= 1)  # every corrupted pose differs from its source
+    # About a third: exactly one limb 25-50 % longer or 20-40 % shorter, the others untouched.
+    off = ((ratio > 1.249) & (ratio < 1.501)) | ((ratio > 0.599) & (ratio < 0.801))
+    same = (ratio - 1).abs() < 1e-4
+    one_limb = (off.sum(dim=1) == 1) & (same.sum(dim=1) == len(limbs) - 1)
+    assert 0.25 < one_limb.float().mean() < 0.42
+
+
+def test_a_critic_trained_against_corrupted_poses_ranks_a_real_pose_above_a_stretched_limb() -> None:
+    from training.export import calibrate
+    from training.model import Plausibility
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    # Real poses: the standing pose turned about the vertical, with a few mm of jitter.
+    angles = rng.uniform(-np.pi, np.pi, n)
+    c, s = np.cos(angles), np.sin(angles)
+    turn = np.zeros((n, 3, 3))
+    turn[:, 0, 0], turn[:, 0, 2], turn[:, 1, 1], turn[:, 2, 0], turn[:, 2, 2] = c, s, 1, -s, c
+    poses = (STANDING[None] @ turn.transpose(0, 2, 1) + rng.normal(0, 5, (n, 17, 3))).astype(np.float32)
+    poses -= poses[:, :1]
+    pool = data.LiftingSet(poses, np.zeros((1, 17, 2), np.float32), np.ones((1, 17), np.float32))
+    config = TrainConfig(batch_size=128, critic_only=True, critic_fakes="corrupted", lr=1e-3)
+    torch.manual_seed(0)
+    trainer = train.Trainer(config, TINY, pool, torch.device("cpu"), torch.Generator().manual_seed(0))
+    for step in range(300):
+        trainer.step(step)
+    critic = trainer.critic.eval()
+    table = torch.from_numpy(calibrate(critic, poses[:2000]))
+    plausibility = Plausibility(critic, table)
+    test = torch.from_numpy(poses[2000:2100]) / 1000
+    for parent, child in metrics.LIMB_BONES:
+        broken = test.clone()
+        moved = train.SUBTREES[child]
+        broken[:, moved] += 0.3 * (test[:, child] - test[:, parent])[:, None]
+        with torch.no_grad():
+            assert torch.all(plausibility(test) > plausibility(broken)), (parent, child)
