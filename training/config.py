@@ -24,7 +24,9 @@ class RepNetConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. Defaults are those of the default model (docs/RESULTS.md)."""
+    """One training run. The defaults are the paper's adversarial recipe (from scratch, 5 critic
+    steps per generator step); the bundled model's recipe, a synthetic warm start with the bone
+    prior and then a critic-only stage, is the pair of commands in docs/RESULTS.md."""
 
     data_dir: str = ""
     inputs: str = "gt"  # gt | sh | gt+sh

@@ -38,10 +38,34 @@ def expected_plausibility(pose_3d: np.ndarray) -> np.ndarray:
     return np.asarray(1.0 / (1.0 + np.exp(-pose_3d.mean(axis=(1, 2)) / SPREAD_MM)))
 
 
-def build_model(path: Path, shape: list[int | str] | None = None) -> Path:
-    """The bundled model with an extra output `plausibility` (N,) = sigmoid(mean(pose_3d) / 100)
-    and the `plausibility_calibration` metadata entry; `shape` overrides the declared shape."""
+def _without_plausibility() -> onnx.ModelProto:
+    """The bundled model with its own plausibility output, if any, taken out (its nodes stay,
+    unused, under another name) and the metadata that describes it dropped."""
     model = onnx.load(str(BUNDLED_MODEL))
+    for output in [o for o in model.graph.output if o.name == "plausibility"]:
+        model.graph.output.remove(output)
+    for node in model.graph.node:
+        node.output[:] = ["bundled_plausibility" if n == "plausibility" else n for n in node.output]
+    kept = [(e.key, e.value) for e in model.metadata_props if not e.key.startswith("plausibility")]
+    del model.metadata_props[:]
+    for key, value in kept:
+        model.metadata_props.add(key=key, value=value)
+    return model
+
+
+def build_plain(path: Path) -> Path:
+    """The bundled model without a plausibility output."""
+    model = _without_plausibility()
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return path
+
+
+def build_model(path: Path, shape: list[int | str] | None = None) -> Path:
+    """The bundled model with (instead of its own, if it has one) an output `plausibility` (N,) =
+    sigmoid(mean(pose_3d) / 100) and the `plausibility_calibration` metadata entry; `shape`
+    overrides the declared shape."""
+    model = _without_plausibility()
     graph = model.graph
     graph.initializer.append(helper.make_tensor("plaus_spread", TensorProto.FLOAT, [], [SPREAD_MM]))
     graph.node.extend([
@@ -64,6 +88,11 @@ def build_model(path: Path, shape: list[int | str] | None = None) -> Path:
 
 
 @pytest.fixture(scope="module")
+def plain(tmp_path_factory: pytest.TempPathFactory) -> Lifter:
+    return Lifter.load(build_plain(tmp_path_factory.mktemp("model") / "plain.onnx"), intra_op_threads=1)
+
+
+@pytest.fixture(scope="module")
 def plausible(tmp_path_factory: pytest.TempPathFactory) -> Lifter:
     path = build_model(tmp_path_factory.mktemp("model") / "plausible.onnx")
     return Lifter.load(path, intra_op_threads=1)
@@ -74,7 +103,7 @@ def poses(n: int) -> np.ndarray:
     return np.stack([project(POSE_3D, yaw) for yaw in np.linspace(-60, 60, n)])
 
 
-def test_lifter_returns_the_models_plausibility(plausible: Lifter, lifter: Lifter) -> None:
+def test_lifter_returns_the_models_plausibility(plausible: Lifter, plain: Lifter) -> None:
     points = poses(5)
     visible = np.ones(points.shape[:2], bool)
     prediction = plausible.lift(points, visible)
@@ -83,9 +112,9 @@ def test_lifter_returns_the_models_plausibility(plausible: Lifter, lifter: Lifte
     np.testing.assert_allclose(prediction.plausibility, expected_plausibility(prediction.pose_3d), atol=1e-6)
     assert plausible.has_plausibility and plausible.info.plausibility_calibration == CALIBRATION
     assert len(prediction.slice(1, 3).plausibility) == 2  # type: ignore[arg-type]
-    bundled = lifter.lift(points, visible)
-    assert bundled.plausibility is None and not lifter.has_plausibility
-    assert lifter.info.plausibility_calibration is None
+    bundled = plain.lift(points, visible)
+    assert bundled.plausibility is None and not plain.has_plausibility
+    assert plain.info.plausibility_calibration is None
     np.testing.assert_array_equal(bundled.pose_3d, prediction.pose_3d)  # the extra output changes nothing
 
 
@@ -135,9 +164,9 @@ def test_http_reply_carries_plausibility_across_chunks(
 
 
 def test_http_plausibility_is_null_without_the_output(
-    app_for: Callable[[Lifter], TestClient], lifter: Lifter, registry: CollectorRegistry
+    app_for: Callable[[Lifter], TestClient], plain: Lifter, registry: CollectorRegistry
 ) -> None:
-    client = app_for(lifter)
+    client = app_for(plain)
     reply = client.post("/lift", json=_body(poses(6)))
     assert reply.status_code == 200, reply.text
     assert [r["plausibility"] for r in reply.json()["poses"]] == [None] * 6
@@ -151,10 +180,10 @@ def test_grpc_lift_and_stream_carry_plausibility(
     engine_factory: Callable[..., Engine],
     metrics: Metrics,
     plausible: Lifter,
-    lifter: Lifter,
+    plain: Lifter,
     with_output: bool,
 ) -> None:
-    model = plausible if with_output else lifter
+    model = plausible if with_output else plain
     server = create_server(engine_factory(model), metrics, Limits(), "localhost:0", workers=4)
     server.start()
     try:
@@ -181,11 +210,11 @@ def test_grpc_lift_and_stream_carry_plausibility(
         assert [r.plausibility for r in results] == [None] * 6
 
 
-def test_cli_output_has_plausibility(tmp_path: Path, plausible: Lifter) -> None:
+def test_cli_output_has_plausibility(tmp_path: Path, plausible: Lifter, plain: Lifter) -> None:
     source = tmp_path / "poses.json"
     source.write_text(json.dumps([POSE_2D.tolist(), poses(2)[1].tolist()]))
-    for model, out in ((plausible.path, tmp_path / "with.json"), (None, tmp_path / "without.json")):
-        extra = [] if model is None else ["--model", str(model)]
+    for model, out in ((plausible.path, tmp_path / "with.json"), (plain.path, tmp_path / "without.json")):
+        extra = ["--model", str(model)]
         assert main(["lift", str(source), "--local", *extra, "-o", str(out)]) == EXIT_OK
     with_output = json.loads((tmp_path / "with.json").read_text())["poses"]
     pose_3d = np.array([p["pose_3d"] for p in with_output])
