@@ -44,14 +44,21 @@ def test_reprojection_loss_is_zero_for_exact_projection_with_any_translation() -
     assert reprojection_loss(w, visible, pose, camera).item() < 1e-4
 
 
-def test_reprojection_loss_ignores_missing_joints() -> None:
+def _two_joints_missing() -> tuple[torch.Tensor, ...]:
+    """A pose, its camera, a mask hiding joints 3 and 13, the observed W, and the pose with the
+    hidden joints moved anywhere (as a generator may hallucinate them)."""
     pose = torch.tensor(STANDING, dtype=torch.float32).unsqueeze(0) / 1000
     camera = (3.0 * _rotation(0.8)[:2]).unsqueeze(0)
     visible = torch.ones(1, 17)
     visible[0, [3, 13]] = 0
     w = masked_centre(project_weak_perspective(camera, pose), visible)
     moved = pose.clone()
-    moved[0, [3, 13]] += 0.5  # hallucinated joints may go anywhere
+    moved[0, [3, 13]] += 0.5
+    return pose, camera, visible, w, moved
+
+
+def test_reprojection_loss_ignores_missing_joints() -> None:
+    _, camera, visible, w, moved = _two_joints_missing()
     assert reprojection_loss(w, visible, moved, camera).item() < 1e-4
     moved[0, 5] += 0.5
     assert reprojection_loss(w, visible, moved, camera).item() > 0.1
@@ -79,13 +86,7 @@ def test_l1_camera_loss_is_zero_for_scaled_orthographic_camera_and_sums_entries(
 
 
 def test_l1_reprojection_is_weighted_over_2j_and_ignores_missing_joints() -> None:
-    pose = torch.tensor(STANDING, dtype=torch.float32).unsqueeze(0) / 1000
-    camera = (3.0 * _rotation(0.8)[:2]).unsqueeze(0)
-    visible = torch.ones(1, 17)
-    visible[0, [3, 13]] = 0
-    w = masked_centre(project_weak_perspective(camera, pose), visible)
-    moved = pose.clone()
-    moved[0, [3, 13]] += 0.5  # hallucinated joints may go anywhere
+    pose, camera, visible, w, moved = _two_joints_missing()
     assert reprojection_loss(w, visible, moved, camera, "l1").item() < 1e-5
     # One visible joint (the left knee, weight 1) off by d in x: centring moves the 15 visible
     # joints by d / 15, so the knee is off by 14 d / 15 and every other visible joint by d / 15,
