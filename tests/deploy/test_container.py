@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -15,9 +16,13 @@ pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="make is no
 
 
 def dry_run(*variables: str) -> list[str]:
-    """The commands `make container-test` would run, in order (make -n runs none of them)."""
-    done = subprocess.run(["make", "-n", "container-test", *variables], cwd=ROOT, capture_output=True,
-                          text=True, check=True)  # fmt: skip
+    """The commands `make container-test` would run, in order (make -n runs none of them). Under
+    `make test` (as in CI) the outer make's variables are dropped, so this is a top-level make that
+    prints no "make[1]: Entering directory" lines."""
+    outer = ("MAKEFLAGS", "MFLAGS", "MAKELEVEL", "MAKEOVERRIDES")
+    env = {k: v for k, v in os.environ.items() if k not in outer}
+    done = subprocess.run(["make", "--no-print-directory", "-n", "container-test", *variables], cwd=ROOT,
+                          capture_output=True, text=True, check=True, env=env)  # fmt: skip
     return done.stdout.strip().splitlines()
 
 
