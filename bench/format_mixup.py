@@ -25,7 +25,7 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/format_mixup.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench.stats import write_json
+from bench.stats import report
 from service.config import BUNDLED_MODEL
 from service.formats import FORMATS, from_model_joints
 from service.keypoints import Limits, PoseInput, prepare_poses
@@ -194,10 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     result = run(args)
-    write_json(args.out, result)
-    print(markdown(result))
-    log.info("wrote %s", args.out)
-    return 0
+    return report(result, args.out, markdown)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ if __package__ in (None, ""):  # `python bench/long_stream.py`
 
 from bench.grpc_load import LIFT_STREAM, OPTIONS, STREAM_WINDOW, stream_frames
 from bench.server import ServiceProcess, cpu_seconds, rss_bytes
-from bench.stats import machine, write_json
+from bench.stats import machine, report
 from service._proto.repnet.v1 import lifter_pb2
 
 log = logging.getLogger("bench.long_stream")
@@ -161,10 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     with ServiceProcess(*args.service_flag) as service:
         result = summarize(asyncio.run(run_streams(service, args)), args)
-    write_json(args.out, result)
-    print(markdown(result))
-    log.info("wrote %s", args.out)
-    return 0
+    return report(result, args.out, markdown)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import platform
 import time
@@ -14,6 +15,8 @@ from typing import Any
 import numpy as np
 
 from bench.server import cpu_seconds
+
+log = logging.getLogger(__name__)
 
 # A person in mid-stride seen from 4.5 m (h36m17, px); tests/conftest.py builds the same pose.
 BASE_POSE = np.array(
@@ -140,6 +143,14 @@ DERIVED = (
     "roof_batch1_ms",
     "targets",
 )  # properties worth keeping
+
+
+def report(result: Any, out: Path, render: Callable[[Any], str]) -> int:
+    """The end of a benchmark's main(): write the result as JSON, print its markdown; exit code 0."""
+    write_json(out, result)
+    print(render(result))
+    log.info("wrote %s", out)
+    return 0
 
 
 def write_json(path: Path, payload: Any) -> None:

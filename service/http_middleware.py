@@ -81,14 +81,15 @@ class BodyLimitMiddleware:
             "joint": None,
             "joint_name": None,
         }
-        body = json.dumps({"detail": [item], "error_count": 1}).encode()
-        headers = [
-            (b"content-type", b"application/json"),
-            (b"content-length", str(len(body)).encode()),
-            (b"connection", b"close"),
-        ]
-        await send({"type": "http.response.start", "status": 413, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+        await send_json(send, 413, {"detail": [item], "error_count": 1}, (b"connection", b"close"))
+
+
+async def send_json(send: Send, status: int, payload: Any, *extra: tuple[bytes, bytes]) -> None:
+    """A whole JSON response straight on the ASGI channel, for replies made before the app runs."""
+    body = json.dumps(payload).encode()
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), *extra]
+    await send({"type": "http.response.start", "status": status, "headers": headers})
+    await send({"type": "http.response.body", "body": body})
 
 
 def _is_lift(scope: Scope) -> bool:
@@ -113,16 +114,8 @@ class LoadShedMiddleware:
             return
         if self.in_flight >= self.max_in_flight:
             scope.setdefault("state", {})[OUTCOME_KEY] = OVERLOADED
-            body = json.dumps(
-                {"detail": f"too many requests in progress (limit {self.max_in_flight}); retry later"}
-            ).encode()
-            headers = [
-                (b"content-type", b"application/json"),
-                (b"content-length", str(len(body)).encode()),
-                (b"retry-after", b"1"),
-            ]
-            await send({"type": "http.response.start", "status": 503, "headers": headers})
-            await send({"type": "http.response.body", "body": body})
+            detail = f"too many requests in progress (limit {self.max_in_flight}); retry later"
+            await send_json(send, 503, {"detail": detail}, (b"retry-after", b"1"))
             return
         self.in_flight += 1
         try:

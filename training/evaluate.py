@@ -278,12 +278,12 @@ def robustness_tables(
     """Noise (GT + N(0, sigma) px) and occlusion (k random non-root joints hidden) rows."""
     masks = subset_masks(test)
 
-    scored: dict[float, Scores] = {}
+    scored: dict[float, Scores] = {}  # the noise rows' scores by sigma, for the plausibility deciles
 
-    def row(points: np.ndarray, visible: np.ndarray, desc: str) -> dict[str, Any]:
+    def row(points: np.ndarray, visible: np.ndarray, desc: str, sigma: float | None = None) -> dict[str, Any]:
         s = score(lift, points, visible, test.gt, batch_size, desc)
-        if desc.startswith("noise "):
-            scored[float(desc.split()[1].removesuffix("px"))] = s
+        if sigma is not None:
+            scored[sigma] = s
         return {
             name: {
                 "mpjpe": float(s.p1[m].mean()),
@@ -293,11 +293,11 @@ def robustness_tables(
             for name, m in masks.items()
         }
 
-    noise = [{"sigma_px": 0.0, **row(test.points, test.visible, "noise 0px")}]
+    noise = [{"sigma_px": 0.0, **row(test.points, test.visible, "noise 0px", 0.0)}]
     for i, sigma in enumerate(NOISE_SIGMAS_PX):
         rng = np.random.default_rng([seed, 1, i])
         noisy = (test.points + rng.normal(0.0, sigma, test.points.shape)).astype(np.float32)
-        noise.append({"sigma_px": sigma, **row(noisy, test.visible, f"noise {sigma:g}px")})
+        noise.append({"sigma_px": sigma, **row(noisy, test.visible, f"noise {sigma:g}px", sigma)})
     occlusion = [{"masked_joints": 0, **{k: v for k, v in noise[0].items() if k != "sigma_px"}}]
     non_root = np.array([j for j in range(skeleton.NUM_JOINTS) if j != skeleton.ROOT])
     for i, count in enumerate(OCCLUDED_COUNTS):

@@ -170,8 +170,9 @@ def main(argv: list[str] | None = None) -> None:
         _, val_sets = data.build_training_sets(
             data.resolve_data_dir(args.data_dir), "gt", val_fraction=train.get("val_fraction", 0.1)
         )
-        table = calibrate(load_critic(state), data.align_to_template(val_sets["gt"].poses_3d))
-        plausibility = Plausibility(load_critic(state), torch.from_numpy(table))
+        critic = load_critic(state)
+        table = calibrate(critic, data.align_to_template(val_sets["gt"].poses_3d))
+        plausibility = Plausibility(critic, torch.from_numpy(table))
         log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_3d))
     metadata = build_metadata(
         generator.config,
