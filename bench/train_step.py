@@ -7,6 +7,9 @@ double backward) and the rate that makes, as a share of the roof: the best rate 
 Data are random arrays of the right shapes: the step does not depend on them.
 
     python -m bench.train_step --threads 2 --seconds 20 --out runs/bench/train_step.json
+
+--only picks recipes by a part of their name; --compile adds each under torch.compile;
+--profile N prints where the time of N steps of each recipe goes (torch.profiler, by op).
 """
 
 from __future__ import annotations
@@ -57,6 +60,16 @@ RECIPES: tuple[Recipe, ...] = (
         "1:1 + synthetic term, batch 256",
         TrainConfig(batch_size=256, critic_steps=1, synthetic_weight=1.0),
         RepNetConfig(),
+    ),
+    Recipe(
+        "synthetic warm start, generator 512, batch 256",
+        TrainConfig(batch_size=256, warm_start_steps=10**9),
+        RepNetConfig(width=512),
+    ),
+    Recipe(
+        "synthetic warm start, shared trunk, batch 256",
+        TrainConfig(batch_size=256, warm_start_steps=10**9),
+        RepNetConfig(shared_trunk=True),
     ),
     Recipe(
         "1:1 + synthetic term, generator 512, batch 256",
@@ -130,6 +143,27 @@ def measure(recipe: Recipe, seconds: float, compile_model: bool = False) -> dict
     }
 
 
+def profile(recipe: Recipe, steps: int, top: int = 12) -> None:
+    """Print the ops that take the most CPU time over `steps` steps of `recipe` (torch.profiler)."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    trainer = Trainer(
+        recipe.config,
+        recipe.model,
+        random_pool(np.random.default_rng(0)),
+        torch.device("cpu"),
+        torch.Generator().manual_seed(0),
+    )
+    for step in range(3):  # warm-up
+        trainer.step(step)
+    with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+        for step in range(steps):
+            trainer.step(3 + step)
+    print(f"profile of {steps} steps: {recipe.name}")
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=top))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -137,12 +171,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=20.0, help="timed seconds per recipe")
     parser.add_argument("--compile", action="store_true", help="also measure each recipe under torch.compile")
+    parser.add_argument("--only", default="", help="measure only recipes whose name contains this")
+    parser.add_argument("--profile", type=int, default=0, metavar="N", help="profile N steps of each recipe")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    roofs = {b: matmul_roof(b, 3.0) for b in sorted({r.config.batch_size for r in RECIPES})}
+    recipes = [r for r in RECIPES if args.only in r.name]
+    if not recipes:
+        parser.error(f"--only {args.only!r}: no recipe name contains it")
+    if args.profile:
+        for recipe in recipes:
+            profile(recipe, args.profile)
+        return
+    roofs = {b: matmul_roof(b, 3.0) for b in sorted({r.config.batch_size for r in recipes})}
     rows = []
-    for recipe in RECIPES:
+    for recipe in recipes:
         for compiled in (False, True) if args.compile else (False,):
             row = measure(recipe, args.seconds, compiled)
             row["roof_gflop_per_s"] = roofs[recipe.config.batch_size]

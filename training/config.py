@@ -20,6 +20,10 @@ class RepNetConfig:
     # Feed the visibility mask to the generator beside the normalised coordinates, so a
     # missing joint is not mistaken for a joint at the centroid.
     visibility_input: bool = True
+    # The authors' code: one trunk (Dense width and a residual block) feeds both branches, the
+    # pose branch (num_blocks residual blocks, Dense width, then 3J) and the camera branch
+    # (num_blocks residual blocks, then 6). False: two separate branches (the paper's figure).
+    shared_trunk: bool = False
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,9 @@ class TrainConfig:
     # the first two rows of the rotation from the template frame to the synthetic camera|. The
     # reprojection alone leaves K's rotation ~9 degrees off on validation (its P-I gap to P-II).
     camera_rotation_weight: float = 0.0
+    # Which rotation that target is: "axis", into the synthetic camera's frame; "ray", into the
+    # frame looking along the ray to the pelvis (what a centred input shows; synthetic.sample).
+    camera_rotation_target: str = "axis"
     synthetic_noise_px: float = 8.0  # synthetic 2D gets N(0, u) px noise, u ~ U(0, this) per pose
     noise_px: float = 0.0  # std of Gaussian pixel noise added to the 2D inputs
     mask_prob: float = 0.5  # chance that a 2D sample has 1..mask_max random joints hidden
@@ -92,7 +99,14 @@ class TrainConfig:
     frame_step: int = 1  # use every n-th frame of the training sequences
     val_fraction: float = 0.1  # tail of each training sequence held out for validation
     val_size: int = 4000  # validation poses per evaluation
+    # Also validate on the GT 2D validation poses plus N(0, this) px noise (fixed draw): "gt_noise".
+    # 20 px here is the paper's sigma = 10 at its smaller image scale. 0 = off.
+    val_noise_px: float = 20.0
     val_every: int = 500
     checkpoint_every: int = 500
     checkpoint_minutes: float = 10.0  # also checkpoint after this much wall time since the last
     log_every: int = 50
+    # Start from the generator weights of this checkpoint (and its critic's, when the critic has
+    # the same shape), at step 0 with fresh optimisers and schedule: ablations of the
+    # adversarial phase that all start from one warm start.
+    init_from: str = ""

@@ -26,7 +26,16 @@ def markdown_table(records: list[dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-COMPARED = ("gt_pa_mpjpe", "gt_mpjpe", "gt_symmetry", "gt_bone_std", "sh_pa_mpjpe", "sh_mpjpe")
+COMPARED = (
+    "gt_pa_mpjpe",
+    "gt_mpjpe",
+    "gt_mpjpe_ray",
+    "gt_symmetry",
+    "gt_bone_std",
+    "sh_pa_mpjpe",
+    "sh_mpjpe",
+    "gt_noise_pa_mpjpe",
+)
 
 
 def equal_time_table(runs: dict[str, list[dict[str, float]]], minutes: float) -> str:

@@ -171,6 +171,9 @@ class LiftingSet:
     # Training only: poses_3d before the alignment, world mm (Z up) with the pelvis at the origin;
     # the synthetic warm start projects these through random cameras.
     poses_world: np.ndarray | None = None
+    # Validation only: (K, 2) focal lengths and principal points (px) of each pose's camera.
+    focal: np.ndarray | None = None
+    centre: np.ndarray | None = None
 
 
 def _split(n: int, val_fraction: float) -> int:
@@ -196,7 +199,7 @@ def build_training_sets(
     detections = load_detections(data_dir / "detections_sh_train.npz") if "sh" in kinds else {}
     train_3d: list[np.ndarray] = []
     train_2d: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"gt": [], "sh": []}
-    val: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {"gt": [], "sh": []}
+    val: dict[str, list[tuple[np.ndarray, ...]]] = {"gt": [], "sh": []}
     for key, seq in sorted(poses.items()):
         subject = key.split("/")[0]
         split = _split(len(seq), val_fraction)
@@ -205,15 +208,19 @@ def build_training_sets(
             gt_cam = world_to_camera(seq, cam)
             gt_px = project_to_pixels(seq, cam)
             ones = np.ones(gt_px.shape[:2], dtype=np.float32)
+            focal = np.repeat(cam.f[None].astype(np.float32), len(seq), axis=0)
+            centre = np.repeat(cam.c[None].astype(np.float32), len(seq), axis=0)
             if "gt" in kinds:
                 train_2d["gt"].append((gt_px[:split:frame_step], ones[:split:frame_step]))
-                val["gt"].append((gt_cam[split:], gt_px[split:], ones[split:]))
+                val["gt"].append((gt_cam[split:], gt_px[split:], ones[split:], focal[split:], centre[split:]))
             det = detections.get(f"{key}/{cam_id}")
             if det is not None:
                 n = min(len(det), len(seq))
                 pts, vis = mpii_to_h36m(det[:n])
                 train_2d["sh"].append((pts[: min(split, n) : frame_step], vis[: min(split, n) : frame_step]))
-                val["sh"].append((gt_cam[split:n], pts[split:n], vis[split:n]))
+                val["sh"].append(
+                    (gt_cam[split:n], pts[split:n], vis[split:n], focal[split:n], centre[split:n])
+                )
     pairs = train_2d["gt"] + train_2d["sh"]
     world = np.concatenate(train_3d)
     train = LiftingSet(
@@ -222,9 +229,9 @@ def build_training_sets(
         visible=np.concatenate([v for _, v in pairs]),
         poses_world=(world - world[:, skeleton.ROOT : skeleton.ROOT + 1]).astype(np.float32),
     )
-    val_sets = {
-        kind: LiftingSet(*(np.concatenate(arrays) for arrays in zip(*items, strict=True)))
-        for kind, items in val.items()
-        if items
-    }
+    val_sets = {}
+    for kind, items in val.items():
+        if items:
+            poses_cam, points, visible, focal, centre = (np.concatenate(a) for a in zip(*items, strict=True))
+            val_sets[kind] = LiftingSet(poses_cam, points, visible, focal=focal, centre=centre)
     return train, val_sets

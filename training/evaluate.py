@@ -42,6 +42,8 @@ class TestSet:
     points: np.ndarray  # (M, 17, 2) float32 px
     visible: np.ndarray  # (M, 17) float32 in {0, 1}
     gt: np.ndarray  # (M, 17, 3) float32 camera-frame mm
+    focal: np.ndarray  # (M, 2) the camera's focal lengths, px
+    centre: np.ndarray  # (M, 2) the camera's principal point, px
     action: np.ndarray  # (M,) int index into actions
     subject: np.ndarray  # (M,) int index into subjects
     misaligned: np.ndarray  # (M,) bool: frame of a data.MISALIGNED sequence
@@ -57,6 +59,7 @@ class Scores:
     """Per-frame errors of one pass over a TestSet."""
 
     p1: np.ndarray  # (M, 17) Protocol I joint errors, mm
+    p1_ray: np.ndarray  # (M, 17) Protocol I turned along the ray to the person (intrinsics known), mm
     p2: np.ndarray  # (M, 17) Protocol II joint errors, mm
     symmetry: np.ndarray  # (M,) symmetry error of the predicted pose, mm
     limbs: np.ndarray  # (M, 8) lengths of the predicted arm and leg bones (metrics.LIMB_BONES), mm
@@ -102,7 +105,7 @@ def build_test_set(
     """
     actions = tuple(sorted({action_name(key.split("/", 1)[1]) for key in poses}))
     subjects = tuple(sorted({key.split("/")[0] for key in poses}))
-    keys = ("points", "visible", "gt", "action", "subject", "misaligned")
+    keys = ("points", "visible", "gt", "focal", "centre", "action", "subject", "misaligned")
     parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     skipped: list[str] = []
     notes: list[str] = []
@@ -123,6 +126,8 @@ def build_test_set(
             parts["points"].append(points)
             parts["visible"].append(visible)
             parts["gt"].append(data.world_to_camera(world, cam))
+            parts["focal"].append(np.repeat(cam.f[None].astype(np.float32), len(points), axis=0))
+            parts["centre"].append(np.repeat(cam.c[None].astype(np.float32), len(points), axis=0))
             parts["action"].append(np.full(len(points), actions.index(action_name(sequence))))
             parts["subject"].append(np.full(len(points), subjects.index(subject)))
             parts["misaligned"].append(np.full(len(points), key in data.MISALIGNED))
@@ -165,16 +170,21 @@ def open_model(path: Path, threads: int = 0) -> tuple[Lift, dict[str, str]]:
 
 
 def score(
-    lift: Lift, points: np.ndarray, visible: np.ndarray, gt: np.ndarray, batch_size: int, desc: str
+    lift: Lift, points: np.ndarray, visible: np.ndarray, test: TestSet, batch_size: int, desc: str
 ) -> Scores:
-    """Lift (M, 17, 2) points in batches and score them against (M, 17, 3) camera-frame GT."""
-    p1, p2, sym, limbs, plaus = [], [], [], [], []
+    """Lift (M, 17, 2) points in batches and score them against the camera-frame GT of `test`
+    (whose intrinsics give Protocol I along the ray to the person)."""
+    gt = test.gt
+    p1, p1_ray, p2, sym, limbs, plaus = [], [], [], [], [], []
     with tqdm(total=len(points), desc=desc, unit="pose", unit_scale=True, leave=False) as bar:
         for start in range(0, len(points), batch_size):
             batch = slice(start, start + batch_size)
             pose, camera, plausibility = lift(points[batch], visible[batch])  # (B, 17, 3), (B, 2, 3), (B,)
             pose_cam = metrics.to_camera_frame(pose, camera)  # Protocol I: the camera's rotation
             p1.append(metrics.joint_errors(pose_cam, gt[batch]).astype(np.float32))
+            ray = metrics.ray_rotation(points[batch], visible[batch], test.focal[batch], test.centre[batch])
+            pose_ray = metrics.to_camera_frame(pose, camera, ray)
+            p1_ray.append(metrics.joint_errors(pose_ray, gt[batch]).astype(np.float32))
             p2.append(metrics.procrustes_errors(pose, gt[batch]).astype(np.float32))
             sym.append(metrics.symmetry_error(pose).astype(np.float32))
             limbs.append(metrics.bone_lengths(pose, metrics.LIMB_BONES).astype(np.float32))
@@ -183,6 +193,7 @@ def score(
             bar.update(len(pose))
     return Scores(
         np.concatenate(p1),
+        np.concatenate(p1_ray),
         np.concatenate(p2),
         np.concatenate(sym),
         np.concatenate(limbs),
@@ -255,7 +266,9 @@ def summarize_scores(scores: Scores, test: TestSet) -> dict[str, Any]:
     for subset, mask in subset_masks(test).items():
 
         def figures(m: np.ndarray) -> dict[str, float]:
-            return metrics.summarize(scores.p1[m], scores.p2[m], scores.symmetry[m], gt_symmetry[m])
+            return metrics.summarize(
+                scores.p1[m], scores.p2[m], scores.symmetry[m], gt_symmetry[m], scores.p1_ray[m]
+            )
 
         per_action = {
             name: figures(mask & (test.action == i))
@@ -265,7 +278,8 @@ def summarize_scores(scores: Scores, test: TestSet) -> dict[str, Any]:
         out[subset] = {
             "overall": figures(mask),
             "mean_over_actions": {
-                key: float(np.mean([a[key] for a in per_action.values()])) for key in ("mpjpe", "pa_mpjpe")
+                key: float(np.mean([a[key] for a in per_action.values()]))
+                for key in ("mpjpe", "mpjpe_ray", "pa_mpjpe")
             },
             "per_action": per_action,
         }
@@ -281,12 +295,13 @@ def robustness_tables(
     scored: dict[float, Scores] = {}  # the noise rows' scores by sigma, for the plausibility deciles
 
     def row(points: np.ndarray, visible: np.ndarray, desc: str, sigma: float | None = None) -> dict[str, Any]:
-        s = score(lift, points, visible, test.gt, batch_size, desc)
+        s = score(lift, points, visible, test, batch_size, desc)
         if sigma is not None:
             scored[sigma] = s
         return {
             name: {
                 "mpjpe": float(s.p1[m].mean()),
+                "mpjpe_ray": float(s.p1_ray[m].mean()),
                 "pa_mpjpe": float(s.p2[m].mean()),
                 "symmetry": float(s.symmetry[m].mean()),
             }
@@ -340,7 +355,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     log.info(
         "%d poses from %d camera sequences (%d skipped)", len(test.gt), test.sequences, len(test.skipped)
     )
-    scores = score(lift, test.points, test.visible, test.gt, args.batch_size, f"lift {args.inputs}")
+    scores = score(lift, test.points, test.visible, test, args.batch_size, f"lift {args.inputs}")
     result: dict[str, Any] = {
         "dataset": f"Human3.6M {DATASET_LABEL}" + _restriction(args),
         "model": Path(args.model).name,

@@ -157,6 +157,12 @@ def main(argv: list[str] | None = None) -> None:
         help="add the critic's calibrated plausibility output (needs the Human3.6M data; default true)",
     )
     parser.add_argument(
+        "--critic-checkpoint",
+        type=Path,
+        help="take the plausibility critic from this checkpoint (default: --checkpoint's); e.g. a critic "
+        "trained against corrupted real poses, which does not depend on the generator",
+    )
+    parser.add_argument(
         "--data-dir", default=None, help="Human3.6M folder (default: $REPNET_H36M_DIR, ../shared)"
     )
     args = parser.parse_args(argv)
@@ -170,14 +176,20 @@ def main(argv: list[str] | None = None) -> None:
         _, val_sets = data.build_training_sets(
             data.resolve_data_dir(args.data_dir), "gt", val_fraction=train.get("val_fraction", 0.1)
         )
-        critic = load_critic(state)
+        critic_state = state
+        if args.critic_checkpoint is not None:
+            critic_state = torch.load(args.critic_checkpoint, map_location="cpu", weights_only=False)
+        critic = load_critic(critic_state)
         table = calibrate(critic, data.align_to_template(val_sets["gt"].poses_3d))
         plausibility = Plausibility(critic, torch.from_numpy(table))
         log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_3d))
+    command = state.get("command", "")
+    if args.plausibility and args.critic_checkpoint is not None:
+        command = f"generator: {command}; critic: {critic_state.get('command', '')}"
     metadata = build_metadata(
         generator.config,
         model_id=args.model_id or args.output.stem,
-        train_command=state.get("command", ""),
+        train_command=command,
         training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
         evaluation=evaluation,
         calibration=table,

@@ -20,9 +20,39 @@ def rotation_from_camera(camera: np.ndarray) -> np.ndarray:
     return np.concatenate([rows, third[:, None]], axis=1)
 
 
-def to_camera_frame(pose: np.ndarray, camera: np.ndarray) -> np.ndarray:
-    """Rotate (N, J, 3) template-frame poses into the camera's orientation (Protocol I)."""
-    return np.einsum("nij,nkj->nki", rotation_from_camera(camera), pose)
+def rotation_to_ray(direction: np.ndarray) -> np.ndarray:
+    """(N, 3) directions in front of a camera (z > 0) -> (N, 3, 3) the smallest rotations that
+    take the optical axis (0, 0, 1) onto each of them."""
+    z = direction.astype(np.float64) / np.linalg.norm(direction, axis=1, keepdims=True)
+    v = np.stack([-z[:, 1], z[:, 0], np.zeros(len(z))], axis=1)  # (0, 0, 1) x z
+    vx = np.zeros((len(z), 3, 3))
+    vx[:, 0, 2], vx[:, 1, 2], vx[:, 2, 0], vx[:, 2, 1] = v[:, 1], -v[:, 0], -v[:, 1], v[:, 0]
+    return np.eye(3)[None] + vx + vx @ vx / (1.0 + z[:, 2])[:, None, None]
+
+
+def ray_rotation(
+    points: np.ndarray, visible: np.ndarray, focal: np.ndarray, centre: np.ndarray
+) -> np.ndarray:
+    """(N, 3, 3) rotations from the view along the ray through the centroid of each pose's visible
+    (N, J, 2) pixel points into the camera frame, for pinhole intrinsics focal, centre (N, 2) px.
+
+    A weak-perspective K sees a person along the ray to them, not along the optical axis: the
+    normalised input has lost where in the image the person stood. With the intrinsics known,
+    ray_rotation @ rotation_from_camera(K) is the camera-frame orientation (to_camera_frame's ray).
+    """
+    w = visible[..., None]
+    centroid = (points * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)  # (N, 2)
+    direction = np.concatenate([(centroid - centre) / focal, np.ones((len(points), 1))], axis=1)
+    return rotation_to_ray(direction)
+
+
+def to_camera_frame(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray | None = None) -> np.ndarray:
+    """Rotate (N, J, 3) template-frame poses into the camera's orientation (Protocol I): by the
+    rotation in K, then, given (N, 3, 3) ray rotations (ray_rotation), by the turn of the ray."""
+    rotation = rotation_from_camera(camera)
+    if ray is not None:
+        rotation = ray @ rotation
+    return np.einsum("nij,nkj->nki", rotation, pose)
 
 
 def root_align(pose: np.ndarray) -> np.ndarray:
@@ -78,16 +108,26 @@ def symmetry_error(pose: np.ndarray) -> np.ndarray:
 
 
 def summarize(
-    errors_p1: np.ndarray, errors_p2: np.ndarray, symmetry: np.ndarray, gt_symmetry: np.ndarray
+    errors_p1: np.ndarray,
+    errors_p2: np.ndarray,
+    symmetry: np.ndarray,
+    gt_symmetry: np.ndarray,
+    errors_p1_ray: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Figures of one group of poses, in mm and %.
 
     errors_p1, errors_p2 -- (N, J) joint errors under Protocol I and II; symmetry,
-    gt_symmetry -- (N,) symmetry errors of the predictions and of the ground truth. Medians
-    are over the per-pose mean errors; PCK3D (150 mm) and AUC (0-150 mm) over all joints.
+    gt_symmetry -- (N,) symmetry errors of the predictions and of the ground truth;
+    errors_p1_ray -- Protocol I with the ray to the person (known intrinsics), if measured.
+    Medians are over the per-pose mean errors; PCK3D (150 mm) and AUC (0-150 mm) over all joints.
     """
     pose_p1, pose_p2 = errors_p1.mean(axis=1), errors_p2.mean(axis=1)
+    ray: dict[str, float] = {}
+    if errors_p1_ray is not None:
+        pose_ray = errors_p1_ray.mean(axis=1)
+        ray = {"mpjpe_ray": float(pose_ray.mean()), "mpjpe_ray_median": float(np.median(pose_ray))}
     return {
+        **ray,
         "poses": int(len(errors_p1)),
         "mpjpe": float(pose_p1.mean()),
         "mpjpe_median": float(np.median(pose_p1)),

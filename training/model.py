@@ -55,8 +55,18 @@ class RepNet(nn.Module):
         self.config = config
         j = config.num_joints
         in_dim = 3 * j if config.visibility_input else 2 * j
-        self.pose_branch = _branch(in_dim, 3 * j, config.width, config.num_blocks, config.leaky_slope)
-        self.camera_branch = _branch(in_dim, 6, config.width, config.num_blocks, config.leaky_slope)
+        w, blocks, slope = config.width, config.num_blocks, config.leaky_slope
+        self.trunk: nn.Module = nn.Identity()
+        if config.shared_trunk:
+            self.trunk = nn.Sequential(nn.Linear(in_dim, w), nn.LeakyReLU(slope), ResidualBlock(w, slope))
+            pose_layers: list[nn.Module] = [ResidualBlock(w, slope) for _ in range(blocks)]
+            pose_layers += [nn.Linear(w, w), nn.LeakyReLU(slope), nn.Linear(w, 3 * j)]
+            self.pose_branch = nn.Sequential(*pose_layers)
+            camera_layers: list[nn.Module] = [ResidualBlock(w, slope) for _ in range(blocks)]
+            self.camera_branch = nn.Sequential(*camera_layers, nn.Linear(w, 6))
+        else:
+            self.pose_branch = _branch(in_dim, 3 * j, w, blocks, slope)
+            self.camera_branch = _branch(in_dim, 6, w, blocks, slope)
 
     def forward(self, points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """points -- (N, J, 2) normalised (normalize_keypoints), visible -- (N, J).
@@ -68,6 +78,7 @@ class RepNet(nn.Module):
         x = points.reshape(n, 2 * j)
         if self.config.visibility_input:
             x = torch.cat([x, visible], dim=1)  # (N, 3J)
+        x = self.trunk(x)
         pose = self.pose_branch(x).reshape(n, j, 3)
         pose = pose - pose[:, skeleton.ROOT : skeleton.ROOT + 1]
         camera = self.camera_branch(x).reshape(n, 2, 3)

@@ -13,6 +13,8 @@ import math
 
 import torch
 
+from training import metrics
+
 FOCAL_PX = 1150.0
 CENTRE_PX = 500.0
 AZIMUTH_DEG = (-180.0, 180.0)  # turn of the body about the vertical
@@ -67,11 +69,16 @@ def sample(
     noise_px: float,
     gen: torch.Generator,
     align_rotations: torch.Tensor | None = None,
+    rotation_target: str = "axis",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """A synthetic batch: (B, J, 2) pixels with detector-like noise, the (B, J, 3) target (the
     same pose aligned to the template, metres: what the generator outputs) and, given the
     (M, 3, 3) rotations that aligned each world pose to the template, the (B, 3, 3) rotation
-    from the template frame into the synthetic camera (what the camera K should hold)."""
+    from the template frame into the synthetic camera (what the camera K should hold).
+
+    rotation_target "axis": into the camera frame itself; "ray": into the frame that looks along
+    the ray from the camera to the pelvis, the one view a centred input can show (the camera
+    frame is this turned by metrics.rotation_to_ray of the pelvis' direction)."""
     idx = torch.randint(0, poses_world_mm.shape[0], (batch,), generator=gen)
     rot, position = random_views(batch, gen)
     pixels = project(poses_world_mm[idx], rot, position)
@@ -81,5 +88,11 @@ def sample(
     # aligned = s * world @ A^T, camera = world @ V^T, so camera = aligned @ (V A^T)^T / s.
     to_camera = None
     if align_rotations is not None:
-        to_camera = (rot @ align_rotations[idx].to(torch.float64).transpose(1, 2)).to(torch.float32)
+        to_camera = rot @ align_rotations[idx].to(torch.float64).transpose(1, 2)
+        if rotation_target == "ray":
+            ray = torch.from_numpy(metrics.rotation_to_ray(position.numpy()))
+            to_camera = ray.transpose(1, 2) @ to_camera
+        elif rotation_target != "axis":
+            raise ValueError(f"rotation target must be axis or ray, got {rotation_target!r}")
+        to_camera = to_camera.to(torch.float32)
     return pixels, poses_aligned_m[idx], to_camera

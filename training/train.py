@@ -75,8 +75,13 @@ def validate(generator: RepNet, val: data.LiftingSet, device: torch.device) -> d
             cameras.append(cam.cpu().numpy())
     generator.train()
     pose, camera = np.concatenate(poses), np.concatenate(cameras)
+    ray: dict[str, float] = {}
+    if val.focal is not None and val.centre is not None:
+        rotation = metrics.ray_rotation(val.points_2d, val.visible, val.focal, val.centre)
+        ray["mpjpe_ray"] = metrics.mpjpe(metrics.to_camera_frame(pose, camera, rotation), val.poses_3d)
     return {
         "mpjpe": metrics.mpjpe(metrics.to_camera_frame(pose, camera), val.poses_3d),
+        **ray,
         "pa_mpjpe": metrics.pa_mpjpe(pose, val.poses_3d),
         "symmetry": float(metrics.symmetry_error(pose).mean()),
         "bone_std": float(metrics.limb_length_std(pose).mean()),
@@ -234,6 +239,7 @@ class Trainer:
             config.synthetic_noise_px,
             self.gen,
             self.align_rotations,
+            config.camera_rotation_target,
         )
         visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
         points = normalize_keypoints(pixels.to(self.device), visible)
@@ -340,6 +346,8 @@ def train(
     pool, val_sets = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)
     rng = np.random.default_rng(config.seed)
     val_sets = {k: _subsample(v, config.val_size, rng) for k, v in val_sets.items()}
+    if config.val_noise_px > 0 and "gt" in val_sets:
+        val_sets["gt_noise"] = _with_noise(val_sets["gt"], config.val_noise_px, rng)
     log.info(
         "training on %s: %d 3D poses, %d 2D poses, device %s",
         config.inputs,
@@ -349,6 +357,21 @@ def train(
     )
     trainer = Trainer(config, model_config, pool, device, torch.Generator().manual_seed(config.seed))
     step, elapsed, best = 0, 0.0, math.inf
+    if config.init_from and resume_path is None:
+        state = torch.load(config.init_from, map_location=device, weights_only=False)
+        trainer.generator.load_state_dict(state["generator"])
+        own = trainer.critic.state_dict()
+        same_critic = state["critic"].keys() == own.keys() and all(
+            v.shape == own[k].shape for k, v in state["critic"].items()
+        )
+        if same_critic:
+            trainer.critic.load_state_dict(state["critic"])
+        log.info(
+            "initialised the generator%s from %s (its step %d); starting at step 0",
+            " and the critic" if same_critic else " (the critic's shape differs: a fresh critic)",
+            config.init_from,
+            state["step"],
+        )
     if resume_path is not None:
         state = torch.load(resume_path, map_location=device, weights_only=False)
         trainer.load_state_dict(state)
@@ -426,7 +449,19 @@ def _truncate_history(path: Path, step: int) -> None:
 
 def _subsample(val: data.LiftingSet, size: int, rng: np.random.Generator) -> data.LiftingSet:
     idx = np.sort(rng.choice(len(val.points_2d), size=min(size, len(val.points_2d)), replace=False))
-    return data.LiftingSet(val.poses_3d[idx], val.points_2d[idx], val.visible[idx])
+    return data.LiftingSet(
+        val.poses_3d[idx],
+        val.points_2d[idx],
+        val.visible[idx],
+        focal=None if val.focal is None else val.focal[idx],
+        centre=None if val.centre is None else val.centre[idx],
+    )
+
+
+def _with_noise(val: data.LiftingSet, sigma_px: float, rng: np.random.Generator) -> data.LiftingSet:
+    """The same validation poses with N(0, sigma_px) px added to their 2D points."""
+    noise = rng.normal(0.0, sigma_px, val.points_2d.shape).astype(val.points_2d.dtype)
+    return dataclasses.replace(val, points_2d=val.points_2d + noise)
 
 
 def _add_flags(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:

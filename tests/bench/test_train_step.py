@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from bench import train_step
@@ -26,3 +27,16 @@ def test_measure_reports_samples_and_flops_of_a_step_with_the_gradient_penalty()
     # sample; the critic step with its double backward adds to it.
     generator_macs = 51 * 32 + 4 * 32 * 32 + 32 * 51 + 51 * 32 + 4 * 32 * 32 + 32 * 6
     assert float(row["gflop_per_step"]) * 1e9 > 16 * 2 * generator_macs
+
+
+def test_profile_prints_the_ops_of_the_step(capsys: pytest.CaptureFixture[str]) -> None:
+    recipe = train_step.Recipe("tiny warm start", TrainConfig(batch_size=16, warm_start_steps=10**9), TINY)
+    train_step.profile(recipe, steps=2)
+    out = capsys.readouterr().out
+    assert "profile of 2 steps: tiny warm start" in out
+    assert "aten::addmm" in out or "aten::mm" in out
+
+
+def test_only_must_match_a_recipe() -> None:
+    with pytest.raises(SystemExit):
+        train_step.main(["--only", "no such recipe"])

@@ -349,8 +349,12 @@ def test_npz_upload_is_read_as_the_cli_reads_it(driver: Any, page_url: str, tmp_
     before = lifts(driver)
     driver.find_element(By.ID, "file").send_keys(str(path))
     wait_lift(driver, before)
-    body = {"format": "coco17", "poses": [
-        {"keypoints": [None if np.isnan(p).any() else p.tolist() for p in pose]} for pose in points]}
+    body = {
+        "format": "coco17",
+        "poses": [
+            {"keypoints": [None if np.isnan(p).any() else p.tolist() for p in pose]} for pose in points
+        ],
+    }
     reply = lift_api(page_url, body)
     driver.find_element(By.ID, "next").click()
     assert text_of(driver, "frame-label") == "frame 2 / 3"

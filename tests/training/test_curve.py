@@ -41,5 +41,5 @@ def test_equal_time_table_takes_each_runs_last_validation_within_the_time(tmp_pa
         "late": [{"step": 10, "minutes": 9.0, "val_gt_pa_mpjpe": 1.0}],
     }
     rows = curve.equal_time_table(runs, 1.5).splitlines()
-    assert rows[2].startswith("| a | 100 | 1.0 | 80.0 | – | 50.0 |")
+    assert rows[2].startswith("| a | 100 | 1.0 | 80.0 | – | – | 50.0 |")
     assert rows[3].startswith("| late | – | – |")

@@ -155,10 +155,29 @@ def test_protocol_one_is_zero_for_an_oracle_and_catches_a_wrong_rotation(h36m_di
 
         return lift
 
-    good = evaluate.score(oracle(False), test.points, test.visible, test.gt, 7, "oracle")
+    good = evaluate.score(oracle(False), test.points, test.visible, test, 7, "oracle")
     assert good.p1.max() < 1e-2 and good.p2.max() < 1e-2
-    wrong = evaluate.score(oracle(True), test.points, test.visible, test.gt, 7, "wrong")
+    wrong = evaluate.score(oracle(True), test.points, test.visible, test, 7, "wrong")
     assert wrong.p1.mean() > 50.0 and wrong.p2.max() < 1e-2
+
+
+def test_protocol_one_along_the_ray_is_zero_for_an_oracle_of_the_view_along_the_ray(h36m_dir) -> None:
+    """A lifter that gives K the rotation of the view along the ray to the person (all that a
+    centred input shows) is exact under P-I along the ray, and off under K's rotation alone."""
+    test = evaluate.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), None)
+    ray = metrics.ray_rotation(test.points, test.visible, test.focal, test.centre)
+    view = ray.transpose(0, 2, 1)  # camera frame -> the frame looking along the ray
+    template = np.einsum("nij,nkj->nki", view, test.gt)  # what the lifter outputs (K's rotation: view)
+    start = [0]
+
+    def lift(points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray, None]:
+        batch = slice(start[0], start[0] + len(points))
+        start[0] += len(points)
+        return template[batch], 0.003 * np.eye(3)[None, :2].repeat(len(points), axis=0), None
+
+    scores = evaluate.score(lift, test.points, test.visible, test, 5, "ray oracle")
+    assert scores.p1_ray.max() < 1e-2
+    assert scores.p1.mean() > 1.0  # the people stand off the optical axis
 
 
 def test_detections_are_mapped_and_missing_cameras_skipped(tiny_model, h36m_dir, tmp_path) -> None:

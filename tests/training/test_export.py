@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from tests.training.conftest import STANDING
-from training import data, export, skeleton
-from training.config import RepNetConfig
+from training import data, export, skeleton, train
+from training.config import RepNetConfig, TrainConfig
 from training.model import Critic, Plausibility, RepNet
 
 
@@ -86,3 +86,52 @@ def test_plausibility_output_is_the_calibrated_percentile_of_the_critic(tmp_path
             torch.from_numpy(real) / 1000
         ).numpy()
     assert 0.4 < real_plausibility.mean() < 0.6
+
+
+def test_export_takes_the_critic_from_another_checkpoint(synthetic_h36m: Path, tmp_path: Path) -> None:
+    """--critic-checkpoint: the generator of one run, the plausibility critic of another."""
+    tiny = RepNetConfig(width=32, critic_width=16, kcs_width=8)
+
+    def run(name: str, seed: int) -> Path:
+        config = TrainConfig(
+            data_dir=str(synthetic_h36m),
+            out_dir=str(tmp_path / name),
+            inputs="gt",
+            iterations=4,
+            batch_size=16,
+            critic_steps=1,
+            val_size=50,
+            val_every=1000,
+            log_every=2,
+            threads=1,
+            seed=seed,
+        )
+        train.train(config, tiny, command=f"run {name}")
+        return tmp_path / name / "last.pt"
+
+    gen_ckpt, critic_ckpt = run("gen", 0), run("critic", 1)
+    out = tmp_path / "mixed.onnx"
+    export.main(
+        [
+            "--checkpoint",
+            str(gen_ckpt),
+            "--critic-checkpoint",
+            str(critic_ckpt),
+            "--output",
+            str(out),
+            "--data-dir",
+            str(synthetic_h36m),
+        ]
+    )
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    meta = session.get_modelmeta().custom_metadata_map
+    assert meta["train_command"] == "generator: run gen; critic: run critic"
+    points = (np.random.default_rng(0).normal(0, 100, (8, 17, 2)) + 500).astype(np.float32)
+    pose, _, plausibility = session.run(None, {"keypoints_2d": points, "visibility": np.ones((8, 17), "f4")})
+    table = np.asarray(json.loads(meta["plausibility_calibration"])["critic_scores_at_quantiles"], np.float32)
+    critic = export.load_critic(torch.load(critic_ckpt, weights_only=False))
+    with torch.no_grad():
+        scores = critic(torch.from_numpy(pose) / 1000).numpy()
+    np.testing.assert_allclose(plausibility, (scores[:, None] >= table[None]).mean(axis=1), atol=1e-6)
+    generator, _ = export.load_generator(gen_ckpt)
+    assert export.check_parity(generator, out, points, np.ones((8, 17), np.float32)) <= 0.01

@@ -139,3 +139,24 @@ def test_summarize_reports_means_medians_and_symmetry():
     assert (figures["symmetry_mean"], figures["symmetry_max"]) == (pytest.approx(3.0), 6.0)
     assert figures["symmetry_std"] == pytest.approx(np.std([1.0, 2.0, 6.0]))
     assert figures["gt_symmetry_mean"] == 0.0
+
+
+def test_rotation_to_ray_turns_the_optical_axis_onto_the_ray() -> None:
+    direction = np.array([[0.0, 0.0, 2.0], [0.3, -0.2, 1.0], [-1.0, 0.5, 1.5]])
+    rot = metrics.rotation_to_ray(direction)
+    np.testing.assert_allclose(rot[0], np.eye(3), atol=1e-12)
+    unit = direction / np.linalg.norm(direction, axis=1, keepdims=True)
+    np.testing.assert_allclose(rot @ np.array([0.0, 0.0, 1.0]), unit, atol=1e-12)
+    np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), np.eye(3)[None].repeat(3, 0), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-12)
+    # The smallest rotation: a vector perpendicular to both the axis and the ray stays put.
+    axis = np.cross([0.0, 0.0, 1.0], unit[1])
+    np.testing.assert_allclose(rot[1] @ axis, axis, atol=1e-12)
+
+
+def test_ray_rotation_goes_through_the_centroid_of_the_visible_joints() -> None:
+    points = np.array([[[600.0, 400.0], [700.0, 500.0], [1e6, 1e6]]])
+    visible = np.array([[1.0, 1.0, 0.0]])
+    rot = metrics.ray_rotation(points, visible, np.array([[1000.0, 1000.0]]), np.array([[500.0, 500.0]]))
+    expected = np.array([0.15, -0.05, 1.0]) / np.linalg.norm([0.15, -0.05, 1.0])
+    np.testing.assert_allclose(rot[0] @ np.array([0.0, 0.0, 1.0]), expected, atol=1e-12)

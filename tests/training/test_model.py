@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
@@ -67,3 +69,26 @@ def test_masked_joint_values_cannot_change_the_output() -> None:
     for i in (1, 2):  # equal up to float rounding (mm, and K in 1/mm)
         torch.testing.assert_close(pose[i], pose[0], atol=1e-3, rtol=1e-5)
         torch.testing.assert_close(camera[i], camera[0], atol=1e-7, rtol=1e-5)
+
+
+def test_shared_trunk_feeds_both_branches_and_exports_the_same_contract() -> None:
+    torch.manual_seed(0)
+    config = dataclasses.replace(TINY, shared_trunk=True)
+    generator = RepNet(config)
+    names = {name.split(".")[0] for name, _ in generator.named_parameters()}
+    assert names == {"trunk", "pose_branch", "camera_branch"}
+    # The camera branch starts from the trunk's features, not from the input.
+    assert generator.camera_branch[0].fc1.in_features == config.width
+    pose, camera = LiftingGraph(generator).eval()(torch.randn(4, 17, 2) * 50 + 300, torch.ones(4, 17))
+    assert pose.shape == (4, 17, 3) and camera.shape == (4, 2, 3)
+    assert torch.all(pose[:, skeleton.ROOT] == 0)
+    # A change of the trunk's weights moves both outputs.
+    with torch.no_grad():
+        generator.trunk[0].bias.add_(0.5)
+    pose2, camera2 = LiftingGraph(generator).eval()(torch.randn(4, 17, 2) * 50 + 300, torch.ones(4, 17))
+    assert not torch.allclose(pose, pose2) and not torch.allclose(camera, camera2)
+
+
+def test_separate_branches_have_no_trunk_parameters() -> None:
+    names = {name.split(".")[0] for name, _ in RepNet(TINY).named_parameters()}
+    assert names == {"pose_branch", "camera_branch"}

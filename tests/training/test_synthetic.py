@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from tests.training.conftest import STANDING
-from training import data, skeleton, synthetic
+from training import data, metrics, skeleton, synthetic
 
 HEAD, LEFT_ANKLE, RIGHT_ANKLE = 10, 6, 3
 
@@ -91,3 +92,26 @@ def test_the_camera_target_rotates_the_template_pose_into_the_synthetic_camera()
     from_template = target.to(torch.float64) @ to_camera.to(torch.float64).transpose(1, 2)  # metres, scaled
     ratio = (in_camera * from_template).sum(dim=(1, 2)) / (from_template**2).sum(dim=(1, 2))
     torch.testing.assert_close(from_template * ratio[:, None, None], in_camera, atol=0.5, rtol=0.0)
+
+
+def test_the_ray_target_is_the_camera_target_seen_along_the_ray_to_the_pelvis() -> None:
+    rng = np.random.default_rng(2)
+    world = np.stack([_world_standing() + rng.normal(0, 30, (17, 3)).astype(np.float32) for _ in range(20)])
+    world -= world[:, :1]
+    aligned = data.align_to_template(world).astype(np.float64)
+    _, align_rotations, _ = data.procrustes(world.astype(np.float64), aligned)
+    args = (torch.from_numpy(world), torch.from_numpy(aligned / 1000), 32, 0.0)
+    rotations = torch.from_numpy(align_rotations)
+    _, _, axis = synthetic.sample(*args, torch.Generator().manual_seed(5), rotations, "axis")
+    _, _, ray = synthetic.sample(*args, torch.Generator().manual_seed(5), rotations, "ray")
+    assert axis is not None and ray is not None
+    gen = torch.Generator().manual_seed(5)
+    torch.randint(0, 20, (32,), generator=gen)
+    _, position = synthetic.random_views(32, gen)
+    turn = torch.from_numpy(metrics.rotation_to_ray(position.numpy())).to(torch.float32)
+    torch.testing.assert_close(turn @ ray, axis, atol=1e-5, rtol=0.0)
+    # The people stand off the axis, so the two targets differ; by at most the largest offset angle.
+    angle = torch.rad2deg(torch.arccos(((turn.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)))
+    assert 0 < angle.min() and angle.max() < 20.0
+    with pytest.raises(ValueError, match="axis or ray"):
+        synthetic.sample(*args, torch.Generator().manual_seed(5), rotations, "sideways")

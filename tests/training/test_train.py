@@ -45,6 +45,7 @@ def test_training_steps_reduce_reprojection_and_camera_losses(synthetic_h36m: Pa
     assert history[-1]["rep"] < 0.6 * history[0]["rep"]
     assert history[-1]["cam"] < history[0]["cam"]
     assert "val_gt_pa_mpjpe" in history[-1] and "val_sh_mpjpe" in history[-1]
+    assert "val_gt_noise_pa_mpjpe" in history[-1]  # GT 2D + N(0, 20 px)
     state = torch.load(best, weights_only=False)
     assert state["model_config"]["width"] == 64
 
@@ -150,6 +151,36 @@ def test_critic_only_stage_trains_the_critic_and_leaves_the_generator(
     assert after["step"] == 30
     assert all(torch.equal(v, after["generator"][k]) for k, v in before["generator"].items())
     assert any(not torch.equal(v, after["critic"][k]) for k, v in before["critic"].items())
+
+
+def test_init_from_takes_the_weights_but_starts_at_step_zero(synthetic_h36m: Path, tmp_path: Path) -> None:
+    first = _config(synthetic_h36m, tmp_path / "warm", 20)
+    train.train(first, TINY)
+    source = torch.load(tmp_path / "warm" / "last.pt", weights_only=False)
+    arm = dataclasses.replace(
+        first, out_dir=str(tmp_path / "arm"), iterations=10, init_from=str(tmp_path / "warm" / "last.pt")
+    )
+    stopped = dataclasses.replace(arm, stop_step=1)
+    train.train(stopped, TINY)
+    after_one = torch.load(tmp_path / "arm" / "last.pt", weights_only=False)
+    assert after_one["step"] == 1
+    # One Adam step from the source weights: close to them, not equal, and the optimiser fresh.
+    for name, value in source["generator"].items():
+        assert torch.allclose(value, after_one["generator"][name], atol=2e-3), name
+    assert after_one["opt_g"]["state"][0]["step"] == 1
+    for name, value in source["critic"].items():  # same shape: the critic comes along
+        assert torch.allclose(value, after_one["critic"][name], atol=2e-2), name
+    # A critic of another shape starts fresh; the generator still comes from the checkpoint.
+    wide = dataclasses.replace(TINY, critic_width=32)
+    other = dataclasses.replace(arm, out_dir=str(tmp_path / "other"), stop_step=1)
+    train.train(other, wide)
+    state = torch.load(tmp_path / "other" / "last.pt", weights_only=False)
+    assert state["critic"]["pose_path.0.weight"].shape[0] == 32
+    for name, value in source["generator"].items():
+        assert torch.allclose(value, state["generator"][name], atol=2e-3), name
+    # --resume auto then continues the arm from its own checkpoint, not from init_from.
+    train.train(arm, TINY, resume="auto")
+    assert torch.load(tmp_path / "arm" / "last.pt", weights_only=False)["step"] == 10
 
 
 def test_corrupted_poses_break_one_thing_and_keep_the_root() -> None:
