@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import re
 import sys
@@ -58,16 +59,25 @@ def _progress(items: Sequence[T], unit: str) -> Iterable[T]:
     return advance()
 
 
-def _remote_lift(url: str, fmt: str, threshold: float | None, timeout: float) -> tuple[Lift, LiftClient]:
+Intrinsics = tuple[float, float, float, float]
+
+
+def _remote_lift(
+    url: str, fmt: str, threshold: float | None, timeout: float, intrinsics: Intrinsics | None
+) -> tuple[Lift, LiftClient]:
     client = LiftClient(url, timeout=timeout)
 
     def lift(points: np.ndarray, conf: np.ndarray | None) -> list[LiftResult]:
-        return client.lift_batch(points, format=fmt, confidence=conf, confidence_threshold=threshold)
+        return client.lift_batch(
+            points, format=fmt, confidence=conf, confidence_threshold=threshold, intrinsics=intrinsics
+        )
 
     return lift, client
 
 
-def _local_lift(model: Path | None, fmt: str, threshold: float | None, batch: int) -> Lift:
+def _local_lift(
+    model: Path | None, fmt: str, threshold: float | None, batch: int, intrinsics: Intrinsics | None
+) -> Lift:
     """Lift in this process with the service's own code: load checks, input rules, response fields."""
     from service.__main__ import limits_of, load_lifter
     from service.config import BUNDLED_MODEL, Settings
@@ -82,7 +92,7 @@ def _local_lift(model: Path | None, fmt: str, threshold: float | None, batch: in
     joints, model_id = lifter.info.joint_names, lifter.info.model_id
 
     def lift(points: np.ndarray, conf: np.ndarray | None) -> list[LiftResult]:
-        poses = [PoseInput(p, ~np.isnan(p).any(axis=1), None if conf is None else conf[i], fmt)
+        poses = [PoseInput(p, ~np.isnan(p).any(axis=1), None if conf is None else conf[i], fmt, intrinsics)
                  for i, p in enumerate(points)]  # fmt: skip
         try:
             inputs = prepare_poses(poses, limits, threshold)
@@ -93,6 +103,19 @@ def _local_lift(model: Path | None, fmt: str, threshold: float | None, batch: in
         return [LiftResult.from_fields(d.__getitem__, joints, model_id) for d in replies]
 
     return lift
+
+
+def _intrinsics(text: str) -> Intrinsics:
+    """--intrinsics FX,FY,CX,CY: four finite numbers, the focal lengths > 0."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values) or min(values[:2]) <= 0:
+        raise argparse.ArgumentTypeError(
+            f"expected FX,FY,CX,CY (4 finite numbers, FX and FY > 0), got {text!r}"
+        )
+    return (values[0], values[1], values[2], values[3])
 
 
 def result_json(result: LiftResult, points: np.ndarray, conf: np.ndarray | None) -> dict[str, Any]:
@@ -154,9 +177,10 @@ def run_lift(args: argparse.Namespace) -> int:
         raise InputFileError(f"{args.input}: poses have {poses.points.shape[1]} joints, format {fmt} has "
                              f"{len(FORMATS[fmt].joint_names)}; pick the format with --format")  # fmt: skip
     if args.local:
-        lift, close = _local_lift(args.model, fmt, args.confidence_threshold, args.batch_size), None
+        lift = _local_lift(args.model, fmt, args.confidence_threshold, args.batch_size, args.intrinsics)
+        close = None
     else:
-        lift, close = _remote_lift(args.url, fmt, args.confidence_threshold, args.timeout)
+        lift, close = _remote_lift(args.url, fmt, args.confidence_threshold, args.timeout, args.intrinsics)
     try:
         results = _lift_all(lift, poses, args.batch_size)
     finally:
@@ -220,6 +244,13 @@ def build_parser() -> argparse.ArgumentParser:
     lift.add_argument("--local", action="store_true", help="run the ONNX model in this process, no service")
     lift.add_argument("--model", type=Path, help="ONNX model for --local (default: the bundled one)")
     lift.add_argument("--confidence-threshold", type=float, help="joints below it count as missing")
+    lift.add_argument(
+        "--intrinsics",
+        type=_intrinsics,
+        metavar="FX,FY,CX,CY",
+        help="the camera's focal lengths and principal point in px, if known: pose_3d_camera "
+        "is then turned along the ray to the person",
+    )
     lift.add_argument("--batch-size", type=int, default=256, help="poses per request (default 256)")
     lift.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
     lift.add_argument("-o", "--output", type=Path, help="output .json (default: stdout)")

@@ -91,8 +91,10 @@ def as_poses(
 
 
 def build_request(points: np.ndarray, conf: np.ndarray | None, format: str,
-                  confidence_threshold: float | None = None) -> dict[str, Any]:  # fmt: skip
-    """The POST /lift body for (N, J, 2) points; a joint with a NaN coordinate becomes null."""
+                  confidence_threshold: float | None = None,
+                  intrinsics: Sequence[float] | None = None) -> dict[str, Any]:  # fmt: skip
+    """The POST /lift body for (N, J, 2) points; a joint with a NaN coordinate becomes null.
+    intrinsics: (fx, fy, cx, cy) px of the camera, for every pose of the body."""
     poses = []
     for i, pose in enumerate(points):
         item: dict[str, Any] = {"keypoints": [None if np.isnan(p).any() else p.tolist() for p in pose]}
@@ -102,6 +104,9 @@ def build_request(points: np.ndarray, conf: np.ndarray | None, format: str,
     body: dict[str, Any] = {"format": format, "poses": poses}
     if confidence_threshold is not None:
         body["confidence_threshold"] = confidence_threshold
+    if intrinsics is not None:
+        fx, fy, cx, cy = (float(v) for v in intrinsics)
+        body["intrinsics"] = {"focal_px": [fx, fy], "principal_point_px": [cx, cy]}
     return body
 
 
@@ -134,10 +139,12 @@ class _HttpBase:
         self.batch_size = batch_size
 
     def _bodies(self, keypoints: ArrayLike, format: str, confidence: ArrayLike | None,
-                confidence_threshold: float | None) -> list[dict[str, Any]]:  # fmt: skip
+                confidence_threshold: float | None,
+                intrinsics: Sequence[float] | None) -> list[dict[str, Any]]:  # fmt: skip
         points, conf = as_poses(keypoints, confidence)
         parts = [slice(a, a + self.batch_size) for a in range(0, len(points), self.batch_size)]
-        return [build_request(points[p], None if conf is None else conf[p], format, confidence_threshold)
+        return [build_request(points[p], None if conf is None else conf[p], format, confidence_threshold,
+                              intrinsics)
                 for p in parts]  # fmt: skip
 
     def _delay(self, response: httpx.Response | None, attempt: int) -> float | None:
@@ -190,16 +197,20 @@ class LiftClient(_HttpBase):
             attempt += 1
 
     def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
-             confidence_threshold: float | None = None) -> LiftResult:  # fmt: skip
-        """Lift one (J, 2) pose; NaN marks a missing joint, `confidence` is (J,) in [0, 1]."""
+             confidence_threshold: float | None = None,
+             intrinsics: Sequence[float] | None = None) -> LiftResult:  # fmt: skip
+        """Lift one (J, 2) pose; NaN marks a missing joint, `confidence` is (J,) in [0, 1];
+        `intrinsics` (fx, fy, cx, cy) px, if known, turn pose_3d_camera along the ray to the person."""
         conf = None if confidence is None else np.asarray(confidence)[None]
         return self.lift_batch(np.asarray(keypoints)[None], format=format, confidence=conf,
-                               confidence_threshold=confidence_threshold)[0]  # fmt: skip
+                               confidence_threshold=confidence_threshold,
+                               intrinsics=intrinsics)[0]  # fmt: skip
 
     def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
-                   confidence_threshold: float | None = None) -> list[LiftResult]:  # fmt: skip
+                   confidence_threshold: float | None = None,
+                   intrinsics: Sequence[float] | None = None) -> list[LiftResult]:  # fmt: skip
         """Lift (N, J, 2) poses in requests of at most `batch_size`; results in input order."""
-        bodies = self._bodies(keypoints, format, confidence, confidence_threshold)
+        bodies = self._bodies(keypoints, format, confidence, confidence_threshold, intrinsics)
         return [r for body in bodies for r in parse_response(self._send("POST", "/lift", body))]
 
     def model(self) -> dict[str, Any]:
@@ -254,18 +265,21 @@ class AsyncLiftClient(_HttpBase):
             attempt += 1
 
     async def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
-                   confidence_threshold: float | None = None) -> LiftResult:  # fmt: skip
+                   confidence_threshold: float | None = None,
+                   intrinsics: Sequence[float] | None = None) -> LiftResult:  # fmt: skip
         """Lift one (J, 2) pose; see LiftClient.lift."""
         conf = None if confidence is None else np.asarray(confidence)[None]
         results = await self.lift_batch(np.asarray(keypoints)[None], format=format, confidence=conf,
-                                        confidence_threshold=confidence_threshold)  # fmt: skip
+                                        confidence_threshold=confidence_threshold,
+                                        intrinsics=intrinsics)  # fmt: skip
         return results[0]
 
     async def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17",
                          confidence: ArrayLike | None = None,
-                         confidence_threshold: float | None = None) -> list[LiftResult]:  # fmt: skip
+                         confidence_threshold: float | None = None,
+                         intrinsics: Sequence[float] | None = None) -> list[LiftResult]:  # fmt: skip
         """Lift (N, J, 2) poses in requests of at most `batch_size`, `max_concurrency` at a time."""
-        bodies = self._bodies(keypoints, format, confidence, confidence_threshold)
+        bodies = self._bodies(keypoints, format, confidence, confidence_threshold, intrinsics)
         slots = asyncio.Semaphore(self.max_concurrency)
 
         async def post(body: dict[str, Any]) -> httpx.Response:

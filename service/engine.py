@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from service import geometry
 from service.errors import ModelNotReady, ModelOutputError, Overloaded
 from service.keypoints import ModelInput
 from service.lifter import Lifter, Prediction
@@ -72,6 +73,14 @@ def result_columns(inputs: ModelInput, prediction: Prediction, flat: bool = Fals
     for name in RESULT_ARRAYS:
         values = getattr(prediction, name)
         columns[name] = (values.reshape(n, -1) if flat and values.ndim > 1 else values).tolist()
+    given = np.flatnonzero(~np.isnan(inputs.intrinsics[:, 0]))
+    if len(given):  # turned along the ray to the person: the camera-frame orientation
+        k = inputs.intrinsics[given]
+        ray = geometry.ray_rotation(inputs.keypoints_2d[given], inputs.visible[given], k[:, :2], k[:, 2:])
+        turned = geometry.rotate_to_camera(prediction.pose_3d[given], ray @ prediction.rotation[given])
+        rows = (turned.reshape(len(given), -1) if flat else turned).tolist()
+        for i, pose in zip(given.tolist(), rows, strict=True):
+            columns["pose_3d_camera"][i] = pose
     for name in ("visible", "imputed", "derived"):
         columns[name] = getattr(inputs, name).tolist()
     # None per pose when the model has no plausibility output: null over HTTP, unset in proto.

@@ -53,6 +53,28 @@ def camera_rotation(camera: np.ndarray) -> FloatArray:
     return np.asarray(np.concatenate([rows, third[:, None]], axis=1), dtype=np.float32)
 
 
+def ray_rotation(
+    points: np.ndarray, visible: np.ndarray, focal: np.ndarray, centre: np.ndarray
+) -> FloatArray:
+    """(N, 3, 3) smallest rotations taking the optical axis onto the ray through the centroid of
+    each pose's visible (N, J, 2) pixel points, for pinhole focal lengths and principal points
+    (N, 2) px.
+
+    K sees the person along that ray (the normalised input has lost where in the image they
+    stood), so ray_rotation @ camera_rotation(K) is the pose's orientation in the camera frame
+    (Rodrigues' formula for the turn from (0, 0, 1) to the unit ray z: I + [v]x + [v]x^2 / (1 + z3)
+    with v = (0, 0, 1) x z).
+    """
+    w = visible.astype(np.float64)[..., None]
+    centroid = (points.astype(np.float64) * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)  # (N, 2)
+    ray = np.concatenate([(centroid - centre) / focal, np.ones((len(points), 1))], axis=1)
+    z = ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    vx = np.zeros((len(z), 3, 3))
+    vx[:, 0, 2], vx[:, 1, 2], vx[:, 2, 0], vx[:, 2, 1] = z[:, 0], z[:, 1], -z[:, 0], -z[:, 1]
+    turn = np.eye(3)[None] + vx + vx @ vx / (1.0 + z[:, 2])[:, None, None]
+    return np.asarray(turn, dtype=np.float32)
+
+
 def rotate_to_camera(pose_3d: np.ndarray, rotation: np.ndarray) -> FloatArray:
     """pose_3d (N, J, 3) in the template frame -> (N, J, 3) in the camera's orientation (X R^T)."""
     return np.asarray(pose_3d.astype(np.float64) @ rotation.transpose(0, 2, 1), dtype=np.float32)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -76,11 +77,34 @@ def _structure_violations(pose: lifter_pb2.Pose2D, field: str) -> list[Violation
     if pose.missing and len(pose.missing) != values // 2:
         reason = f"expected no values or one per joint ({values // 2}), got {len(pose.missing)}"
         found.append(Violation(f"{field}.missing", reason, "missing_count"))
+    if pose.HasField("intrinsics"):
+        found += intrinsics_violations(pose.intrinsics, f"{field}.intrinsics")
     return found
 
 
-def to_pose_inputs(poses: Sequence[lifter_pb2.Pose2D], default_format: str, prefix: str) -> list[PoseInput]:
-    """Proto poses in their wire-independent form; raises InvalidKeypoints on a bad layout."""
+def intrinsics_violations(camera: lifter_pb2.CameraIntrinsics, field: str) -> list[Violation]:
+    """fx, fy must be finite and > 0, cx, cy finite."""
+    found = []
+    for name in ("fx", "fy", "cx", "cy"):
+        value = getattr(camera, name)
+        if not math.isfinite(value) or (name in ("fx", "fy") and value <= 0):
+            rule = "finite and > 0" if name in ("fx", "fy") else "finite"
+            found.append(Violation(f"{field}.{name}", f"must be {rule}, got {value}", "intrinsics"))
+    return found
+
+
+def _intrinsics(camera: lifter_pb2.CameraIntrinsics) -> tuple[float, float, float, float]:
+    return (camera.fx, camera.fy, camera.cx, camera.cy)
+
+
+def to_pose_inputs(
+    poses: Sequence[lifter_pb2.Pose2D],
+    default_format: str,
+    prefix: str,
+    default_intrinsics: lifter_pb2.CameraIntrinsics | None = None,
+) -> list[PoseInput]:
+    """Proto poses in their wire-independent form; raises InvalidKeypoints on a bad layout.
+    default_intrinsics: those of poses without their own (checked by the caller)."""
     violations: list[Violation] = []
     inputs = []
     for i, pose in enumerate(poses):
@@ -92,7 +116,9 @@ def to_pose_inputs(poses: Sequence[lifter_pb2.Pose2D], default_format: str, pref
         points = np.array(pose.keypoints, dtype=np.float64).reshape(-1, 2)
         present = ~np.array(pose.missing, dtype=bool) if pose.missing else np.ones(len(points), dtype=bool)
         confidence = np.array(pose.confidence, dtype=np.float64) if pose.confidence else None
-        inputs.append(PoseInput(points, present, confidence, pose.format or default_format))
+        camera = pose.intrinsics if pose.HasField("intrinsics") else default_intrinsics
+        intrinsics = None if camera is None else _intrinsics(camera)
+        inputs.append(PoseInput(points, present, confidence, pose.format or default_format, intrinsics))
     if violations:
         raise InvalidKeypoints(violations)
     return inputs
@@ -195,7 +221,10 @@ class PoseLifterServicer:
         return lifter_pb2.LiftResponse(model_id=self.model_id, joints=self.joints, poses=results)
 
     def _prepare_request(self, request: lifter_pb2.LiftRequest, threshold: float | None) -> ModelInput:
-        poses = to_pose_inputs(request.poses, request.format or DEFAULT_FORMAT, "poses")
+        default = request.intrinsics if request.HasField("intrinsics") else None
+        if default is not None and (found := intrinsics_violations(default, "intrinsics")):
+            raise InvalidKeypoints(found)
+        poses = to_pose_inputs(request.poses, request.format or DEFAULT_FORMAT, "poses", default)
         return prepare_poses(poses, self.limits, threshold)
 
     async def LiftStream(

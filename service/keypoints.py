@@ -37,6 +37,8 @@ class PoseInput:
     present: BoolArray  # (K,) False where the request marks the joint missing (JSON null)
     confidence: npt.NDArray[np.float64] | None = None  # (K,) in [0, 1], or None
     format: str = DEFAULT_FORMAT
+    # (fx, fy, cx, cy) px of the pinhole camera that saw the pose, if the client knows it.
+    intrinsics: tuple[float, float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,7 @@ class ModelInput:
     imputed: BoolArray  # (N, 17) no visible source: the model fills the joint in
     format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into lookalike.FORMAT_NAMES
     nose_height: npt.NDArray[np.float32]  # (N,) lookalike.nose_height of its 17 input joints, or NaN
+    intrinsics: FloatArray  # (N, 4) fx, fy, cx, cy px of the pose's camera; NaN where not given
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
@@ -215,6 +218,7 @@ def prepare_poses(
         else:
             groups.setdefault(pose.format, []).append(i)
     n = len(poses)
+    intrinsics = np.array([p.intrinsics or (np.nan,) * 4 for p in poses], np.float32).reshape(n, 4)
     out = ModelInput(
         keypoints_2d=np.zeros((n, len(MODEL_JOINTS), 2), np.float32),
         visible=np.zeros((n, len(MODEL_JOINTS)), bool),
@@ -222,6 +226,7 @@ def prepare_poses(
         imputed=np.zeros((n, len(MODEL_JOINTS)), bool),
         format_index=np.zeros(n, np.int8),
         nose_height=np.full(n, np.nan, np.float32),
+        intrinsics=intrinsics,
     )
     for name, index in groups.items():
         fmt = FORMATS[name]
@@ -237,7 +242,9 @@ def prepare_poses(
         height = nose_height(points, visible) if lookalike_of(name) else np.full(len(index), np.nan)
         format_index = np.full(len(index), FORMAT_NAMES.index(name), np.int8)
         if len(index) == n and not violations:  # one format for the whole request: no scatter
-            return ModelInput(*converted, format_index=format_index, nose_height=height)
+            return ModelInput(
+                *converted, format_index=format_index, nose_height=height, intrinsics=intrinsics
+            )
         targets: tuple[np.ndarray, ...] = (out.keypoints_2d, out.visible, out.derived, out.imputed)
         for target, value in zip(
             (*targets, out.format_index, out.nose_height), (*converted, format_index, height), strict=True

@@ -115,6 +115,6 @@ def format_warnings(inputs: ModelInput, prediction: Prediction) -> list[list[str
         out[i].append(
             f"format: these keypoints look like {other}, not {given} (reprojection error "
             f"{relative[i]:.0%} of the pose's size, rare above {THRESHOLD:.0%} in the right format"
-            f"{geometry}); if they are {other}, send format \"{other}\""
+            f'{geometry}); if they are {other}, send format "{other}"'
         )
     return out

@@ -18,6 +18,8 @@ Row = Annotated[list[Number], Field(min_length=2, max_length=4)]
 Size = tuple[Annotated[float, Strict(), Field(gt=0)], Annotated[float, Strict(), Field(gt=0)]]
 ROW_LAYOUTS = "[x, y], [x, y, confidence] or MediaPipe [x, y, z, visibility]"
 Matrix = list[list[float]]
+Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+PositiveFinite = Annotated[float, Strict(), Field(gt=0, allow_inf_nan=False)]
 
 FRAME_DOC = (
     "Coordinate contract: `pose_3d` is in millimetres with the pelvis at the origin, in the model's "
@@ -65,6 +67,34 @@ def reject_unknown_keys(model: type[BaseModel], data: Any) -> None:
 # values gets one error, found in microseconds, instead of 300,000 errors built over seconds.
 
 
+class CameraIntrinsics(BaseModel):
+    """The pinhole camera that took the image, in pixels (as in its calibration or EXIF focal length)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    focal_px: tuple[PositiveFinite, PositiveFinite] = Field(
+        description="[fx, fy] focal lengths in pixels.", examples=[[1145.0, 1144.0]]
+    )
+    principal_point_px: tuple[Finite, Finite] = Field(
+        description="[cx, cy] principal point in pixels (usually near the image centre).",
+        examples=[[512.0, 515.0]],
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _check_keys(cls, data: Any) -> Any:
+        reject_unknown_keys(cls, data)
+        return data
+
+
+INTRINSICS_DOC = (
+    "The camera's intrinsics, if known. `pose_3d_camera` is then turned along the ray from the camera "
+    "to the person as well: the model sees each pose centred, as if it stood on the optical axis, "
+    "and without the intrinsics its camera-frame orientation misses the off-axis angle (on Human3.6M "
+    "S9/S11, P-I with them is about 13 mm lower, docs/RESULTS.md)."
+)
+
+
 class PoseIn(BaseModel):
     """One 2D pose from a detector."""
 
@@ -94,6 +124,9 @@ class PoseIn(BaseModel):
         None,
         description="[width, height] of the image in pixels when x and y are normalised to [0, 1] "
         "(MediaPipe): they are multiplied by it. Defaults to the request's `image_size`.",
+    )
+    intrinsics: CameraIntrinsics | None = Field(
+        None, description=INTRINSICS_DOC + " Defaults to the request's `intrinsics`."
     )
 
     @model_validator(mode="before")
@@ -160,6 +193,9 @@ class LiftRequest(BaseModel):
     image_size: Size | None = Field(
         None, description="`image_size` of poses that do not give their own ([width, height] in pixels)."
     )
+    intrinsics: CameraIntrinsics | None = Field(
+        None, description="`intrinsics` of poses that do not give their own. " + INTRINSICS_DOC
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -180,7 +216,8 @@ class PoseResult(BaseModel):
     pose_3d: Matrix = Field(description="17 x [x, y, z] in mm, pelvis at origin, template frame.")
     pose_3d_camera: Matrix = Field(
         description="17 x [x, y, z] in mm: pose_3d rotated into the camera's "
-        "orientation (pose_3d @ rotation.T)."
+        "orientation (pose_3d @ rotation.T); with `intrinsics`, then also turned along the ray from "
+        "the camera to the person (pose_3d @ (ray @ rotation).T)."
     )
     camera: Matrix = Field(description="Weak-perspective camera K, 2 x 3.")
     scale: float = Field(description="Camera scale s = sqrt(trace(K K^T) / 2).")

@@ -18,6 +18,9 @@ MAX_ERROR_ITEMS = 20  # service.errors.MAX_ERROR_ITEMS, the figure the issue ask
 FLAT_NUMBERS = 300_000
 # "No reply may take more than a few ms per KB of request": the bound, loose for a busy 2-core CI.
 MS_PER_KB = 3.0
+# Plus a floor for the round trip itself, which a loaded machine (training beside the tests) can
+# stretch to 100 ms; the amplification this guards against took seconds (15.6 s for 600 KB).
+FLOOR_MS = 500.0
 
 
 def post(service: ServiceProcess, body: bytes) -> tuple[httpx.Response, float]:
@@ -31,7 +34,7 @@ def post(service: ServiceProcess, body: bytes) -> tuple[httpx.Response, float]:
 def check_bounded(response: httpx.Response, seconds: float, request_bytes: int) -> dict[str, object]:
     assert response.status_code == 422, response.text[:300]
     assert len(response.content) < 16 * 1024, len(response.content)
-    assert seconds * 1000 < 50 + MS_PER_KB * request_bytes / 1024, seconds
+    assert seconds * 1000 < FLOOR_MS + MS_PER_KB * request_bytes / 1024, seconds
     body = response.json()
     assert isinstance(body, dict)
     assert len(body["detail"]) <= MAX_ERROR_ITEMS

@@ -70,6 +70,38 @@ def test_lift_via_service_matches_local(tmp_path: Path, live_service: LiveServic
         np.testing.assert_allclose(pa["input"]["keypoints"], pb["input"]["keypoints"])
 
 
+def test_intrinsics_turn_pose_3d_camera_via_service_and_locally(
+    tmp_path: Path, live_service: LiveService
+) -> None:
+    path = tmp_path / "one.json"
+    path.write_text(json.dumps((POSE_2D + [400.0, 0.0]).tolist()))  # off to the image's right
+    outputs = {}
+    for name, where in (
+        ("plain", ["--local"]),
+        ("local", ["--local"]),
+        ("remote", ["--url", live_service.http_url]),
+    ):
+        out = tmp_path / f"{name}.json"
+        camera = [] if name == "plain" else ["--intrinsics", "1145,1145,512,515"]
+        assert main(["lift", str(path), *where, *camera, "-o", str(out)]) == EXIT_OK
+        outputs[name] = json.loads(out.read_text())["poses"][0]
+    np.testing.assert_allclose(
+        outputs["local"]["pose_3d_camera"], outputs["remote"]["pose_3d_camera"], atol=1e-2
+    )
+    assert not np.allclose(outputs["local"]["pose_3d_camera"], outputs["plain"]["pose_3d_camera"], atol=1.0)
+    np.testing.assert_allclose(outputs["local"]["pose_3d"], outputs["plain"]["pose_3d"])
+
+
+@pytest.mark.parametrize("value", ["1145,1145,512", "0,1145,512,515", "a,b,c,d", "1145,1145,nan,515"])
+def test_bad_intrinsics_flag_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str) -> None:
+    path = tmp_path / "one.json"
+    path.write_text(json.dumps(POSE_2D.tolist()))
+    with pytest.raises(SystemExit) as info:
+        main(["lift", str(path), "--local", "--intrinsics", value])
+    assert info.value.code == EXIT_USAGE
+    assert "--intrinsics: expected FX,FY,CX,CY" in capsys.readouterr().err
+
+
 def test_lift_to_stdout(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "one.json"
     path.write_text(json.dumps(POSE_2D.tolist()))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service import geometry
 from tests.conftest import POSE_3D
@@ -80,3 +81,20 @@ def test_rotation_rows_are_the_polar_factor_of_the_camera() -> None:
         rotation64 @ rotation64.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (200, 3, 3)), atol=1e-5
     )
     np.testing.assert_allclose(np.linalg.det(rotation64), 1.0, atol=1e-5)
+
+
+def test_ray_rotation_turns_the_optical_axis_onto_the_ray_through_the_centroid() -> None:
+    points = np.array(
+        [[[600.0, 400.0], [700.0, 500.0], [1e6, -1e6]], [[500.0, 500.0], [500.0, 500.0], [0, 0]]]
+    )
+    visible = np.array([[True, True, False], [True, True, False]])
+    focal, centre = np.full((2, 2), 1000.0), np.full((2, 2), 500.0)
+    turn = geometry.ray_rotation(points, visible, focal, centre).astype(np.float64)
+    ray = np.array([0.15, -0.05, 1.0]) / np.linalg.norm([0.15, -0.05, 1.0])
+    np.testing.assert_allclose(turn[0] @ [0.0, 0.0, 1.0], ray, atol=1e-6)
+    np.testing.assert_allclose(turn[1], np.eye(3), atol=1e-7)  # a person on the axis: no turn
+    np.testing.assert_allclose(turn[0] @ turn[0].T, np.eye(3), atol=1e-6)
+    assert np.linalg.det(turn[0]) == pytest.approx(1.0, abs=1e-6)
+    # The smallest turn: the direction perpendicular to the axis and the ray stays put.
+    axis = np.cross([0.0, 0.0, 1.0], ray)
+    np.testing.assert_allclose(turn[0] @ axis, axis, atol=1e-6)

@@ -241,3 +241,53 @@ def test_lift_and_stream_carry_the_format_warning(stub: Stub) -> None:
     frames = [lifter_pb2.LiftFrame(frame_id=i, pose=to_proto_pose(p)) for i, p in enumerate([good(), pose])]
     results = list(stub.LiftStream(iter(frames), timeout=10))
     assert [len(r.pose.warnings) for r in results] == [0, 1]
+
+
+def _intrinsics(fx: float = 1145.0, cx: float = 512.0) -> lifter_pb2.CameraIntrinsics:
+    return lifter_pb2.CameraIntrinsics(fx=fx, fy=fx, cx=cx, cy=515.0)
+
+
+def test_intrinsics_turn_pose_3d_camera_like_http(stub: Stub, client: TestClient) -> None:
+    keypoints = (POSE_2D + [400.0, 0.0]).tolist()  # a person off to the right of the image
+    camera = {"focal_px": [1145.0, 1145.0], "principal_point_px": [512.0, 515.0]}
+    http = client.post("/lift", json={"keypoints": keypoints, "intrinsics": camera}).json()["poses"][0]
+    plain = client.post("/lift", json={"keypoints": keypoints}).json()["poses"][0]
+    pose = to_proto_pose({"keypoints": keypoints})
+    by_request = stub.Lift(lifter_pb2.LiftRequest(poses=[pose], intrinsics=_intrinsics()), timeout=10).poses[
+        0
+    ]
+    pose.intrinsics.CopyFrom(_intrinsics())
+    by_pose = stub.Lift(
+        lifter_pb2.LiftRequest(poses=[pose], intrinsics=_intrinsics(cx=0.0)), timeout=10
+    ).poses[0]
+    for got in (by_request, by_pose):  # the pose's own intrinsics win over the request's
+        np.testing.assert_allclose(np.reshape(got.pose_3d_camera, (17, 3)), http["pose_3d_camera"], atol=1e-2)
+    assert not np.allclose(http["pose_3d_camera"], plain["pose_3d_camera"], atol=1.0)
+    frame = lifter_pb2.LiftFrame(frame_id=1, pose=pose)
+    (streamed,) = list(stub.LiftStream(iter([frame]), timeout=10))
+    np.testing.assert_allclose(
+        np.reshape(streamed.pose.pose_3d_camera, (17, 3)), http["pose_3d_camera"], atol=1e-2
+    )
+
+
+@pytest.mark.parametrize(
+    ("where", "camera", "field"),
+    [
+        ("request", _intrinsics(fx=0.0), "intrinsics.fx"),
+        ("request", _intrinsics(cx=float("nan")), "intrinsics.cx"),
+        ("pose", _intrinsics(fx=-5.0), "poses[0].intrinsics.fx"),
+        ("pose", _intrinsics(cx=float("inf")), "poses[0].intrinsics.cx"),
+    ],
+)
+def test_bad_intrinsics_are_invalid_argument(
+    stub: Stub, where: str, camera: lifter_pb2.CameraIntrinsics, field: str
+) -> None:
+    pose = to_proto_pose(good())
+    request = lifter_pb2.LiftRequest(poses=[pose])
+    if where == "pose":
+        request.poses[0].intrinsics.CopyFrom(camera)
+    else:
+        request.intrinsics.CopyFrom(camera)
+    error = lift_error(stub, request)
+    assert error.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert (error.details() or "").startswith(f"{field}: must be finite"), error.details()

@@ -14,7 +14,7 @@ from service.engine import Engine
 from service.formats import FORMATS, from_model_joints
 from service.http_api import LiftJSONResponse
 from service.lifter import Lifter
-from tests.conftest import POSE_2D, expected_reprojection
+from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_2D, POSE_3D, expected_reprojection
 
 JOINTS = 17
 
@@ -243,3 +243,97 @@ def test_mediapipe_normalised_landmarks_are_scaled_by_the_image_size(client: Tes
         np.testing.assert_allclose(got["reprojection"], want["reprojection"], atol=1e-2)  # pixels again
         np.testing.assert_allclose(got["pose_3d"], want["pose_3d"], atol=1e-3)
         assert got["visible"] == want["visible"]
+
+
+def _off_axis(offset_mm: float, yaw_deg: float = 25.0) -> tuple[np.ndarray, np.ndarray]:
+    """POSE_3D turned by yaw_deg, `offset_mm` to the camera's right at 4.5 m: (17, 2) px and the
+    root-relative camera-frame pose (mm)."""
+    a = np.deg2rad(yaw_deg)
+    turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    camera = POSE_3D @ turn.T
+    seen = camera + [offset_mm, 0.0, 4500.0]
+    return FOCAL_PX * seen[:, :2] / seen[:, 2:] + CENTRE_PX, camera
+
+
+INTRINSICS = {"focal_px": [FOCAL_PX, FOCAL_PX], "principal_point_px": CENTRE_PX.tolist()}
+
+
+def test_intrinsics_turn_the_camera_frame_pose_along_the_ray(client: TestClient) -> None:
+    points, _ = _off_axis(1500.0)  # 18 degrees off the optical axis
+    plain = lift_one(client, points.tolist())["poses"][0]
+    given = lift_one(client, points.tolist(), intrinsics=INTRINSICS)["poses"][0]
+    # Only pose_3d_camera changes, by the turn of the ray through the centroid of the joints.
+    for name in ("pose_3d", "camera", "rotation", "reprojection"):
+        assert given[name] == plain[name], name
+    # The turn written out by axis and angle: about (0, 0, 1) x ray, by the ray's angle to the axis.
+    ray = np.append((points.mean(axis=0) - CENTRE_PX) / FOCAL_PX, 1.0)
+    ray /= np.linalg.norm(ray)
+    axis = np.cross([0.0, 0.0, 1.0], ray)
+    axis /= np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = np.arccos(ray[2])
+    turn = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    assert np.degrees(angle) > 15
+    expected = np.asarray(plain["pose_3d_camera"]) @ turn.T
+    np.testing.assert_allclose(given["pose_3d_camera"], expected, atol=0.05)
+
+
+def test_intrinsics_bring_the_camera_frame_pose_nearer_the_truth_off_axis(client: TestClient) -> None:
+    views = [
+        _off_axis(offset, yaw) for yaw in (-40.0, 0.0, 25.0, 60.0) for offset in (-1500.0, 1500.0, 2000.0)
+    ]
+    poses = [{"keypoints": points.tolist()} for points, _ in views]
+    truth = np.stack([camera for _, camera in views])
+
+    def error(**fields: Any) -> float:
+        reply = client.post("/lift", json={"poses": poses, **fields})
+        assert reply.status_code == 200, reply.text
+        pose = np.array([p["pose_3d_camera"] for p in reply.json()["poses"]])
+        return float(np.linalg.norm(pose - truth, axis=-1).mean())
+
+    # 12 views 18-24 degrees off the axis; per view the model's own error can go either way.
+    assert error(intrinsics=INTRINSICS) < 0.85 * error()
+
+
+def test_a_pose_s_own_intrinsics_override_the_request_s(client: TestClient) -> None:
+    points, _ = _off_axis(1500.0)
+    on_axis = {"focal_px": [FOCAL_PX, FOCAL_PX], "principal_point_px": points.mean(axis=0).tolist()}
+    body = {"poses": [{"keypoints": points.tolist(), "intrinsics": on_axis}, {"keypoints": points.tolist()}],
+            "intrinsics": INTRINSICS}  # fmt: skip
+    reply = client.post("/lift", json=body)
+    assert reply.status_code == 200, reply.text
+    first, second = reply.json()["poses"]
+    plain = lift_one(client, points.tolist())["poses"][0]
+    np.testing.assert_allclose(first["pose_3d_camera"], plain["pose_3d_camera"], atol=1e-3)  # no turn
+    assert not np.allclose(second["pose_3d_camera"], plain["pose_3d_camera"], atol=1.0)
+
+
+@pytest.mark.parametrize(
+    ("intrinsics", "field"),
+    [
+        ({"focal_px": [0.0, 1000.0], "principal_point_px": [500, 500]}, "intrinsics.focal_px[0]"),
+        ({"focal_px": [1000.0], "principal_point_px": [500, 500]}, "intrinsics.focal_px[1]"),
+        ({"focal_px": [1000.0, 1000.0]}, "intrinsics.principal_point_px"),
+        ({"focal_px": [1000.0, 1000.0], "principal_point_px": [500, 500], "skew": 0}, "intrinsics.skew"),
+        (
+            {"focal_px": [1000.0, 1000.0], "principal_point_px": ["500", 500]},
+            "intrinsics.principal_point_px[0]",
+        ),
+    ],
+)
+def test_bad_intrinsics_are_named(client: TestClient, intrinsics: dict[str, Any], field: str) -> None:
+    reply = client.post("/lift", json={"poses": [{"keypoints": POSE_2D.tolist()}], "intrinsics": intrinsics})
+    assert reply.status_code == 422, reply.text
+    assert field in [item["field"] for item in reply.json()["detail"]], reply.json()
+
+
+def test_non_finite_intrinsics_are_refused(client: TestClient) -> None:
+    body = json.dumps(
+        {
+            "keypoints": POSE_2D.tolist(),
+            "intrinsics": {"focal_px": [1e3, 1e3], "principal_point_px": [float("nan"), 5]},
+        }
+    )
+    reply = client.post("/lift", content=body, headers={"content-type": "application/json"})
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["detail"][0]["field"] == "poses[0].intrinsics.principal_point_px[0]"

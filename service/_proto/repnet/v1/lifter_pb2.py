@@ -24,29 +24,31 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16repnet/v1/lifter.proto\x12\trepnet.v1\"P\n\x06Pose2D\x12\x11\n\tkeypoints\x18\x01 \x03(\x02\x12\x12\n\nconfidence\x18\x02 \x03(\x02\x12\x0f\n\x07missing\x18\x03 \x03(\x08\x12\x0e\n\x06\x66ormat\x18\x04 \x01(\t\"{\n\x0bLiftRequest\x12 \n\x05poses\x18\x01 \x03(\x0b\x32\x11.repnet.v1.Pose2D\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x42\x17\n\x15_confidence_threshold\"\x8c\x02\n\nPoseResult\x12\x0f\n\x07pose_3d\x18\x01 \x03(\x02\x12\x16\n\x0epose_3d_camera\x18\x02 \x03(\x02\x12\x0e\n\x06\x63\x61mera\x18\x03 \x03(\x02\x12\r\n\x05scale\x18\x04 \x01(\x02\x12\x10\n\x08rotation\x18\x05 \x03(\x02\x12\x14\n\x0creprojection\x18\x06 \x03(\x02\x12\x1d\n\x15reprojection_error_px\x18\x07 \x01(\x02\x12\x0f\n\x07visible\x18\x08 \x03(\x08\x12\x0f\n\x07imputed\x18\t \x03(\x08\x12\x0f\n\x07\x64\x65rived\x18\n \x03(\x08\x12\x19\n\x0cplausibility\x18\x0b \x01(\x02H\x00\x88\x01\x01\x12\x10\n\x08warnings\x18\x0c \x03(\tB\x0f\n\r_plausibility\"V\n\x0cLiftResponse\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0e\n\x06joints\x18\x02 \x03(\t\x12$\n\x05poses\x18\x03 \x03(\x0b\x32\x15.repnet.v1.PoseResult\"z\n\tLiftFrame\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x1f\n\x04pose\x18\x02 \x01(\x0b\x32\x11.repnet.v1.Pose2D\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x42\x17\n\x15_confidence_threshold\"o\n\x0e\x46ieldViolation\x12\r\n\x05\x66ield\x18\x01 \x01(\t\x12\x0e\n\x06reason\x18\x02 \x01(\t\x12\x0c\n\x04\x63ode\x18\x03 \x01(\t\x12\x12\n\njoint_name\x18\x04 \x01(\t\x12\x12\n\x05joint\x18\x05 \x01(\x05H\x00\x88\x01\x01\x42\x08\n\x06_joint\"Z\n\nFrameError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12-\n\nviolations\x18\x03 \x03(\x0b\x32\x19.repnet.v1.FieldViolation\"\x8e\x01\n\x0fLiftFrameResult\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12%\n\x04pose\x18\x03 \x01(\x0b\x32\x15.repnet.v1.PoseResultH\x00\x12&\n\x05\x65rror\x18\x04 \x01(\x0b\x32\x15.repnet.v1.FrameErrorH\x00\x42\x08\n\x06result2\x89\x01\n\nPoseLifter\x12\x37\n\x04Lift\x12\x16.repnet.v1.LiftRequest\x1a\x17.repnet.v1.LiftResponse\x12\x42\n\nLiftStream\x12\x14.repnet.v1.LiftFrame\x1a\x1a.repnet.v1.LiftFrameResult(\x01\x30\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16repnet/v1/lifter.proto\x12\trepnet.v1\"\x81\x01\n\x06Pose2D\x12\x11\n\tkeypoints\x18\x01 \x03(\x02\x12\x12\n\nconfidence\x18\x02 \x03(\x02\x12\x0f\n\x07missing\x18\x03 \x03(\x08\x12\x0e\n\x06\x66ormat\x18\x04 \x01(\t\x12/\n\nintrinsics\x18\x05 \x01(\x0b\x32\x1b.repnet.v1.CameraIntrinsics\"B\n\x10\x43\x61meraIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x02\x12\n\n\x02\x66y\x18\x02 \x01(\x02\x12\n\n\x02\x63x\x18\x03 \x01(\x02\x12\n\n\x02\x63y\x18\x04 \x01(\x02\"\xac\x01\n\x0bLiftRequest\x12 \n\x05poses\x18\x01 \x03(\x0b\x32\x11.repnet.v1.Pose2D\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x12/\n\nintrinsics\x18\x04 \x01(\x0b\x32\x1b.repnet.v1.CameraIntrinsicsB\x17\n\x15_confidence_threshold\"\x8c\x02\n\nPoseResult\x12\x0f\n\x07pose_3d\x18\x01 \x03(\x02\x12\x16\n\x0epose_3d_camera\x18\x02 \x03(\x02\x12\x0e\n\x06\x63\x61mera\x18\x03 \x03(\x02\x12\r\n\x05scale\x18\x04 \x01(\x02\x12\x10\n\x08rotation\x18\x05 \x03(\x02\x12\x14\n\x0creprojection\x18\x06 \x03(\x02\x12\x1d\n\x15reprojection_error_px\x18\x07 \x01(\x02\x12\x0f\n\x07visible\x18\x08 \x03(\x08\x12\x0f\n\x07imputed\x18\t \x03(\x08\x12\x0f\n\x07\x64\x65rived\x18\n \x03(\x08\x12\x19\n\x0cplausibility\x18\x0b \x01(\x02H\x00\x88\x01\x01\x12\x10\n\x08warnings\x18\x0c \x03(\tB\x0f\n\r_plausibility\"V\n\x0cLiftResponse\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0e\n\x06joints\x18\x02 \x03(\t\x12$\n\x05poses\x18\x03 \x03(\x0b\x32\x15.repnet.v1.PoseResult\"z\n\tLiftFrame\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x1f\n\x04pose\x18\x02 \x01(\x0b\x32\x11.repnet.v1.Pose2D\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x42\x17\n\x15_confidence_threshold\"o\n\x0e\x46ieldViolation\x12\r\n\x05\x66ield\x18\x01 \x01(\t\x12\x0e\n\x06reason\x18\x02 \x01(\t\x12\x0c\n\x04\x63ode\x18\x03 \x01(\t\x12\x12\n\njoint_name\x18\x04 \x01(\t\x12\x12\n\x05joint\x18\x05 \x01(\x05H\x00\x88\x01\x01\x42\x08\n\x06_joint\"Z\n\nFrameError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12-\n\nviolations\x18\x03 \x03(\x0b\x32\x19.repnet.v1.FieldViolation\"\x8e\x01\n\x0fLiftFrameResult\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12%\n\x04pose\x18\x03 \x01(\x0b\x32\x15.repnet.v1.PoseResultH\x00\x12&\n\x05\x65rror\x18\x04 \x01(\x0b\x32\x15.repnet.v1.FrameErrorH\x00\x42\x08\n\x06result2\x89\x01\n\nPoseLifter\x12\x37\n\x04Lift\x12\x16.repnet.v1.LiftRequest\x1a\x17.repnet.v1.LiftResponse\x12\x42\n\nLiftStream\x12\x14.repnet.v1.LiftFrame\x1a\x1a.repnet.v1.LiftFrameResult(\x01\x30\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'repnet.v1.lifter_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_POSE2D']._serialized_start=37
-  _globals['_POSE2D']._serialized_end=117
-  _globals['_LIFTREQUEST']._serialized_start=119
-  _globals['_LIFTREQUEST']._serialized_end=242
-  _globals['_POSERESULT']._serialized_start=245
-  _globals['_POSERESULT']._serialized_end=513
-  _globals['_LIFTRESPONSE']._serialized_start=515
-  _globals['_LIFTRESPONSE']._serialized_end=601
-  _globals['_LIFTFRAME']._serialized_start=603
-  _globals['_LIFTFRAME']._serialized_end=725
-  _globals['_FIELDVIOLATION']._serialized_start=727
-  _globals['_FIELDVIOLATION']._serialized_end=838
-  _globals['_FRAMEERROR']._serialized_start=840
-  _globals['_FRAMEERROR']._serialized_end=930
-  _globals['_LIFTFRAMERESULT']._serialized_start=933
-  _globals['_LIFTFRAMERESULT']._serialized_end=1075
-  _globals['_POSELIFTER']._serialized_start=1078
-  _globals['_POSELIFTER']._serialized_end=1215
+  _globals['_POSE2D']._serialized_start=38
+  _globals['_POSE2D']._serialized_end=167
+  _globals['_CAMERAINTRINSICS']._serialized_start=169
+  _globals['_CAMERAINTRINSICS']._serialized_end=235
+  _globals['_LIFTREQUEST']._serialized_start=238
+  _globals['_LIFTREQUEST']._serialized_end=410
+  _globals['_POSERESULT']._serialized_start=413
+  _globals['_POSERESULT']._serialized_end=681
+  _globals['_LIFTRESPONSE']._serialized_start=683
+  _globals['_LIFTRESPONSE']._serialized_end=769
+  _globals['_LIFTFRAME']._serialized_start=771
+  _globals['_LIFTFRAME']._serialized_end=893
+  _globals['_FIELDVIOLATION']._serialized_start=895
+  _globals['_FIELDVIOLATION']._serialized_end=1006
+  _globals['_FRAMEERROR']._serialized_start=1008
+  _globals['_FRAMEERROR']._serialized_end=1098
+  _globals['_LIFTFRAMERESULT']._serialized_start=1101
+  _globals['_LIFTFRAMERESULT']._serialized_end=1243
+  _globals['_POSELIFTER']._serialized_start=1246
+  _globals['_POSELIFTER']._serialized_end=1383
 # @@protoc_insertion_point(module_scope)
