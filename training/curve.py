@@ -67,17 +67,21 @@ PANELS = (
 )
 
 
-def plot_runs(runs: dict[str, list[dict[str, float]]], path: Path) -> None:
+def plot_runs(
+    runs: dict[str, list[dict[str, float]]], path: Path, figures: tuple[str, ...] | None = None
+) -> None:
     """The validation figures of several runs against wall time: one colour per run, one line
-    style per figure; left panel pose errors, right panel symmetry and limb bone length std."""
+    style per figure; left panel pose errors, right panel symmetry and limb bone length std.
+    figures: instead, one panel per named figure (e.g. gt_pa_mpjpe), for many runs at once."""
+    panels = PANELS if not figures else tuple((key, (key,)) for key in figures)
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.5), squeeze=False)
     styles = ("-", "--", ":", "-.")
-    for ax, (ylabel, keys) in zip(axes, PANELS, strict=True):
+    for ax, (ylabel, keys) in zip(axes[0], panels, strict=True):
         for colour, (name, records) in enumerate(runs.items()):
             minutes = [r["minutes"] for r in records]
             for style, key in zip(styles, keys, strict=False):
@@ -85,7 +89,9 @@ def plot_runs(runs: dict[str, list[dict[str, float]]], path: Path) -> None:
                 if all(v != v for v in values):  # no such figure in this run
                     continue
                 label = f"{name}: {key}" if name else key
-                ax.plot(minutes, values, style, marker="o", ms=3, color=f"C{colour}", label=label)
+                colour_name = f"C{colour % 10}"
+                style = style if colour < 10 else ("--", ":", "-.")[(colour // 10 - 1) % 3]
+                ax.plot(minutes, values, style, marker="o", ms=3, color=colour_name, label=label)
         ax.set_xlabel("training wall time (min)")
         ax.set_ylabel(f"validation {ylabel}")
         ax.grid(alpha=0.3)
@@ -107,6 +113,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--png", type=Path, help="write the curve here")
     parser.add_argument("--at-minutes", type=float, help="also compare the runs at this wall time")
+    parser.add_argument("--figures", nargs="+", help="plot one panel per figure, e.g. gt_pa_mpjpe gt_symmetry")
     args = parser.parse_args(argv)
     runs = {}
     for item in args.history:
@@ -117,7 +124,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.at_minutes is not None:
         print(f"at {args.at_minutes:g} min of wall time:\n{equal_time_table(runs, args.at_minutes)}")
     if args.png:
-        plot_runs(runs, args.png)
+        plot_runs(runs, args.png, tuple(args.figures) if args.figures else None)
 
 
 if __name__ == "__main__":

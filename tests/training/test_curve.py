@@ -43,3 +43,18 @@ def test_equal_time_table_takes_each_runs_last_validation_within_the_time(tmp_pa
     rows = curve.equal_time_table(runs, 1.5).splitlines()
     assert rows[2].startswith("| a | 100 | 1.0 | 80.0 | – | – | 50.0 |")
     assert rows[3].startswith("| late | – | – |")
+
+
+def test_many_runs_plot_one_panel_per_named_figure(tmp_path: Path) -> None:
+    import matplotlib.image
+
+    runs = {
+        f"arm{i}": [{"step": s, "minutes": s / 10, "val_gt_pa_mpjpe": 60.0 - s - i, "val_gt_symmetry": 20.0}
+                    for s in (1, 2, 3)]
+        for i in range(12)
+    }  # fmt: skip
+    curve.plot_runs(runs, tmp_path / "arms.png", ("gt_pa_mpjpe", "gt_symmetry"))
+    wide = matplotlib.image.imread(tmp_path / "arms.png")
+    curve.plot_runs(runs, tmp_path / "one.png", ("gt_pa_mpjpe",))
+    narrow = matplotlib.image.imread(tmp_path / "one.png")
+    assert wide.shape[0] == narrow.shape[0] and wide.shape[1] == 2 * narrow.shape[1]
