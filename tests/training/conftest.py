@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from training.config import TrainConfig
+
 # A standing pose in the template frame (mm; x right, y down, z away from the camera).
 STANDING = np.array(
     [
@@ -98,3 +100,22 @@ def write_synthetic_h36m(folder: Path, seed: int = 0, frames: int = 120) -> Path
 @pytest.fixture(scope="session")
 def synthetic_h36m(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_synthetic_h36m(tmp_path_factory.mktemp("h36m"))
+
+
+def tiny_config(data_dir: Path, out: Path, iterations: int) -> TrainConfig:
+    """A few quick steps on the synthetic dataset: batch 64, one critic step, validation every 20."""
+    return TrainConfig(
+        data_dir=str(data_dir),
+        out_dir=str(out),
+        inputs="gt+sh",
+        iterations=iterations,
+        batch_size=64,
+        critic_steps=1,
+        lr=1e-3,
+        lr_decay=1.0,
+        val_size=200,
+        val_every=20,
+        log_every=10,
+        checkpoint_every=1000,
+        threads=1,
+    )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,9 +11,9 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from tests.training.conftest import STANDING
+from tests.training.conftest import STANDING, tiny_config
 from training import data, export, skeleton, train
-from training.config import RepNetConfig, TrainConfig
+from training.config import RepNetConfig
 from training.model import Critic, Plausibility, RepNet
 
 
@@ -93,18 +94,8 @@ def test_export_takes_the_critic_from_another_checkpoint(synthetic_h36m: Path, t
     tiny = RepNetConfig(width=32, critic_width=16, kcs_width=8)
 
     def run(name: str, seed: int) -> Path:
-        config = TrainConfig(
-            data_dir=str(synthetic_h36m),
-            out_dir=str(tmp_path / name),
-            inputs="gt",
-            iterations=4,
-            batch_size=16,
-            critic_steps=1,
-            val_size=50,
-            val_every=1000,
-            log_every=2,
-            threads=1,
-            seed=seed,
+        config = dataclasses.replace(
+            tiny_config(synthetic_h36m, tmp_path / name, 4), inputs="gt", batch_size=16, seed=seed
         )
         train.train(config, tiny, command=f"run {name}")
         return tmp_path / name / "last.pt"

@@ -70,12 +70,19 @@ def test_sample_pairs_each_view_with_the_aligned_pose_of_the_same_frame() -> Non
     assert 0 < spread.mean() < 8
 
 
-def test_the_camera_target_rotates_the_template_pose_into_the_synthetic_camera() -> None:
-    rng = np.random.default_rng(1)
+def _jittered_poses(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """20 jittered standing world poses (mm, pelvis at the origin), the same aligned to the
+    template, and the rotations that aligned them."""
+    rng = np.random.default_rng(seed)
     world = np.stack([_world_standing() + rng.normal(0, 30, (17, 3)).astype(np.float32) for _ in range(20)])
     world -= world[:, :1]
     aligned = data.align_to_template(world).astype(np.float64)
     _, align_rotations, _ = data.procrustes(world.astype(np.float64), aligned)
+    return world, aligned, align_rotations
+
+
+def test_the_camera_target_rotates_the_template_pose_into_the_synthetic_camera() -> None:
+    world, aligned, align_rotations = _jittered_poses(1)
     _, target, to_camera = synthetic.sample(
         torch.from_numpy(world),
         torch.from_numpy(aligned / 1000),
@@ -95,11 +102,7 @@ def test_the_camera_target_rotates_the_template_pose_into_the_synthetic_camera()
 
 
 def test_the_ray_target_is_the_camera_target_seen_along_the_ray_to_the_pelvis() -> None:
-    rng = np.random.default_rng(2)
-    world = np.stack([_world_standing() + rng.normal(0, 30, (17, 3)).astype(np.float32) for _ in range(20)])
-    world -= world[:, :1]
-    aligned = data.align_to_template(world).astype(np.float64)
-    _, align_rotations, _ = data.procrustes(world.astype(np.float64), aligned)
+    world, aligned, align_rotations = _jittered_poses(2)
     args = (torch.from_numpy(world), torch.from_numpy(aligned / 1000), 32, 0.0)
     rotations = torch.from_numpy(align_rotations)
     _, _, axis = synthetic.sample(*args, torch.Generator().manual_seed(5), rotations, "axis")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.training.conftest import STANDING
+from tests.training.conftest import STANDING, tiny_config
 from training import data, metrics, train
 from training.config import RepNetConfig, TrainConfig
 
@@ -18,21 +18,7 @@ TINY = RepNetConfig(width=64, critic_width=64, kcs_width=16)
 
 
 def _config(data_dir: Path, out: Path, iterations: int) -> TrainConfig:
-    return TrainConfig(
-        data_dir=str(data_dir),
-        out_dir=str(out),
-        inputs="gt+sh",
-        iterations=iterations,
-        batch_size=64,
-        critic_steps=2,
-        lr=1e-3,
-        lr_decay=1.0,
-        val_size=200,
-        val_every=20,
-        log_every=10,
-        checkpoint_every=20,
-        threads=1,
-    )
+    return dataclasses.replace(tiny_config(data_dir, out, iterations), critic_steps=2, checkpoint_every=20)
 
 
 def _history(out: Path) -> list[dict[str, float]]:
