@@ -38,6 +38,9 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda
     threads: int = 0  # torch intra-op threads on the CPU; 0 = torch's default
+    # torch.compile the generator: 15 % more samples/s in the warm start on this CPU
+    # (bench.train_step --compile); the first steps wait for the compiler (~1 min).
+    compile: bool = False
     iterations: int = 20000  # generator steps, warm start included; the schedule counts these
     max_minutes: float = 0.0  # stop (and checkpoint) after this wall time; 0 = no limit
     stop_step: int = 0  # stop (and checkpoint) at this step, schedule unchanged; 0 = at iterations

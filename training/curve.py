@@ -113,7 +113,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--png", type=Path, help="write the curve here")
     parser.add_argument("--at-minutes", type=float, help="also compare the runs at this wall time")
-    parser.add_argument("--figures", nargs="+", help="plot one panel per figure, e.g. gt_pa_mpjpe gt_symmetry")
+    parser.add_argument(
+        "--figures", nargs="+", help="plot one panel per figure, e.g. gt_pa_mpjpe gt_symmetry"
+    )
     args = parser.parse_args(argv)
     runs = {}
     for item in args.history:

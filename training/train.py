@@ -200,9 +200,14 @@ class Trainer:
             self.align_rotations = torch.from_numpy(rotations)
         self.generator = RepNet(model_config).to(device)
         self.critic = Critic(model_config).to(device)
+        # The generator's forward and backward as one compiled graph (config.compile); the critic
+        # stays eager: its gradient penalty needs a double backward, which torch.compile lacks.
+        self.generate: Any = torch.compile(self.generator) if config.compile else self.generator
         betas = (config.beta1, config.beta2)
-        self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=config.lr, betas=betas)
-        self.opt_c = torch.optim.Adam(self.critic.parameters(), lr=config.lr, betas=betas)
+        # The fused kernel: 3-7 % more samples/s than the default Adam on this CPU (bench.train_step).
+        fused = device.type in ("cpu", "cuda")
+        self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=config.lr, betas=betas, fused=fused)
+        self.opt_c = torch.optim.Adam(self.critic.parameters(), lr=config.lr, betas=betas, fused=fused)
         # Poses of the last generator step, judged by the next critic steps (reuse_fakes).
         self.fakes: torch.Tensor | None = None
 
@@ -243,7 +248,7 @@ class Trainer:
         )
         visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
         points = normalize_keypoints(pixels.to(self.device), visible)
-        pose, camera = self.generator(points, visible)
+        pose, camera = self.generate(points, visible)
         fit = reprojection_loss(points, visible, target, camera, config.reprojection_norm)
         if to_camera is not None:
             rows = camera / camera_scale(camera).clamp_min(1e-6)[:, None, None]
@@ -260,7 +265,7 @@ class Trainer:
         if self.fakes is None:
             points, visible = sample_2d(self.pool, config, self.device, self.gen)
             with torch.no_grad():
-                self.fakes, _ = self.generator(points, visible)
+                self.fakes, _ = self.generate(points, visible)
         idx = torch.randint(0, len(self.real_pool), (config.batch_size,), generator=self.gen).to(self.device)
         loss_c, wasserstein = critic_loss(self.critic, self.real_pool[idx], self.fakes, config.gp_weight)
         self.opt_c.zero_grad(set_to_none=True)
@@ -301,7 +306,7 @@ class Trainer:
             for _ in range(config.critic_steps):
                 terms["w_dist"] = self.critic_step()
             points, visible = sample_2d(self.pool, config, self.device, self.gen)
-            pose, camera = self.generator(points, visible)
+            pose, camera = self.generate(points, visible)
             terms["rep"] = reprojection_loss(points, visible, pose, camera, config.reprojection_norm)
             terms["cam"] = camera_loss(camera, config.camera_norm)
             terms["adv"] = -self.critic(pose).mean()

@@ -216,3 +216,13 @@ def test_a_critic_trained_against_corrupted_poses_ranks_a_real_pose_above_a_stre
         broken[:, moved] += 0.3 * (test[:, child] - test[:, parent])[:, None]
         with torch.no_grad():
             assert torch.all(plausibility(test) > plausibility(broken)), (parent, child)
+
+
+def test_a_compiled_generator_trains_and_saves_plain_weights(synthetic_h36m: Path, tmp_path: Path) -> None:
+    config = dataclasses.replace(_config(synthetic_h36m, tmp_path, 10), compile=True, warm_start_steps=10)
+    train.train(config, TINY)
+    state = torch.load(tmp_path / "last.pt", weights_only=False)
+    assert state["step"] == 10
+    assert not any(key.startswith("_orig_mod") for key in state["generator"])  # loadable by export
+    plain = train.RepNet(TINY)
+    plain.load_state_dict(state["generator"])
