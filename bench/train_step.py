@@ -117,10 +117,15 @@ def matmul_roof(batch: int, seconds: float) -> float:
     return best
 
 
+def _trainer(recipe: Recipe, compile_model: bool = False) -> Trainer:
+    """The recipe's Trainer on random data, seed 0; compile_model: the generator under torch.compile."""
+    config = dataclasses.replace(recipe.config, compile=compile_model)
+    pool = random_pool(np.random.default_rng(0))
+    return Trainer(config, recipe.model, pool, torch.device("cpu"), torch.Generator().manual_seed(0))
+
+
 def measure(recipe: Recipe, seconds: float, compile_model: bool = False) -> dict[str, float | str]:
-    gen = torch.Generator().manual_seed(0)
-    config = dataclasses.replace(recipe.config, compile=compile_model)  # the generator only
-    trainer = Trainer(config, recipe.model, random_pool(np.random.default_rng(0)), torch.device("cpu"), gen)
+    trainer = _trainer(recipe, compile_model)
     for step in range(3):  # warm-up (and the compiler's first runs)
         trainer.step(step)
     with MatmulFlops() as counter:
@@ -146,13 +151,7 @@ def profile(recipe: Recipe, steps: int, top: int = 12) -> None:
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as torch_profile
 
-    trainer = Trainer(
-        recipe.config,
-        recipe.model,
-        random_pool(np.random.default_rng(0)),
-        torch.device("cpu"),
-        torch.Generator().manual_seed(0),
-    )
+    trainer = _trainer(recipe)
     for step in range(3):  # warm-up
         trainer.step(step)
     with torch_profile(activities=[ProfilerActivity.CPU]) as prof:

@@ -180,10 +180,9 @@ def score(
         for start in range(0, len(points), batch_size):
             batch = slice(start, start + batch_size)
             pose, camera, plausibility = lift(points[batch], visible[batch])  # (B, 17, 3), (B, 2, 3), (B,)
-            pose_cam = metrics.to_camera_frame(pose, camera)  # Protocol I: the camera's rotation
-            p1.append(metrics.joint_errors(pose_cam, gt[batch]).astype(np.float32))
             ray = metrics.ray_rotation(points[batch], visible[batch], test.focal[batch], test.centre[batch])
-            pose_ray = metrics.to_camera_frame(pose, camera, ray)
+            pose_cam, pose_ray = metrics.camera_frames(pose, camera, ray)  # Protocol I, and along the ray
+            p1.append(metrics.joint_errors(pose_cam, gt[batch]).astype(np.float32))
             p1_ray.append(metrics.joint_errors(pose_ray, gt[batch]).astype(np.float32))
             p2.append(metrics.procrustes_errors(pose, gt[batch]).astype(np.float32))
             sym.append(metrics.symmetry_error(pose).astype(np.float32))

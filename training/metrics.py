@@ -46,6 +46,13 @@ def ray_rotation(
     return rotation_to_ray(direction)
 
 
+def camera_frames(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, J, 3) poses turned by K's rotation (Protocol I), and the same turned along the ray too:
+    to_camera_frame without and with `ray`, with one polar decomposition of K."""
+    rotation = rotation_from_camera(camera)
+    return np.einsum("nij,nkj->nki", rotation, pose), np.einsum("nij,nkj->nki", ray @ rotation, pose)
+
+
 def to_camera_frame(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray | None = None) -> np.ndarray:
     """Rotate (N, J, 3) template-frame poses into the camera's orientation (Protocol I): by the
     rotation in K, then, given (N, 3, 3) ray rotations (ray_rotation), by the turn of the ray."""

@@ -78,9 +78,12 @@ def validate(generator: RepNet, val: data.LiftingSet, device: torch.device) -> d
     ray: dict[str, float] = {}
     if val.focal is not None and val.centre is not None:
         rotation = metrics.ray_rotation(val.points_2d, val.visible, val.focal, val.centre)
-        ray["mpjpe_ray"] = metrics.mpjpe(metrics.to_camera_frame(pose, camera, rotation), val.poses_3d)
+        pose_cam, pose_ray = metrics.camera_frames(pose, camera, rotation)
+        ray["mpjpe_ray"] = metrics.mpjpe(pose_ray, val.poses_3d)
+    else:
+        pose_cam = metrics.to_camera_frame(pose, camera)
     return {
-        "mpjpe": metrics.mpjpe(metrics.to_camera_frame(pose, camera), val.poses_3d),
+        "mpjpe": metrics.mpjpe(pose_cam, val.poses_3d),
         **ray,
         "pa_mpjpe": metrics.pa_mpjpe(pose, val.poses_3d),
         "symmetry": float(metrics.symmetry_error(pose).mean()),
@@ -454,13 +457,8 @@ def _truncate_history(path: Path, step: int) -> None:
 
 def _subsample(val: data.LiftingSet, size: int, rng: np.random.Generator) -> data.LiftingSet:
     idx = np.sort(rng.choice(len(val.points_2d), size=min(size, len(val.points_2d)), replace=False))
-    return data.LiftingSet(
-        val.poses_3d[idx],
-        val.points_2d[idx],
-        val.visible[idx],
-        focal=None if val.focal is None else val.focal[idx],
-        centre=None if val.centre is None else val.centre[idx],
-    )
+    arrays = {f.name: getattr(val, f.name) for f in dataclasses.fields(val)}
+    return data.LiftingSet(**{name: None if a is None else a[idx] for name, a in arrays.items()})
 
 
 def _with_noise(val: data.LiftingSet, sigma_px: float, rng: np.random.Generator) -> data.LiftingSet:
