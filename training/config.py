@@ -95,6 +95,8 @@ class TrainConfig:
     # frame looking along the ray to the pelvis (what a centred input shows; synthetic.sample).
     camera_rotation_target: str = "axis"
     synthetic_noise_px: float = 8.0  # synthetic 2D gets N(0, u) px noise, u ~ U(0, this) per pose
+    # Share of the synthetic poses mirrored (left and right swapped) before they are seen.
+    mirror_prob: float = 0.0
     noise_px: float = 0.0  # std of Gaussian pixel noise added to the 2D inputs
     mask_prob: float = 0.5  # chance that a 2D sample has 1..mask_max random joints hidden
     mask_max: int = 3
@@ -105,6 +107,10 @@ class TrainConfig:
     # Also validate on the GT 2D validation poses plus N(0, this) px noise (fixed draw): "gt_noise".
     # 20 px here is the paper's sigma = 10 at its smaller image scale. 0 = off.
     val_noise_px: float = 20.0
+    # Also validate on the GT 2D validation poses mirrored (image flipped about the principal
+    # point, left and right swapped): "gt_mirror". The validation tail shares its people and
+    # their habits with training; their mirror images are people the lifter has not seen.
+    val_mirror: bool = True
     val_every: int = 500
     checkpoint_every: int = 500
     checkpoint_minutes: float = 10.0  # also checkpoint after this much wall time since the last

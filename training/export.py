@@ -15,6 +15,7 @@ import torch
 
 from training import data, skeleton
 from training.config import RepNetConfig
+from training.losses import bone_lengths
 from training.model import MM_PER_UNIT, Critic, LiftingGraph, Plausibility, RepNet
 
 log = logging.getLogger(__name__)
@@ -51,18 +52,36 @@ def calibrate(critic: Critic, real_poses_mm: np.ndarray, levels: int = CALIBRATI
     return np.quantile(scores.astype(np.float64), np.linspace(0.0, 1.0, levels)).astype(np.float32)
 
 
+# A real pose's bone may be this much shorter than the shortest or longer than the longest of
+# that bone among the real validation poses (template-aligned, so relative to the torso) before
+# plausibility calls the pose impossible: people beyond the five training subjects differ.
+BONE_MARGIN = 1.5
+
+
+def bone_range(real_poses_mm: np.ndarray, margin: float = BONE_MARGIN) -> np.ndarray:
+    """(2, B) shortest / margin and longest * margin length (metres) of each bone over real
+    template-aligned (N, J, 3) poses (mm): outside it, Plausibility scores 0."""
+    lengths = bone_lengths(torch.from_numpy(real_poses_mm.astype(np.float32) / MM_PER_UNIT)).numpy()
+    return np.stack([lengths.min(axis=0) / margin, lengths.max(axis=0) * margin]).astype(np.float32)
+
+
 def export_onnx(
-    generator: RepNet, path: Path, metadata: dict[str, str], plausibility: Plausibility | None = None
+    generator: RepNet,
+    path: Path,
+    metadata: dict[str, str],
+    plausibility: Plausibility | None = None,
+    mirror_average: bool = False,
 ) -> None:
     """Write the LiftingGraph of `generator` to `path` with the ONNX contract of the service.
 
     Inputs keypoints_2d (N, 17, 2) px and visibility (N, 17); outputs pose_3d (N, 17, 3) mm
     and camera (N, 2, 3), and plausibility (N,) in [0, 1] when a calibrated critic is given.
-    N is dynamic.
+    N is dynamic. mirror_average: the graph averages each answer with that of the mirrored
+    input (LiftingGraph), one generator run on 2N rows.
     """
     import onnx
 
-    graph = LiftingGraph(generator.eval(), plausibility).eval()
+    graph = LiftingGraph(generator.eval(), plausibility, mirror_average).eval()
     j = generator.config.num_joints
     example = (torch.randn(2, j, 2) * 100 + 500, torch.ones(2, j))
     outputs = ["pose_3d", "camera"] + (["plausibility"] if plausibility is not None else [])
@@ -98,6 +117,8 @@ def build_metadata(
     training_data: str = "",
     evaluation: dict[str, Any] | None = None,
     calibration: np.ndarray | None = None,
+    mirror_average: bool = False,
+    bones: np.ndarray | None = None,
 ) -> dict[str, str]:
     """ONNX custom metadata: joints, skeleton, provenance, licence, evaluation figures and, with
     a plausibility output, its calibration table."""
@@ -109,13 +130,20 @@ def build_metadata(
             "high as this pose_3d; 0.5 is a typical real pose, below 0.05 fewer than 1 in 20 real poses "
             "look as implausible"
         )
-        extra["plausibility_calibration"] = json.dumps(
-            {
-                "levels": len(calibration),
-                "critic_scores_at_quantiles": [round(float(v), 6) for v in calibration],
-                "reference": "critic scores of real validation poses, at quantiles 0..1 evenly spaced",
+        table: dict[str, Any] = {
+            "levels": len(calibration),
+            "critic_scores_at_quantiles": [round(float(v), 6) for v in calibration],
+            "reference": "critic scores of real validation poses, at quantiles 0..1 evenly spaced",
+        }
+        if bones is not None:
+            table["bone_length_range_mm"] = {
+                "bones": [[skeleton.JOINT_NAMES[p], skeleton.JOINT_NAMES[c]] for p, c in skeleton.BONES],
+                "shortest": [round(float(v) * MM_PER_UNIT, 1) for v in bones[0]],
+                "longest": [round(float(v) * MM_PER_UNIT, 1) for v in bones[1]],
+                "rule": f"plausibility is 0 when any bone of pose_3d is outside [shortest, longest]: the "
+                f"range of that bone over the real validation poses, widened {BONE_MARGIN}x each way",
             }
-        )
+        extra["plausibility_calibration"] = json.dumps(table)
     return {
         "model_id": model_id,
         "joint_names": json.dumps(list(skeleton.JOINT_NAMES)),
@@ -129,18 +157,22 @@ def build_metadata(
         "licence": LICENCE,
         "train_command": train_command,
         "evaluation": json.dumps(evaluation or {}),
+        "mirror_average": json.dumps(mirror_average),
         **extra,
     }
 
 
-def check_parity(generator: RepNet, path: Path, points: np.ndarray, visible: np.ndarray) -> float:
+def check_parity(
+    generator: RepNet, path: Path, points: np.ndarray, visible: np.ndarray, mirror_average: bool = False
+) -> float:
     """Max abs difference (mm) of pose_3d between torch and onnxruntime on (N, 17, 2) points."""
     import onnxruntime as ort
 
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     pose_ort = session.run(["pose_3d"], {"keypoints_2d": points, "visibility": visible})[0]
     with torch.no_grad():
-        pose_torch = LiftingGraph(generator)(torch.from_numpy(points), torch.from_numpy(visible))[0]
+        graph = LiftingGraph(generator, mirror_average=mirror_average)
+        pose_torch = graph(torch.from_numpy(points), torch.from_numpy(visible))[0]
     return float(np.abs(pose_ort - pose_torch.numpy()).max())
 
 
@@ -163,6 +195,13 @@ def main(argv: list[str] | None = None) -> None:
         "trained against corrupted real poses, which does not depend on the generator",
     )
     parser.add_argument(
+        "--mirror-average",
+        type=lambda v: v.lower() in ("1", "true", "yes"),
+        default=False,
+        help="average every answer with the mirrored answer to the mirrored input (test-time flip "
+        "augmentation; twice the generator's work; default false)",
+    )
+    parser.add_argument(
         "--data-dir", default=None, help="Human3.6M folder (default: $REPNET_H36M_DIR, ../shared)"
     )
     args = parser.parse_args(argv)
@@ -171,7 +210,7 @@ def main(argv: list[str] | None = None) -> None:
     generator, state = load_generator(args.checkpoint)
     evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else None
     train = state.get("train_config", {})
-    plausibility, table = None, None
+    plausibility, table, bones = None, None, None
     if args.plausibility:
         _, val_sets = data.build_training_sets(
             data.resolve_data_dir(args.data_dir), "gt", val_fraction=train.get("val_fraction", 0.1)
@@ -180,8 +219,9 @@ def main(argv: list[str] | None = None) -> None:
         if args.critic_checkpoint is not None:
             critic_state = torch.load(args.critic_checkpoint, map_location="cpu", weights_only=False)
         critic = load_critic(critic_state)
-        table = calibrate(critic, data.align_to_template(val_sets["gt"].poses_3d))
-        plausibility = Plausibility(critic, torch.from_numpy(table))
+        real = data.align_to_template(val_sets["gt"].poses_3d)
+        table, bones = calibrate(critic, real), bone_range(real)
+        plausibility = Plausibility(critic, torch.from_numpy(table), torch.from_numpy(bones))
         log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_3d))
     command = state.get("command", "")
     if args.plausibility and args.critic_checkpoint is not None:
@@ -193,12 +233,14 @@ def main(argv: list[str] | None = None) -> None:
         training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
         evaluation=evaluation,
         calibration=table,
+        mirror_average=args.mirror_average,
+        bones=bones,
     )
-    export_onnx(generator, args.output, metadata, plausibility)
+    export_onnx(generator, args.output, metadata, plausibility, args.mirror_average)
     rng = np.random.default_rng(0)
     points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
     visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
-    diff = check_parity(generator, args.output, points, visible)
+    diff = check_parity(generator, args.output, points, visible, args.mirror_average)
     log.info(
         "wrote %s (%.1f MB); torch vs onnxruntime max |diff| = %.2e mm",
         args.output,

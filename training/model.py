@@ -127,31 +127,71 @@ class Plausibility(nn.Module):
 
     table -- the critic's scores of real poses, sorted; a pose scores the share of them it
     reaches or beats, so 0.5 is a typical real pose and 0.01 one that 99 % of them beat.
+    bone_range -- optional (2, B) shortest and longest length (metres) a real pose's bones may
+    have: a pose with any bone outside scores 0. A critic is unbounded and extrapolates: far
+    outside the real poses (a limb metres long, which a generator can give for a wild input) it
+    can score higher than any real pose; no human has such a bone, whatever the critic says.
     """
 
-    def __init__(self, critic: Critic, table: torch.Tensor) -> None:
+    def __init__(self, critic: Critic, table: torch.Tensor, bone_range: torch.Tensor | None = None) -> None:
         super().__init__()
         self.critic = critic
         self.register_buffer("table", table.reshape(1, -1).to(torch.float32))
+        self.bone_range: torch.Tensor | None
+        if bone_range is None:
+            self.bone_range = None
+        else:
+            self.register_buffer("bone_range", bone_range.reshape(2, -1).to(torch.float32))
 
     def forward(self, pose: torch.Tensor) -> torch.Tensor:
         """(N, J, 3) pose in metres -> (N,) plausibility."""
         score = self.critic(pose).unsqueeze(1)  # (N, 1)
-        return (score >= self.table).to(pose.dtype).mean(dim=1)
+        percentile = (score >= self.table).to(pose.dtype).mean(dim=1)
+        if self.bone_range is None:
+            return percentile
+        lengths = self.critic.kcs(pose).diagonal(dim1=1, dim2=2).clamp_min(0.0).sqrt()  # (N, B)
+        inside = (lengths >= self.bone_range[0]) & (lengths <= self.bone_range[1])
+        return percentile * inside.all(dim=1).to(pose.dtype)
 
 
 class LiftingGraph(nn.Module):
     """What is exported: pixels and visibility in, pose_3d (mm) and camera out (ONNX contract),
-    and with a calibrated critic also plausibility (N,) in [0, 1]."""
+    and with a calibrated critic also plausibility (N,) in [0, 1].
 
-    def __init__(self, generator: RepNet, plausibility: Plausibility | None = None) -> None:
+    mirror_average -- also lift the mirror image of every input (x negated, left and right
+    swapped), mirror that answer back and average the two (test-time flip augmentation): the
+    graph then answers a mirrored input with exactly the mirrored pose and camera.
+    """
+
+    def __init__(
+        self, generator: RepNet, plausibility: Plausibility | None = None, mirror_average: bool = False
+    ) -> None:
         super().__init__()
         self.generator = generator
         self.plausibility = plausibility
+        self.mirror_average = mirror_average
+        # Mirroring flips the sign of x: of pose_3d's first column and of K's (x, .) and (., x)
+        # entries, K' = diag(-1, 1) K diag(-1, 1, 1).
+        self.register_buffer("flip_points", torch.tensor([-1.0, 1.0]), persistent=False)
+        self.register_buffer("flip_pose", torch.tensor([-1.0, 1.0, 1.0]), persistent=False)
+        self.register_buffer(
+            "flip_camera", torch.tensor([[1.0, -1.0, -1.0], [-1.0, 1.0, 1.0]]), persistent=False
+        )
+
+    def lift(self, points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The generator on normalised points, averaged with its mirrored answer (mirror_average)."""
+        if not self.mirror_average:
+            return self.generator(points, visible)
+        n, swap = points.shape[0], list(skeleton.MIRROR)
+        both_points = torch.cat([points, points[:, swap] * self.flip_points])
+        pose, camera = self.generator(both_points, torch.cat([visible, visible[:, swap]]))
+        pose_back = pose[n:][:, swap] * self.flip_pose
+        camera_back = camera[n:] * self.flip_camera
+        return (pose[:n] + pose_back) / 2, (camera[:n] + camera_back) / 2
 
     def forward(self, keypoints_2d: torch.Tensor, visibility: torch.Tensor) -> tuple[torch.Tensor, ...]:
         visible = (visibility > 0.5).to(keypoints_2d.dtype)
-        pose, camera = self.generator(normalize_keypoints(keypoints_2d, visible), visible)
+        pose, camera = self.lift(normalize_keypoints(keypoints_2d, visible), visible)
         if self.plausibility is None:
             return pose * MM_PER_UNIT, camera / MM_PER_UNIT
         return pose * MM_PER_UNIT, camera / MM_PER_UNIT, self.plausibility(pose)

@@ -38,6 +38,16 @@ REPROJECTION_WEIGHTS: tuple[float, ...] = tuple(
     0.0 if j == ROOT else 0.1 if name in ("neck", "head") else 1.0 for j, name in enumerate(JOINT_NAMES)
 )
 
+
+def _mirror_name(name: str) -> str:
+    side, _, part = name.partition("_")
+    other = {"left": "right", "right": "left"}.get(side)
+    return f"{other}_{part}" if other else name
+
+
+# The joint in each slot of a mirrored pose: left and right swapped, the midline kept.
+MIRROR: tuple[int, ...] = tuple(JOINT_NAMES.index(_mirror_name(name)) for name in JOINT_NAMES)
+
 # One bone per non-root joint, from its parent to itself.
 BONES: tuple[tuple[int, int], ...] = tuple((p, j) for j, p in enumerate(PARENTS) if p >= 0)
 NUM_BONES = len(BONES)

@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from training import metrics
+from training import metrics, skeleton
 
 FOCAL_PX = 1150.0
 CENTRE_PX = 500.0
@@ -62,6 +62,17 @@ def project(poses_world_mm: torch.Tensor, rot: torch.Tensor, position_m: torch.T
     return (FOCAL_PX * x_cam[..., :2] / x_cam[..., 2:3] + CENTRE_PX).to(torch.float32)
 
 
+def mirror(poses: torch.Tensor) -> torch.Tensor:
+    """(N, J, 3) poses -> their mirror images: x negated, left and right joints swapped.
+
+    A mirrored body is a body (its bones keep their lengths); for template-aligned poses it is
+    also exactly the alignment of the mirrored world pose, as the template torso is symmetric in x.
+    """
+    out = poses[:, list(skeleton.MIRROR)].clone()
+    out[..., 0] = -out[..., 0]
+    return out
+
+
 def sample(
     poses_world_mm: torch.Tensor,
     poses_aligned_m: torch.Tensor,
@@ -70,6 +81,7 @@ def sample(
     gen: torch.Generator,
     align_rotations: torch.Tensor | None = None,
     rotation_target: str = "axis",
+    mirror_prob: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """A synthetic batch: (B, J, 2) pixels with detector-like noise, the (B, J, 3) target (the
     same pose aligned to the template, metres: what the generator outputs) and, given the
@@ -78,21 +90,37 @@ def sample(
 
     rotation_target "axis": into the camera frame itself; "ray": into the frame that looks along
     the ray from the camera to the pelvis, the one view a centred input can show (the camera
-    frame is this turned by metrics.rotation_to_ray of the pelvis' direction)."""
+    frame is this turned by metrics.rotation_to_ray of the pelvis' direction).
+
+    mirror_prob -- the share of poses mirrored (mirror) before they are seen: the training
+    subjects' poses are not left-right balanced (a phone in the right hand), and a lifter that
+    learns them as they are lifts their mirror images worse."""
     idx = torch.randint(0, poses_world_mm.shape[0], (batch,), generator=gen)
     rot, position = random_views(batch, gen)
-    pixels = project(poses_world_mm[idx], rot, position)
+    world, aligned = poses_world_mm[idx], poses_aligned_m[idx]
+    flip = None
+    if mirror_prob > 0:
+        flip = torch.rand(batch, generator=gen) < mirror_prob
+        world = torch.where(flip[:, None, None], mirror(world), world)
+        aligned = torch.where(flip.to(aligned.device)[:, None, None], mirror(aligned), aligned)
+    pixels = project(world, rot, position)
     if noise_px > 0:
         sigma = noise_px * torch.rand(batch, 1, 1, generator=gen)
         pixels = pixels + sigma * torch.randn(pixels.shape, generator=gen)
     # aligned = s * world @ A^T, camera = world @ V^T, so camera = aligned @ (V A^T)^T / s.
     to_camera = None
     if align_rotations is not None:
-        to_camera = rot @ align_rotations[idx].to(torch.float64).transpose(1, 2)
+        template_to_world = align_rotations[idx].to(torch.float64).transpose(1, 2)
+        if flip is not None:
+            # Both poses mirrored in x: the aligning rotation becomes D A D, D = diag(-1, 1, 1).
+            sign = torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+            turned = sign[:, None] * template_to_world * sign
+            template_to_world = torch.where(flip[:, None, None], turned, template_to_world)
+        to_camera = rot @ template_to_world
         if rotation_target == "ray":
             ray = torch.from_numpy(metrics.rotation_to_ray(position.numpy()))
             to_camera = ray.transpose(1, 2) @ to_camera
         elif rotation_target != "axis":
             raise ValueError(f"rotation target must be axis or ray, got {rotation_target!r}")
         to_camera = to_camera.to(torch.float32)
-    return pixels, poses_aligned_m[idx], to_camera
+    return pixels, aligned, to_camera

@@ -60,10 +60,13 @@ def sample_2d(
     return normalize_keypoints(points, visible), visible
 
 
-def validate(generator: RepNet, val: data.LiftingSet, device: torch.device) -> dict[str, float]:
-    """Protocol I and II MPJPE, symmetry error and limb bone length std (mm) on a validation set."""
+def validate(
+    generator: RepNet, val: data.LiftingSet, device: torch.device, mirror_average: bool = False
+) -> dict[str, float]:
+    """Protocol I and II MPJPE, symmetry error and limb bone length std (mm) on a validation set;
+    mirror_average: of the graph that averages each answer with the mirrored one (LiftingGraph)."""
     generator.eval()
-    graph = LiftingGraph(generator)
+    graph = LiftingGraph(generator, mirror_average=mirror_average)
     poses, cameras = [], []
     with torch.no_grad():
         for start in range(0, len(val.points_2d), 4096):
@@ -82,13 +85,20 @@ def validate(generator: RepNet, val: data.LiftingSet, device: torch.device) -> d
         ray["mpjpe_ray"] = metrics.mpjpe(pose_ray, val.poses_3d)
     else:
         pose_cam = metrics.to_camera_frame(pose, camera)
+    lengths = bone_lengths(torch.from_numpy(pose)).numpy()  # (N, B) mm
+    truth = bone_lengths(torch.from_numpy(val.poses_3d)).numpy().mean(axis=0)  # (B,)
     return {
         "mpjpe": metrics.mpjpe(pose_cam, val.poses_3d),
         **ray,
         "pa_mpjpe": metrics.pa_mpjpe(pose, val.poses_3d),
         "symmetry": float(metrics.symmetry_error(pose).mean()),
         "bone_std": float(metrics.limb_length_std(pose).mean()),
+        # Wild answers: the share (%) of poses with a bone over WILD_RATIO times its true mean length.
+        "wild_pct": 100.0 * float(((lengths / truth).max(axis=1) > WILD_RATIO).mean()),
     }
+
+
+WILD_RATIO = 3.0
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
@@ -248,6 +258,7 @@ class Trainer:
             self.gen,
             self.align_rotations,
             config.camera_rotation_target,
+            config.mirror_prob,
         )
         visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
         points = normalize_keypoints(pixels.to(self.device), visible)
@@ -352,10 +363,7 @@ def train(
     resume_path = resolve_resume(resume, out)
     data_dir = data.resolve_data_dir(config.data_dir or None)
     pool, val_sets = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)
-    rng = np.random.default_rng(config.seed)
-    val_sets = {k: _subsample(v, config.val_size, rng) for k, v in val_sets.items()}
-    if config.val_noise_px > 0 and "gt" in val_sets:
-        val_sets["gt_noise"] = _with_noise(val_sets["gt"], config.val_noise_px, rng)
+    val_sets = validation_sets(config, val_sets)
     log.info(
         "training on %s: %d 3D poses, %d 2D poses, device %s",
         config.inputs,
@@ -446,6 +454,19 @@ def train(
     return out / "best.pt"
 
 
+def validation_sets(config: TrainConfig, held_out: dict[str, data.LiftingSet]) -> dict[str, data.LiftingSet]:
+    """The sets a run validates on, from build_training_sets' held-out tails: val_size poses of each
+    input kind, and of GT 2D also with noise (gt_noise) and mirrored (gt_mirror). The same draw
+    for the same seed, so runs and training.validate score the same poses."""
+    rng = np.random.default_rng(config.seed)
+    sets = {kind: _subsample(val, config.val_size, rng) for kind, val in held_out.items()}
+    if config.val_noise_px > 0 and "gt" in sets:
+        sets["gt_noise"] = _with_noise(sets["gt"], config.val_noise_px, rng)
+    if config.val_mirror and "gt" in sets:
+        sets["gt_mirror"] = _mirrored(sets["gt"])
+    return sets
+
+
 def _truncate_history(path: Path, step: int) -> None:
     """Drop the records an interrupted run wrote after the checkpoint it resumes from."""
     if not path.is_file():
@@ -465,6 +486,19 @@ def _with_noise(val: data.LiftingSet, sigma_px: float, rng: np.random.Generator)
     """The same validation poses with N(0, sigma_px) px added to their 2D points."""
     noise = rng.normal(0.0, sigma_px, val.points_2d.shape).astype(val.points_2d.dtype)
     return dataclasses.replace(val, points_2d=val.points_2d + noise)
+
+
+def _mirrored(val: data.LiftingSet) -> data.LiftingSet:
+    """The validation poses mirrored: 2D flipped about each camera's principal point, 3D (camera
+    frame) flipped in x, left and right joints swapped in both."""
+    if val.centre is None:
+        raise ValueError("mirroring a validation set needs its principal points")
+    swap = list(skeleton.MIRROR)
+    points = val.points_2d[:, swap].copy()
+    points[..., 0] = 2 * val.centre[:, None, 0] - points[..., 0]
+    poses = val.poses_3d[:, swap].copy()
+    poses[..., 0] = -poses[..., 0]
+    return dataclasses.replace(val, poses_3d=poses, points_2d=points, visible=val.visible[:, swap].copy())
 
 
 def _add_flags(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:

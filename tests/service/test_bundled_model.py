@@ -66,7 +66,32 @@ def test_garbage_input_is_flagged_implausible(bundled: Lifter) -> None:
     p_real, p_swapped = lifted_real.plausibility, lifted_swapped.plausibility
     assert p_real is not None and p_swapped is not None
     # repnet-h36m-v2 lifted this input to a wild pose (plausibility 0.0, reprojection error
-    # 580-1780 px); v3 lifts it to a body-like pose that cannot fit the input: below most real
-    # poses (0.21-0.24) and with 8x the reprojection error of the real input.
+    # 580-1780 px); v3 and v4 lift it to a body-like pose that cannot fit the input: below most
+    # real poses and with several times the reprojection error of the real input.
     assert np.all(p_real > 0.9) and np.all(p_swapped < 0.3)
     assert np.all(lifted_swapped.reprojection_error_px > 5 * lifted_real.reprojection_error_px)
+
+
+def test_a_mirror_averaged_model_answers_the_mirror_image_with_the_mirrored_pose(bundled: Lifter) -> None:
+    if not json.loads(bundled.info.metadata.get("mirror_average", "false")):
+        pytest.skip("the loaded model does not average its answers with the mirrored ones")
+    names = json.loads(bundled.info.metadata["joint_names"])
+    swap = [names.index(n.replace("left", "#").replace("right", "left").replace("#", "right")) for n in names]
+    real = np.stack([project(POSE_3D, yaw) for yaw in YAWS_DEG]).astype(np.float32)
+    mirrored = real[:, swap].copy()
+    mirrored[..., 0] = 1000.0 - mirrored[..., 0]  # the image flipped left to right
+    visible = np.ones(real.shape[:2], dtype=bool)
+    lifted, lifted_mirror = bundled.lift(real, visible), bundled.lift(mirrored, visible)
+    np.testing.assert_allclose(lifted_mirror.pose_3d, lifted.pose_3d[:, swap] * [-1, 1, 1], atol=0.05)
+    # The critic judges the mirror image on its own (it is not mirror-symmetric): both are real poses.
+    assert lifted.plausibility is not None and lifted_mirror.plausibility is not None
+    assert np.all(lifted.plausibility > 0.9) and np.all(lifted_mirror.plausibility > 0.9)
+
+
+def test_bundled_plausibility_gives_zero_to_a_pose_no_human_has(bundled: Lifter) -> None:
+    bones = json.loads(bundled.info.metadata["plausibility_calibration"])["bone_length_range_mm"]
+    names = json.loads(bundled.info.metadata["joint_names"])
+    forearm = bones["bones"].index(["left_elbow", "left_wrist"])
+    # The real test pose's forearm lies inside the range, and the range is that of people.
+    length = float(np.linalg.norm(POSE_3D[names.index("left_wrist")] - POSE_3D[names.index("left_elbow")]))
+    assert bones["shortest"][forearm] < length < bones["longest"][forearm] < 3 * length

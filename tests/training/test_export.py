@@ -14,6 +14,7 @@ import torch
 from tests.training.conftest import STANDING, tiny_config
 from training import data, export, skeleton, train
 from training.config import RepNetConfig
+from training.losses import bone_lengths
 from training.model import Critic, Plausibility, RepNet
 
 
@@ -123,6 +124,59 @@ def test_export_takes_the_critic_from_another_checkpoint(synthetic_h36m: Path, t
     critic = export.load_critic(torch.load(critic_ckpt, weights_only=False))
     with torch.no_grad():
         scores = critic(torch.from_numpy(pose) / 1000).numpy()
-    np.testing.assert_allclose(plausibility, (scores[:, None] >= table[None]).mean(axis=1), atol=1e-6)
+    bones = json.loads(meta["plausibility_calibration"])["bone_length_range_mm"]
+    lengths = bone_lengths(torch.from_numpy(pose)).numpy()  # mm
+    inside = np.all((lengths >= bones["shortest"]) & (lengths <= bones["longest"]), axis=1)
+    expected = (scores[:, None] >= table[None]).mean(axis=1) * inside
+    np.testing.assert_allclose(plausibility, expected, atol=1e-6)
     generator, _ = export.load_generator(gen_ckpt)
     assert export.check_parity(generator, out, points, np.ones((8, 17), np.float32)) <= 0.01
+
+
+def test_a_mirror_averaged_export_keeps_the_contract_and_answers_mirrors_with_mirrors(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    generator = RepNet(RepNetConfig(width=32, critic_width=32, kcs_width=8)).eval()
+    path = tmp_path / "mirror.onnx"
+    meta = export.build_metadata(generator.config, "m", mirror_average=True)
+    export.export_onnx(generator, path, meta, None, mirror_average=True)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert json.loads(session.get_modelmeta().custom_metadata_map["mirror_average"]) is True
+    rng = np.random.default_rng(1)
+    points = (STANDING[None, :, :2] * 0.3 + 400 + rng.normal(0, 8, (6, 17, 2))).astype(np.float32)
+    visible = np.ones((6, 17), np.float32)
+    visible[2, [5, 12]] = 0
+    assert export.check_parity(generator, path, points, visible, mirror_average=True) <= 0.01
+    swap = list(skeleton.MIRROR)
+    mirrored = points[:, swap].copy()
+    mirrored[..., 0] = 1000.0 - mirrored[..., 0]
+    pose, camera = session.run(None, {"keypoints_2d": points, "visibility": visible})
+    pose_m, camera_m = session.run(None, {"keypoints_2d": mirrored, "visibility": visible[:, swap].copy()})
+    np.testing.assert_allclose(pose_m, pose[:, swap] * [-1, 1, 1], atol=1e-2)
+    np.testing.assert_allclose(camera_m, camera * [[1, -1, -1], [-1, 1, 1]], atol=1e-7, rtol=1e-4)
+    # The plain export of the same generator is a different graph: it has no such symmetry.
+    plain = tmp_path / "plain.onnx"
+    export.export_onnx(generator, plain, export.build_metadata(generator.config, "p"))
+    plain_meta = ort.InferenceSession(str(plain)).get_modelmeta().custom_metadata_map
+    assert json.loads(plain_meta["mirror_average"]) is False
+
+
+def test_a_pose_with_a_bone_no_human_has_scores_zero_whatever_the_critic_says() -> None:
+    torch.manual_seed(0)
+    critic = Critic(RepNetConfig(critic_width=16, kcs_width=8)).eval()
+    rng = np.random.default_rng(0)
+    real = (STANDING[None] + rng.normal(0, 10, (200, 17, 3))).astype(np.float32)
+    bones = export.bone_range(real)
+    lengths = bone_lengths(torch.from_numpy(real) / 1000).numpy()
+    np.testing.assert_allclose(bones[1], lengths.max(axis=0) * export.BONE_MARGIN, rtol=1e-6)
+    # A critic that extrapolates: the bigger the pose, the higher it scores (what a trained one
+    # can do far from the real poses).
+    critic.forward = lambda pose: pose.abs().sum(dim=(1, 2))  # type: ignore[method-assign]
+    table = export.calibrate(critic, real, levels=101)
+    giant = real[:4].copy()
+    giant[:, 13] = giant[:, 12] + (giant[:, 13] - giant[:, 12]) * 4  # a forearm 4x as long
+    poses = torch.from_numpy(np.concatenate([real[:4], giant]) / 1000)
+    unguarded = Plausibility(critic, torch.from_numpy(table))(poses).numpy()
+    guarded = Plausibility(critic, torch.from_numpy(table), torch.from_numpy(bones))(poses).numpy()
+    assert np.all(unguarded[4:] == 1.0)
+    np.testing.assert_array_equal(guarded[:4], unguarded[:4])  # real poses keep their score
+    assert np.all(guarded[4:] == 0.0)

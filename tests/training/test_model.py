@@ -92,3 +92,36 @@ def test_shared_trunk_feeds_both_branches_and_exports_the_same_contract() -> Non
 def test_separate_branches_have_no_trunk_parameters() -> None:
     names = {name.split(".")[0] for name, _ in RepNet(TINY).named_parameters()}
     assert names == {"pose_branch", "camera_branch"}
+
+
+def _mirrored_pixels(points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The image flipped about x = 640, left and right joints swapped."""
+    swap = list(skeleton.MIRROR)
+    flipped = points[:, swap].clone()
+    flipped[..., 0] = 1280.0 - flipped[..., 0]
+    return flipped, visible[:, swap]
+
+
+def test_mirror_average_answers_a_mirrored_input_with_the_mirrored_pose_and_camera() -> None:
+    torch.manual_seed(0)
+    generator = RepNet(TINY).eval()
+    points = torch.tensor(STANDING[None, :, :2] * 0.3 + 400.0, dtype=torch.float32).repeat(3, 1, 1)
+    points = points + torch.randn(points.shape) * 8
+    visible = torch.ones(3, 17)
+    visible[1, [3, 13]] = 0
+    mirrored = _mirrored_pixels(points, visible)
+    swap = list(skeleton.MIRROR)
+    sign_pose = torch.tensor([-1.0, 1.0, 1.0])
+    sign_camera = torch.tensor([[1.0, -1.0, -1.0], [-1.0, 1.0, 1.0]])
+    averaged = LiftingGraph(generator, mirror_average=True).eval()
+    pose, camera = averaged(points, visible)
+    pose_m, camera_m = averaged(*mirrored)
+    torch.testing.assert_close(pose_m, pose[:, swap] * sign_pose, atol=1e-3, rtol=1e-5)
+    torch.testing.assert_close(camera_m, camera * sign_camera, atol=1e-8, rtol=1e-5)
+    # Without the average a random generator has no such symmetry; the average lies between
+    # its answers to the input and to the mirror image.
+    plain = LiftingGraph(generator).eval()
+    pose_p, _ = plain(points, visible)
+    pose_pm, _ = plain(*mirrored)
+    assert not torch.allclose(pose_pm, pose_p[:, swap] * sign_pose, atol=1.0)
+    torch.testing.assert_close(pose, (pose_p + pose_pm[:, swap] * sign_pose) / 2, atol=1e-3, rtol=1e-5)

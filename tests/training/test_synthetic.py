@@ -118,3 +118,43 @@ def test_the_ray_target_is_the_camera_target_seen_along_the_ray_to_the_pelvis() 
     assert 0 < angle.min() and angle.max() < 20.0
     with pytest.raises(ValueError, match="axis or ray"):
         synthetic.sample(*args, torch.Generator().manual_seed(5), rotations, "sideways")
+
+
+def test_the_mirror_of_an_aligned_pose_is_the_alignment_of_the_mirrored_world_pose() -> None:
+    world, aligned, _ = _jittered_poses(3)
+    mirrored_world = synthetic.mirror(torch.from_numpy(world)).numpy()
+    np.testing.assert_allclose(
+        data.align_to_template(mirrored_world), synthetic.mirror(torch.from_numpy(aligned)).numpy(), atol=1e-2
+    )
+    # A mirror image keeps every bone's length but is not the pose itself.
+    np.testing.assert_allclose(
+        metrics.symmetry_error(world), metrics.symmetry_error(mirrored_world), atol=1e-3
+    )
+    assert np.abs(mirrored_world - world).max() > 50
+
+
+def test_mirrored_samples_keep_pixels_target_and_camera_target_consistent() -> None:
+    world, aligned, align_rotations = _jittered_poses(4)
+    args = (torch.from_numpy(world), torch.from_numpy(aligned / 1000), 64, 0.0)
+    rotations = torch.from_numpy(align_rotations)
+    plain = synthetic.sample(*args, torch.Generator().manual_seed(6), rotations)
+    gen = torch.Generator().manual_seed(6)
+    pixels, target, to_camera = synthetic.sample(*args, gen, rotations, mirror_prob=0.5)
+    assert to_camera is not None and plain[2] is not None
+    gen = torch.Generator().manual_seed(6)
+    torch.randint(0, 20, (64,), generator=gen)
+    _, position = synthetic.random_views(64, gen)
+    flip = torch.rand(64, generator=gen) < 0.5
+    assert 10 < int(flip.sum()) < 54
+    # Unmirrored poses are drawn exactly as without mirroring; mirrored ones are mirror images.
+    torch.testing.assert_close(target[~flip], plain[1][~flip])
+    torch.testing.assert_close(pixels[~flip], plain[0][~flip])
+    torch.testing.assert_close(target[flip], synthetic.mirror(plain[1][flip]))
+    # Every pose's pixels are its target seen through its camera target (up to scale and shift).
+    in_camera = target.to(torch.float64) @ to_camera.to(torch.float64).transpose(1, 2) + position[:, None]
+    seen = synthetic.FOCAL_PX * in_camera[..., :2] / in_camera[..., 2:3]
+    seen = seen - seen.mean(dim=1, keepdim=True)
+    shown = (pixels - pixels.mean(dim=1, keepdim=True)).to(torch.float64)
+    ratio = (seen * shown).sum(dim=(1, 2)) / (seen**2).sum(dim=(1, 2))
+    residual = (seen * ratio[:, None, None] - shown).norm(dim=-1).mean(dim=1)
+    assert residual.max() < 2.0, residual.max()

@@ -32,6 +32,7 @@ def test_training_steps_reduce_reprojection_and_camera_losses(synthetic_h36m: Pa
     assert history[-1]["cam"] < history[0]["cam"]
     assert "val_gt_pa_mpjpe" in history[-1] and "val_sh_mpjpe" in history[-1]
     assert "val_gt_noise_pa_mpjpe" in history[-1]  # GT 2D + N(0, 20 px)
+    assert "val_gt_mirror_pa_mpjpe" in history[-1]  # GT 2D mirrored
     state = torch.load(best, weights_only=False)
     assert state["model_config"]["width"] == 64
 
@@ -51,6 +52,7 @@ def _recipe(data_dir: Path, out: Path) -> TrainConfig:
         _config(data_dir, out, 40),
         warm_start_steps=15,
         synthetic_weight=0.5,
+        mirror_prob=0.5,
         adversarial_ramp=10,
         schedule="step",
         log_every=5,
@@ -85,6 +87,33 @@ def test_a_resumed_run_continues_bit_for_bit(synthetic_h36m: Path, tmp_path: Pat
     ]
     for name, value in _weights(whole / "last.pt").items():
         assert torch.equal(value, _weights(parts / "last.pt")[name]), name
+
+
+def test_the_mirrored_validation_set_is_the_mirror_image_seen_by_the_same_camera() -> None:
+    rng = np.random.default_rng(0)
+    poses = (STANDING[None] + rng.normal(0, 40, (5, 17, 3)) + [100, -200, 4500]).astype(np.float32)
+    focal = np.array([[1145.0, 1144.0]] * 5, np.float32)
+    centre = np.array(
+        [[512.0, 515.0], [500.0, 500.0], [480.0, 520.0], [512.0, 515.0], [505.0, 498.0]], np.float32
+    )
+
+    def project(camera_mm: np.ndarray) -> np.ndarray:
+        return (focal[:, None] * camera_mm[..., :2] / camera_mm[..., 2:3] + centre[:, None]).astype(
+            np.float32
+        )
+
+    visible = np.ones((5, 17), np.float32)
+    visible[1, 13] = 0
+    val = data.LiftingSet(poses, project(poses), visible, focal=focal, centre=centre)
+    mirrored = train._mirrored(val)
+    np.testing.assert_allclose(mirrored.points_2d, project(mirrored.poses_3d), atol=1e-3)
+    assert mirrored.visible[1, 16] == 0 and mirrored.visible[1, 13] == 1  # left wrist -> right wrist
+    np.testing.assert_allclose(
+        metrics.symmetry_error(mirrored.poses_3d), metrics.symmetry_error(poses), atol=1e-3
+    )
+    twice = train._mirrored(mirrored)
+    np.testing.assert_allclose(twice.points_2d, val.points_2d, atol=1e-3)
+    np.testing.assert_array_equal(twice.poses_3d, val.poses_3d)
 
 
 def test_resume_auto_starts_fresh_without_a_checkpoint_and_a_named_one_must_exist(tmp_path: Path) -> None:
@@ -226,3 +255,43 @@ def test_a_compiled_generator_trains_and_saves_plain_weights(synthetic_h36m: Pat
     assert not any(key.startswith("_orig_mod") for key in state["generator"])  # loadable by export
     plain = train.RepNet(TINY)
     plain.load_state_dict(state["generator"])
+
+
+def test_training_validate_rescores_a_checkpoint_on_the_runs_own_validation_sets(
+    synthetic_h36m: Path, tmp_path: Path
+) -> None:
+    from training import validate
+
+    best = train.train(dataclasses.replace(_config(synthetic_h36m, tmp_path, 20), mirror_prob=0.5), TINY)
+    record = next(r for r in reversed(_history(tmp_path)) if "val_gt_pa_mpjpe" in r)
+    assert torch.load(best, weights_only=False)["step"] == record["step"]
+    figures = validate.score(best, (False, True), str(synthetic_h36m))
+    for kind, row in figures["plain"].items():
+        for name, value in row.items():
+            assert value == pytest.approx(record[f"val_{kind}_{name}"], abs=0.011), (kind, name)
+    # The mirror-averaged graph answers a mirrored input with the mirrored answer, so it scores
+    # the mirrored set as it scores the set itself; the plain graph does not.
+    averaged = figures["mirror_average"]
+    for name in ("pa_mpjpe", "mpjpe", "symmetry"):
+        assert averaged["gt_mirror"][name] == pytest.approx(averaged["gt"][name], abs=0.02), name
+    assert figures["plain"]["gt_mirror"]["pa_mpjpe"] != pytest.approx(
+        figures["plain"]["gt"]["pa_mpjpe"], abs=0.02
+    )
+
+
+def test_validation_counts_the_answers_with_a_bone_no_person_has() -> None:
+    rng = np.random.default_rng(0)
+    truth = (STANDING[None] + rng.normal(0, 10, (8, 17, 3))).astype(np.float32)
+    answers = truth.copy()
+    answers[:2, 13] = answers[:2, 12] + (answers[:2, 13] - answers[:2, 12]) * 4  # forearm 4x as long
+
+    class Fixed(torch.nn.Module):
+        def forward(self, points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            camera = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]).expand(len(points), 2, 3)
+            return torch.from_numpy(answers) / 1000, camera
+
+    points = np.ascontiguousarray(truth[..., :2])
+    val = data.LiftingSet(truth, points, np.ones((8, 17), np.float32))
+    figures = train.validate(Fixed(), val, torch.device("cpu"))  # type: ignore[arg-type]
+    assert figures["wild_pct"] == 25.0
+    assert figures["pa_mpjpe"] > 0

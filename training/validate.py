@@ -1,0 +1,124 @@
+"""Score a checkpoint on the validation sets its run used, as exported and mirror-averaged.
+
+The sets are rebuilt from the checkpoint's own training configuration (seed, held-out fraction,
+size, noise), so the figures are those of the run's history.jsonl; `--mirror-average` adds the
+graph that averages every answer with the mirrored answer to the mirrored input (the choice
+`training.export --mirror-average` makes). Validation only: never S9/S11.
+
+    python -m training.validate --checkpoint ~/.cache/repnet/runs/NAME/best.pt --mirror-average
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from training import data, train
+from training.config import TrainConfig
+from training.export import load_generator
+
+log = logging.getLogger(__name__)
+
+
+def run_config(state: dict[str, Any]) -> TrainConfig:
+    """The TrainConfig saved in a checkpoint; fields added since it was written take their defaults."""
+    saved = state.get("train_config") or {}
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    return TrainConfig(**{key: value for key, value in saved.items() if key in known})
+
+
+def score(
+    checkpoint: Path,
+    mirror_average: tuple[bool, ...] = (False,),
+    data_dir: str | None = None,
+    noise_px: tuple[float, ...] = (),
+    val_size: int = 0,
+) -> dict[str, dict[str, dict[str, float]]]:
+    """{"plain" | "mirror_average": {set name: {figure: mm}}} for the checkpoint's generator;
+    noise_px adds GT 2D + N(0, sigma) sets ("gt_noise40"), one fixed draw each; val_size other
+    than 0 scores that many poses per set instead of the run's (more than there are: all)."""
+    generator, state = load_generator(checkpoint)
+    config = run_config(state)
+    if val_size:
+        config = dataclasses.replace(config, val_size=val_size)
+    _, held_out = data.build_training_sets(
+        data.resolve_data_dir(data_dir or config.data_dir or None),
+        config.inputs,
+        config.frame_step,
+        config.val_fraction,
+    )
+    sets = train.validation_sets(config, held_out)
+    for sigma in noise_px:
+        rng = np.random.default_rng(config.seed + 1)
+        sets[f"gt_noise{sigma:g}"] = train._with_noise(sets["gt"], sigma, rng)
+    device = torch.device("cpu")
+    return {
+        "mirror_average" if mirrored else "plain": {
+            kind: {
+                name: round(value, 2)
+                for name, value in train.validate(generator, val, device, mirrored).items()
+            }
+            for kind, val in sets.items()
+        }
+        for mirrored in mirror_average
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument(
+        "--mirror-average",
+        action="store_true",
+        help="also score the mirror-averaged graph, beside the plain one",
+    )
+    parser.add_argument(
+        "--noise-px",
+        type=float,
+        nargs="*",
+        default=[],
+        help="also score GT 2D + N(0, sigma) for these sigmas (px)",
+    )
+    parser.add_argument(
+        "--val-size",
+        type=int,
+        default=0,
+        help="poses per set (default: the run's; a large number: all of them)",
+    )
+    parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    parser.add_argument(
+        "--data-dir", default=None, help="Human3.6M folder (default: the run's, else as train)"
+    )
+    parser.add_argument("--out", type=Path, help="also write the figures as JSON here")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    graphs = (False, True) if args.mirror_average else (False,)
+    figures = score(args.checkpoint, graphs, args.data_dir, tuple(args.noise_px), args.val_size)
+    names = sorted({name for by_set in figures.values() for row in by_set.values() for name in row})
+    print("| graph | set | " + " | ".join(names) + " |")
+    print("|---|---|" + "---:|" * len(names))
+    for graph, by_set in figures.items():
+        for kind, row in by_set.items():
+            print(
+                f"| {graph} | {kind} | "
+                + " | ".join(f"{row[n]:.2f}" if n in row else "–" for n in names)
+                + " |"
+            )
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"checkpoint": str(args.checkpoint), **figures}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
