@@ -60,6 +60,10 @@ def sample_2d(
     return normalize_keypoints(points, visible), visible
 
 
+# A bone over this many times its true mean length makes an answer "wild" (validation's wild_pct).
+WILD_RATIO = 3.0
+
+
 def validate(
     generator: RepNet, val: data.LiftingSet, device: torch.device, mirror_average: bool = False
 ) -> dict[str, float]:
@@ -93,12 +97,8 @@ def validate(
         "pa_mpjpe": metrics.pa_mpjpe(pose, val.poses_3d),
         "symmetry": float(metrics.symmetry_error(pose).mean()),
         "bone_std": float(metrics.limb_length_std(pose).mean()),
-        # Wild answers: the share (%) of poses with a bone over WILD_RATIO times its true mean length.
         "wild_pct": 100.0 * float(((lengths / truth).max(axis=1) > WILD_RATIO).mean()),
     }
-
-
-WILD_RATIO = 3.0
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
@@ -461,7 +461,7 @@ def validation_sets(config: TrainConfig, held_out: dict[str, data.LiftingSet]) -
     rng = np.random.default_rng(config.seed)
     sets = {kind: _subsample(val, config.val_size, rng) for kind, val in held_out.items()}
     if config.val_noise_px > 0 and "gt" in sets:
-        sets["gt_noise"] = _with_noise(sets["gt"], config.val_noise_px, rng)
+        sets["gt_noise"] = with_noise(sets["gt"], config.val_noise_px, rng)
     if config.val_mirror and "gt" in sets:
         sets["gt_mirror"] = _mirrored(sets["gt"])
     return sets
@@ -482,7 +482,7 @@ def _subsample(val: data.LiftingSet, size: int, rng: np.random.Generator) -> dat
     return data.LiftingSet(**{name: None if a is None else a[idx] for name, a in arrays.items()})
 
 
-def _with_noise(val: data.LiftingSet, sigma_px: float, rng: np.random.Generator) -> data.LiftingSet:
+def with_noise(val: data.LiftingSet, sigma_px: float, rng: np.random.Generator) -> data.LiftingSet:
     """The same validation poses with N(0, sigma_px) px added to their 2D points."""
     noise = rng.normal(0.0, sigma_px, val.points_2d.shape).astype(val.points_2d.dtype)
     return dataclasses.replace(val, points_2d=val.points_2d + noise)

@@ -24,8 +24,6 @@ from training import data, train
 from training.config import TrainConfig
 from training.export import load_generator
 
-log = logging.getLogger(__name__)
-
 
 def run_config(state: dict[str, Any]) -> TrainConfig:
     """The TrainConfig saved in a checkpoint; fields added since it was written take their defaults."""
@@ -57,7 +55,7 @@ def score(
     sets = train.validation_sets(config, held_out)
     for sigma in noise_px:
         rng = np.random.default_rng(config.seed + 1)
-        sets[f"gt_noise{sigma:g}"] = train._with_noise(sets["gt"], sigma, rng)
+        sets[f"gt_noise{sigma:g}"] = train.with_noise(sets["gt"], sigma, rng)
     device = torch.device("cpu")
     return {
         "mirror_average" if mirrored else "plain": {
