@@ -94,7 +94,11 @@ class TrainConfig:
     # Which rotation that target is: "axis", into the synthetic camera's frame; "ray", into the
     # frame looking along the ray to the pelvis (what a centred input shows; synthetic.sample).
     camera_rotation_target: str = "axis"
-    synthetic_noise_px: float = 8.0  # synthetic 2D gets N(0, u) px noise, u ~ U(0, this) per pose
+    synthetic_noise_px: float = 8.0  # synthetic 2D gets N(0, sigma) px noise, sigma <= this per pose
+    # sigma = synthetic_noise_px * u ** synthetic_noise_power, u ~ U(0, 1) per pose: 1 spreads sigma
+    # evenly up to its largest value; 2 and 3 keep that largest value but make most poses cleaner
+    # (mean sigma a third and a quarter of it instead of a half).
+    synthetic_noise_power: float = 1.0
     # Share of the synthetic poses mirrored (left and right swapped) before they are seen.
     mirror_prob: float = 0.0
     noise_px: float = 0.0  # std of Gaussian pixel noise added to the 2D inputs
@@ -117,5 +121,6 @@ class TrainConfig:
     log_every: int = 50
     # Start from the generator weights of this checkpoint (and its critic's, when the critic has
     # the same shape), at step 0 with fresh optimisers and schedule: ablations of the
-    # adversarial phase that all start from one warm start.
+    # adversarial phase that all start from one warm start. An exported .onnx works too
+    # (training.checkpoint): a shipped model trains on when its run's checkpoints are gone.
     init_from: str = ""

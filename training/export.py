@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import data, skeleton
+from training import checkpoint, data, skeleton
 from training.config import RepNetConfig
 from training.losses import bone_lengths
 from training.model import MM_PER_UNIT, Critic, LiftingGraph, Plausibility, RepNet
@@ -29,9 +29,10 @@ LICENCE = (
 )
 
 
-def load_generator(checkpoint: Path) -> tuple[RepNet, dict[str, Any]]:
-    """Rebuild the generator from a checkpoint written by training.train (no flags needed)."""
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+def load_generator(path: Path) -> tuple[RepNet, dict[str, Any]]:
+    """Rebuild the generator from a checkpoint written by training.train, or from an exported
+    model (training.checkpoint.from_onnx); no flags needed."""
+    state = checkpoint.load(path)
     generator = RepNet(RepNetConfig(**state["model_config"]))
     generator.load_state_dict(state["generator"])
     return generator.eval(), state
@@ -192,7 +193,8 @@ def main(argv: list[str] | None = None) -> None:
         "--critic-checkpoint",
         type=Path,
         help="take the plausibility critic from this checkpoint (default: --checkpoint's); e.g. a critic "
-        "trained against corrupted real poses, which does not depend on the generator",
+        "trained against corrupted real poses, which does not depend on the generator, or an exported "
+        ".onnx with a plausibility output (its critic)",
     )
     parser.add_argument(
         "--mirror-average",
@@ -217,7 +219,7 @@ def main(argv: list[str] | None = None) -> None:
         )
         critic_state = state
         if args.critic_checkpoint is not None:
-            critic_state = torch.load(args.critic_checkpoint, map_location="cpu", weights_only=False)
+            critic_state = checkpoint.load(args.critic_checkpoint)
         critic = load_critic(critic_state)
         real = data.align_to_template(val_sets["gt"].poses_3d)
         table, bones = calibrate(critic, real), bone_range(real)
@@ -225,7 +227,8 @@ def main(argv: list[str] | None = None) -> None:
         log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_3d))
     command = state.get("command", "")
     if args.plausibility and args.critic_checkpoint is not None:
-        command = f"generator: {command}; critic: {critic_state.get('command', '')}"
+        critic_command = critic_state.get("critic_command", critic_state.get("command", ""))
+        command = f"generator: {command}{checkpoint.CRITIC_COMMAND}{critic_command}"
     metadata = build_metadata(
         generator.config,
         model_id=args.model_id or args.output.stem,

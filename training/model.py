@@ -8,6 +8,7 @@ from torch import nn
 from training import skeleton
 from training.camera import masked_centre
 from training.config import RepNetConfig
+from training.losses import bone_lengths
 
 # The generator works in metres so its outputs are O(1); the exported graph speaks mm.
 MM_PER_UNIT = 1000.0
@@ -149,7 +150,7 @@ class Plausibility(nn.Module):
         percentile = (score >= self.table).to(pose.dtype).mean(dim=1)
         if self.bone_range is None:
             return percentile
-        lengths = self.critic.kcs(pose).diagonal(dim1=1, dim2=2).clamp_min(0.0).sqrt()  # (N, B)
+        lengths = bone_lengths(pose)  # (N, B), as export.bone_range measured the real ones
         inside = (lengths >= self.bone_range[0]) & (lengths <= self.bone_range[1])
         return percentile * inside.all(dim=1).to(pose.dtype)
 

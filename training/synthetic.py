@@ -82,6 +82,7 @@ def sample(
     align_rotations: torch.Tensor | None = None,
     rotation_target: str = "axis",
     mirror_prob: float = 0.0,
+    noise_power: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """A synthetic batch: (B, J, 2) pixels with detector-like noise, the (B, J, 3) target (the
     same pose aligned to the template, metres: what the generator outputs) and, given the
@@ -94,7 +95,10 @@ def sample(
 
     mirror_prob -- the share of poses mirrored (mirror) before they are seen: the training
     subjects' poses are not left-right balanced (a phone in the right hand), and a lifter that
-    learns them as they are lifts their mirror images worse."""
+    learns them as they are lifts their mirror images worse.
+
+    noise_px, noise_power -- each pose's pixels get N(0, sigma) noise, sigma = noise_px * u **
+    noise_power with u ~ U(0, 1): E[sigma^2] = noise_px^2 / (2 noise_power + 1)."""
     idx = torch.randint(0, poses_world_mm.shape[0], (batch,), generator=gen)
     rot, position = random_views(batch, gen)
     world, aligned = poses_world_mm[idx], poses_aligned_m[idx]
@@ -105,7 +109,7 @@ def sample(
         aligned = torch.where(flip.to(aligned.device)[:, None, None], mirror(aligned), aligned)
     pixels = project(world, rot, position)
     if noise_px > 0:
-        sigma = noise_px * torch.rand(batch, 1, 1, generator=gen)
+        sigma = noise_px * torch.rand(batch, 1, 1, generator=gen) ** noise_power
         pixels = pixels + sigma * torch.randn(pixels.shape, generator=gen)
     # aligned = s * world @ A^T, camera = world @ V^T, so camera = aligned @ (V A^T)^T / s.
     to_camera = None

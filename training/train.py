@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from training import data, metrics, skeleton, synthetic
+from training import checkpoint, data, metrics, skeleton, synthetic
 from training.camera import camera_scale
 from training.config import RepNetConfig, TrainConfig
 from training.losses import bone_lengths, bone_loss, camera_loss, critic_loss, pose_loss, reprojection_loss
@@ -259,6 +259,7 @@ class Trainer:
             self.align_rotations,
             config.camera_rotation_target,
             config.mirror_prob,
+            config.synthetic_noise_power,
         )
         visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
         points = normalize_keypoints(pixels.to(self.device), visible)
@@ -374,7 +375,7 @@ def train(
     trainer = Trainer(config, model_config, pool, device, torch.Generator().manual_seed(config.seed))
     step, elapsed, best = 0, 0.0, math.inf
     if config.init_from and resume_path is None:
-        state = torch.load(config.init_from, map_location=device, weights_only=False)
+        state = checkpoint.load(config.init_from)
         trainer.generator.load_state_dict(state["generator"])
         own = trainer.critic.state_dict()
         same_critic = state["critic"].keys() == own.keys() and all(

@@ -158,3 +158,20 @@ def test_mirrored_samples_keep_pixels_target_and_camera_target_consistent() -> N
     ratio = (seen * shown).sum(dim=(1, 2)) / (seen**2).sum(dim=(1, 2))
     residual = (seen * ratio[:, None, None] - shown).norm(dim=-1).mean(dim=1)
     assert residual.max() < 2.0, residual.max()
+
+
+@pytest.mark.parametrize("power", [1.0, 2.0, 3.0])
+def test_the_noise_power_keeps_the_largest_sigma_and_makes_most_poses_cleaner(power: float) -> None:
+    """sigma = noise_px * u ** power: the pixel noise's mean square is noise_px^2 / (2 power + 1)."""
+    world = torch.from_numpy(np.repeat(_world_standing()[None], 4, axis=0))
+    aligned = torch.from_numpy(data.align_to_template(world.numpy()) / 1000)
+
+    def pixels(noise_px: float) -> torch.Tensor:
+        return synthetic.sample(
+            world, aligned, 20000, noise_px, torch.Generator().manual_seed(5), noise_power=power
+        )[0]
+
+    noise = (pixels(20.0) - pixels(0.0)).double()
+    assert noise.pow(2).mean().item() == pytest.approx(400.0 / (2 * power + 1), rel=0.03)
+    per_pose = noise.std(dim=(1, 2))  # about each pose's sigma: the median pose has 20 * 0.5 ** power
+    assert per_pose.median().item() == pytest.approx(20.0 * 0.5**power, rel=0.1)

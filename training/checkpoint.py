@@ -1,0 +1,68 @@
+"""Read a training checkpoint, or recover one from an exported model.
+
+An exported graph (training.export) holds the generator's weights as ONNX initializers under their
+torch names (``generator.*``) and, with a plausibility output, the critic's (``plausibility.critic.*``);
+its metadata holds the model's shape and training command. That is enough to continue training a
+shipped model, or to reuse its critic, when the run's own checkpoints are gone.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+GENERATOR_PREFIX = "generator."
+CRITIC_PREFIX = "plausibility.critic."
+CRITIC_COMMAND = "; critic: "  # how export joins the generator's and the critic's commands
+
+
+def load(path: str | Path) -> dict[str, Any]:
+    """The state of a checkpoint written by training.train, or the state recovered from an
+    exported ``.onnx`` (from_onnx)."""
+    path = Path(path)
+    if path.suffix == ".onnx":
+        return from_onnx(path)
+    return dict(torch.load(path, map_location="cpu", weights_only=False))
+
+
+def from_onnx(path: Path) -> dict[str, Any]:
+    """A checkpoint-like state from an exported model: generator (and critic) weights, model
+    config, the training command, step 0 and no optimiser state.
+
+    Raises ValueError when the file holds no generator weights (not a training.export graph).
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load(str(path))
+    meta = {prop.key: prop.value for prop in model.metadata_props}
+    weights = {
+        init.name: torch.from_numpy(numpy_helper.to_array(init).copy()) for init in model.graph.initializer
+    }
+    generator = _strip(weights, GENERATOR_PREFIX)
+    if not generator or "model_config" not in meta:
+        raise ValueError(
+            f"{path}: no generator weights or model_config metadata (not a training.export model)"
+        )
+    command = meta.get("train_command", "")
+    generator_command, _, critic_command = command.partition(CRITIC_COMMAND)
+    return {
+        "generator": generator,
+        "critic": _strip(weights, CRITIC_PREFIX),  # empty without a plausibility output
+        "model_config": json.loads(meta["model_config"]),
+        # export writes "..., 2D inputs: gt+sh"; the rest of the run's configuration is not kept.
+        "train_config": {"inputs": inputs}
+        if (inputs := meta.get("training_data", "").partition("2D inputs: ")[2])
+        else {},
+        "step": 0,
+        "command": generator_command.removeprefix("generator: "),
+        "critic_command": critic_command or generator_command,
+        "source": f"recovered from {path.name} ({meta.get('model_id', '?')})",
+    }
+
+
+def _strip(weights: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    return {name[len(prefix) :]: value for name, value in weights.items() if name.startswith(prefix)}
