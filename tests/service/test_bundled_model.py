@@ -66,7 +66,7 @@ def test_garbage_input_is_flagged_implausible(bundled: Lifter) -> None:
     p_real, p_swapped = lifted_real.plausibility, lifted_swapped.plausibility
     assert p_real is not None and p_swapped is not None
     # repnet-h36m-v2 lifted this input to a wild pose (plausibility 0.0, reprojection error
-    # 580-1780 px); v3 and v4 lift it to a body-like pose that cannot fit the input: below most
+    # 580-1780 px); v3, v4 and v5 lift it to a body-like pose that cannot fit the input: below most
     # real poses and with several times the reprojection error of the real input.
     assert np.all(p_real > 0.9) and np.all(p_swapped < 0.3)
     assert np.all(lifted_swapped.reprojection_error_px > 5 * lifted_real.reprojection_error_px)
