@@ -60,7 +60,6 @@ def from_onnx(path: Path) -> dict[str, Any]:
         "step": 0,
         "command": generator_command.removeprefix("generator: "),
         "critic_command": critic_command or generator_command,
-        "source": f"recovered from {path.name} ({meta.get('model_id', '?')})",
     }
 
 

@@ -220,6 +220,11 @@ def main(argv: list[str] | None = None) -> None:
         critic_state = state
         if args.critic_checkpoint is not None:
             critic_state = checkpoint.load(args.critic_checkpoint)
+            if not critic_state["critic"]:
+                parser.error(
+                    f"--critic-checkpoint {args.critic_checkpoint}: holds no critic "
+                    "(exported without plausibility)"
+                )
         critic = load_critic(critic_state)
         real = data.align_to_template(val_sets["gt"].poses_3d)
         table, bones = calibrate(critic, real), bone_range(real)

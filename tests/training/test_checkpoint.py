@@ -59,9 +59,15 @@ def test_an_exported_model_gives_back_every_weight_of_its_generator_and_critic(
     assert export.check_parity(rebuilt, path, points, np.ones((8, 17), np.float32), mirror_average) <= 1e-3
 
 
-def test_a_model_without_plausibility_has_no_critic_and_other_onnx_files_are_refused(tmp_path: Path) -> None:
+def test_a_model_without_plausibility_has_no_critic_and_other_onnx_files_are_refused(
+    synthetic_h36m: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     _, _, path = _exported(tmp_path, plausibility=False, mirror_average=False)
     assert checkpoint.load(path)["critic"] == {}
+    args = ["--checkpoint", str(path), "--critic-checkpoint", str(path), "--output", str(tmp_path / "x.onnx")]
+    with pytest.raises(SystemExit):
+        export.main([*args, "--data-dir", str(synthetic_h36m)])
+    assert "holds no critic" in capsys.readouterr().err
     import onnx
     from onnx import TensorProto, helper
 
