@@ -16,7 +16,14 @@ import torch
 
 GENERATOR_PREFIX = "generator."
 CRITIC_PREFIX = "plausibility.critic."
-CRITIC_COMMAND = "; critic: "  # how export joins the generator's and the critic's commands
+# How an export whose critic came from another run names the two commands in its train_command.
+GENERATOR_LABEL, CRITIC_COMMAND = "generator: ", "; critic: "
+
+
+def join_commands(generator_command: str, critic_command: str) -> str:
+    """The train_command of a model whose generator and critic come from different runs; from_onnx
+    splits it again."""
+    return f"{GENERATOR_LABEL}{generator_command}{CRITIC_COMMAND}{critic_command}"
 
 
 def load(path: str | Path) -> dict[str, Any]:
@@ -48,17 +55,16 @@ def from_onnx(path: Path) -> dict[str, Any]:
             f"{path}: no generator weights or model_config metadata (not a training.export model)"
         )
     command = meta.get("train_command", "")
-    generator_command, _, critic_command = command.partition(CRITIC_COMMAND)
+    generator_command, _, critic_command = command.removeprefix(GENERATOR_LABEL).partition(CRITIC_COMMAND)
+    # export writes "..., 2D inputs: gt+sh"; the rest of the run's configuration is not kept.
+    inputs = meta.get("training_data", "").partition("2D inputs: ")[2]
     return {
         "generator": generator,
         "critic": _strip(weights, CRITIC_PREFIX),  # empty without a plausibility output
         "model_config": json.loads(meta["model_config"]),
-        # export writes "..., 2D inputs: gt+sh"; the rest of the run's configuration is not kept.
-        "train_config": {"inputs": inputs}
-        if (inputs := meta.get("training_data", "").partition("2D inputs: ")[2])
-        else {},
+        "train_config": {"inputs": inputs} if inputs else {},
         "step": 0,
-        "command": generator_command.removeprefix("generator: "),
+        "command": generator_command,
         "critic_command": critic_command or generator_command,
     }
 

@@ -233,7 +233,7 @@ def main(argv: list[str] | None = None) -> None:
     command = state.get("command", "")
     if args.plausibility and args.critic_checkpoint is not None:
         critic_command = critic_state.get("critic_command", critic_state.get("command", ""))
-        command = f"generator: {command}{checkpoint.CRITIC_COMMAND}{critic_command}"
+        command = checkpoint.join_commands(command, critic_command)
     metadata = build_metadata(
         generator.config,
         model_id=args.model_id or args.output.stem,
