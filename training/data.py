@@ -161,6 +161,20 @@ def normalize_2d(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
     return (centred / np.maximum(std, 1e-6)[:, None, None]).astype(np.float32)
 
 
+def hide_random_joints(
+    points: np.ndarray, visible: np.ndarray, count: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Copies of (N, J, 2) points and (N, J) visibility with `count` random non-root joints of
+    every pose hidden (visibility 0, point 0): the occlusion rows of evaluation and validation."""
+    non_root = np.array([j for j in range(points.shape[1]) if j != skeleton.ROOT])
+    hidden = non_root[np.argsort(rng.random((len(points), len(non_root))), axis=1)[:, :count]]
+    rows = np.arange(len(points))[:, None]
+    points, visible = points.copy(), visible.copy()
+    points[rows, hidden] = 0.0
+    visible[rows, hidden] = 0.0
+    return points, visible
+
+
 @dataclass(frozen=True)
 class LiftingSet:
     """Arrays for training or validation; 2D and 3D are paired only in validation sets."""

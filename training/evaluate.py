@@ -219,6 +219,18 @@ def bone_length_figures(scores: Scores, test: TestSet) -> dict[str, Any]:
     }
 
 
+def off_axis_floor(test: TestSet) -> dict[str, float]:
+    """The plain P-I (mm) of a lifter whose pose and view along the ray are exact, over all frames
+    (metrics.off_axis_errors), and how far off the optical axis the people stand (degrees)."""
+    ray = metrics.ray_rotation(test.points, test.visible, test.focal, test.centre)
+    errors, angles = metrics.off_axis_errors(test.gt, ray)
+    return {
+        "mpjpe": float(errors.mean()),
+        "angle_mean_deg": float(angles.mean()),
+        "angle_max_deg": float(angles.max()),
+    }
+
+
 def plausibility_deciles(scores: Scores) -> list[dict[str, float]]:
     """P-II by decile of the plausibility output: does a low score flag a bad pose?"""
     assert scores.plausibility is not None
@@ -313,14 +325,9 @@ def robustness_tables(
         noisy = (test.points + rng.normal(0.0, sigma, test.points.shape)).astype(np.float32)
         noise.append({"sigma_px": sigma, **row(noisy, test.visible, f"noise {sigma:g}px", sigma)})
     occlusion = [{"masked_joints": 0, **{k: v for k, v in noise[0].items() if k != "sigma_px"}}]
-    non_root = np.array([j for j in range(skeleton.NUM_JOINTS) if j != skeleton.ROOT])
     for i, count in enumerate(OCCLUDED_COUNTS):
         rng = np.random.default_rng([seed, 2, i])
-        hidden = non_root[np.argsort(rng.random((len(test.gt), len(non_root))), axis=1)[:, :count]]
-        visible, points = test.visible.copy(), test.points.copy()
-        rows = np.arange(len(test.gt))[:, None]
-        visible[rows, hidden] = 0.0
-        points[rows, hidden] = 0.0
+        points, visible = data.hide_random_joints(test.points, test.visible, count, rng)
         occlusion.append({"masked_joints": count, **row(points, visible, f"occlusion {count}")})
     tables: dict[str, Any] = {"noise": noise, "occlusion": occlusion}
     if scored[0.0].plausibility is not None:
@@ -373,6 +380,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         "paper_noise_scale": PAPER_NOISE_SCALE,
         **summarize_scores(scores, test),
         "bone_lengths": bone_length_figures(scores, test),
+        "off_axis": off_axis_floor(test),
     }
     if scores.plausibility is not None:
         result["plausibility_deciles"] = plausibility_deciles(scores)

@@ -62,6 +62,19 @@ def to_camera_frame(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray | None
     return np.einsum("nij,nkj->nki", rotation, pose)
 
 
+def off_axis_errors(gt: np.ndarray, ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Protocol I joint errors (N, J) of a perfect lifter that lacks the camera's intrinsics, and
+    the (N,) angles in degrees between the optical axis and the ray to each person.
+
+    Its pose and its view along the ray (ray_rotation, (N, 3, 3)) are both exact, so its answer
+    in the camera frame is the (N, J, 3) camera-frame ground truth turned back by the ray: the
+    floor of the plain P-I for any lifter of centred 2D inputs, which cannot see where in the
+    image the person stands."""
+    seen = np.einsum("nji,nkj->nki", ray, root_align(gt.astype(np.float64)))
+    cosine = (np.trace(ray, axis1=1, axis2=2) - 1.0) / 2.0
+    return joint_errors(seen, gt), np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
 def root_align(pose: np.ndarray) -> np.ndarray:
     """(N, J, 3) -> the same with the root (pelvis) at the origin."""
     return pose - pose[:, skeleton.ROOT : skeleton.ROOT + 1]

@@ -489,6 +489,12 @@ def with_noise(val: data.LiftingSet, sigma_px: float, rng: np.random.Generator) 
     return dataclasses.replace(val, points_2d=val.points_2d + noise)
 
 
+def with_hidden_joints(val: data.LiftingSet, count: int, rng: np.random.Generator) -> data.LiftingSet:
+    """The same validation poses with `count` random non-root joints of each hidden."""
+    points, visible = data.hide_random_joints(val.points_2d, val.visible, count, rng)
+    return dataclasses.replace(val, points_2d=points, visible=visible)
+
+
 def _mirrored(val: data.LiftingSet) -> data.LiftingSet:
     """The validation poses mirrored: 2D flipped about each camera's principal point, 3D (camera
     frame) flipped in x, left and right joints swapped in both."""

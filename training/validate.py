@@ -38,10 +38,13 @@ def score(
     data_dir: str | None = None,
     noise_px: tuple[float, ...] = (),
     val_size: int = 0,
+    hidden_joints: tuple[int, ...] = (),
 ) -> dict[str, dict[str, dict[str, float]]]:
     """{"plain" | "mirror_average": {set name: {figure: mm}}} for the checkpoint's generator;
-    noise_px adds GT 2D + N(0, sigma) sets ("gt_noise40"), one fixed draw each; val_size other
-    than 0 scores that many poses per set instead of the run's (more than there are: all)."""
+    noise_px adds GT 2D + N(0, sigma) sets ("gt_noise40"), one fixed draw each; hidden_joints adds
+    GT 2D sets with that many random non-root joints of every pose hidden ("gt_hidden2"), one
+    fixed draw each; val_size other than 0 scores that many poses per set instead of the run's
+    (more than there are: all)."""
     generator, state = load_generator(checkpoint)
     config = run_config(state)
     if val_size:
@@ -56,6 +59,9 @@ def score(
     for sigma in noise_px:
         rng = np.random.default_rng(config.seed + 1)
         sets[f"gt_noise{sigma:g}"] = train.with_noise(sets["gt"], sigma, rng)
+    for count in hidden_joints:
+        rng = np.random.default_rng([config.seed, 2, count])
+        sets[f"gt_hidden{count}"] = train.with_hidden_joints(sets["gt"], count, rng)
     device = torch.device("cpu")
     return {
         "mirror_average" if mirrored else "plain": {
@@ -87,6 +93,13 @@ def main(argv: list[str] | None = None) -> None:
         help="also score GT 2D + N(0, sigma) for these sigmas (px)",
     )
     parser.add_argument(
+        "--hidden-joints",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also score GT 2D with this many random non-root joints hidden (one set per count)",
+    )
+    parser.add_argument(
         "--val-size",
         type=int,
         default=0,
@@ -102,7 +115,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     graphs = (False, True) if args.mirror_average else (False,)
-    figures = score(args.checkpoint, graphs, args.data_dir, tuple(args.noise_px), args.val_size)
+    figures = score(
+        args.checkpoint, graphs, args.data_dir, tuple(args.noise_px), args.val_size, tuple(args.hidden_joints)
+    )
     names = sorted({name for by_set in figures.values() for row in by_set.values() for name in row})
     print("| graph | set | " + " | ".join(names) + " |")
     print("|---|---|" + "---:|" * len(names))

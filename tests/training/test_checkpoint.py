@@ -101,8 +101,9 @@ def test_training_starts_from_a_shipped_model_and_export_reuses_its_critic(
     for name, value in critic.state_dict().items():
         assert torch.allclose(value, after["critic"][name], atol=2e-2), name
     # The validation figures of a shipped model: scored from the ONNX file as from a checkpoint.
-    figures = validate.score(shipped, (False,), str(synthetic_h36m), val_size=50)["plain"]
-    assert set(figures) >= {"gt", "sh"} and figures["gt"]["pa_mpjpe"] > 0
+    figures = validate.score(shipped, (False,), str(synthetic_h36m), val_size=50, hidden_joints=(2,))["plain"]
+    assert set(figures) >= {"gt", "sh", "gt_hidden2"} and figures["gt"]["pa_mpjpe"] > 0
+    assert figures["gt_hidden2"]["pa_mpjpe"] != figures["gt"]["pa_mpjpe"]  # the joints were hidden
     out = tmp_path / "next.onnx"
     export.main(
         [

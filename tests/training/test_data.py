@@ -44,6 +44,24 @@ def test_normalize_2d_uses_visible_joints_only() -> None:
     np.testing.assert_allclose((out[0, 1:] ** 2).mean(), 1.0, rtol=1e-5)
 
 
+def test_hide_random_joints_hides_that_many_non_root_joints_of_every_pose() -> None:
+    rng = np.random.default_rng(0)
+    points = rng.normal(500.0, 100.0, (200, skeleton.NUM_JOINTS, 2)).astype(np.float32)
+    visible = np.ones((200, skeleton.NUM_JOINTS), dtype=np.float32)
+    before = points.copy()
+    hidden_points, hidden_visible = data.hide_random_joints(points, visible, 3, np.random.default_rng(1))
+    assert np.all((hidden_visible == 0).sum(axis=1) == 3)
+    assert np.all(hidden_visible[:, skeleton.ROOT] == 1)
+    assert np.all(hidden_points[hidden_visible == 0] == 0) and np.all(hidden_points[hidden_visible == 1] != 0)
+    np.testing.assert_array_equal(points, before)  # the inputs are left as they were
+    assert np.all(visible == 1)
+    # Every non-root joint gets hidden somewhere: the draw is not stuck on a few joints.
+    non_root = [j for j in range(skeleton.NUM_JOINTS) if j != skeleton.ROOT]
+    assert np.all((hidden_visible == 0).any(axis=0)[non_root])
+    again, _ = data.hide_random_joints(points, visible, 3, np.random.default_rng(1))
+    np.testing.assert_array_equal(again, hidden_points)  # one fixed draw per seed
+
+
 def test_mpii_detections_map_to_h36m_slots_with_spine_masked() -> None:
     mpii = np.arange(32, dtype=np.float32).reshape(1, 16, 2)
     points, visible = data.mpii_to_h36m(mpii)

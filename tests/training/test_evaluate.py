@@ -178,6 +178,10 @@ def test_protocol_one_along_the_ray_is_zero_for_an_oracle_of_the_view_along_the_
     scores = evaluate.score(lift, test.points, test.visible, test, 5, "ray oracle")
     assert scores.p1_ray.max() < 1e-2
     assert scores.p1.mean() > 1.0  # the people stand off the optical axis
+    # That oracle's plain P-I is the floor the evaluation reports for lifters without intrinsics.
+    floor = evaluate.off_axis_floor(test)
+    assert floor["mpjpe"] == pytest.approx(float(scores.p1.mean()), rel=1e-4)
+    assert 0.0 < floor["angle_mean_deg"] < floor["angle_max_deg"] < 45.0
 
 
 def test_detections_are_mapped_and_missing_cameras_skipped(tiny_model, h36m_dir, tmp_path) -> None:

@@ -160,3 +160,17 @@ def test_ray_rotation_goes_through_the_centroid_of_the_visible_joints() -> None:
     rot = metrics.ray_rotation(points, visible, np.array([[1000.0, 1000.0]]), np.array([[500.0, 500.0]]))
     expected = np.array([0.15, -0.05, 1.0]) / np.linalg.norm([0.15, -0.05, 1.0])
     np.testing.assert_allclose(rot[0] @ np.array([0.0, 0.0, 1.0]), expected, atol=1e-12)
+
+
+def test_off_axis_errors_are_the_chords_of_the_turn_onto_the_ray() -> None:
+    """A joint r mm from the pelvis moves 2 r sin(a / 2) when the pose turns by a onto the ray."""
+    angle = np.radians(10.0)
+    ray = metrics.rotation_to_ray(np.array([[np.sin(angle), 0.0, np.cos(angle)], [0.0, 0.0, 1.0]]))
+    gt = np.repeat(_pose(), 2, axis=0) + 500.0  # anywhere: the root is aligned first
+    errors, angles = metrics.off_axis_errors(gt, ray)
+    np.testing.assert_allclose(angles, [10.0, 0.0], atol=1e-9)
+    # The turn is about the camera's y axis: a joint's distance from that axis through the root.
+    rooted = metrics.root_align(gt)[0]
+    radius = np.linalg.norm(rooted[:, [0, 2]], axis=1)
+    np.testing.assert_allclose(errors[0], 2.0 * radius * np.sin(angle / 2.0), atol=1e-9)
+    np.testing.assert_allclose(errors[1], 0.0, atol=1e-12)
