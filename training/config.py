@@ -101,6 +101,11 @@ class TrainConfig:
     synthetic_noise_power: float = 1.0
     # Share of the synthetic poses mirrored (left and right swapped) before they are seen.
     mirror_prob: float = 0.0
+    # In limb_turn_prob of the synthetic poses, each forearm, upper arm, shin and thigh turns about
+    # its joint by N(0, limb_turn_deg) degrees about a random axis (synthetic.turn_limbs): poses
+    # near the training poses that the five training subjects never held. 0 = off.
+    limb_turn_deg: float = 0.0
+    limb_turn_prob: float = 0.5
     noise_px: float = 0.0  # std of Gaussian pixel noise added to the 2D inputs
     mask_prob: float = 0.5  # chance that a 2D sample has 1..mask_max random joints hidden
     mask_max: int = 3

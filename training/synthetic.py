@@ -62,6 +62,48 @@ def project(poses_world_mm: torch.Tensor, rot: torch.Tensor, position_m: torch.T
     return (FOCAL_PX * x_cam[..., :2] / x_cam[..., 2:3] + CENTRE_PX).to(torch.float32)
 
 
+def _joint(name: str) -> int:
+    return skeleton.JOINT_NAMES.index(name)
+
+
+# Limb segments a synthetic pose may turn: (pivot joint, the joints that turn with it about it),
+# forearms and shins before the upper arms and thighs. The hips and shoulders never move, so the
+# pose's alignment to the template (on those four joints) is unchanged by a turn.
+LIMB_SEGMENTS: tuple[tuple[int, tuple[int, ...]], ...] = tuple(
+    (_joint(f"{side}_{pivot}"), tuple(_joint(f"{side}_{j}") for j in moved))
+    for pivot, moved in (
+        ("knee", ("ankle",)),
+        ("elbow", ("wrist",)),
+        ("hip", ("knee", "ankle")),
+        ("shoulder", ("elbow", "wrist")),
+    )
+    for side in ("left", "right")
+)
+
+
+def random_turns(shape: tuple[int, ...], sigma_deg: float, gen: torch.Generator) -> torch.Tensor:
+    """(*shape, 3, 3) float64 rotations about uniformly random axes by N(0, sigma_deg) angles."""
+    axis = torch.randn(*shape, 3, generator=gen, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    angle = torch.randn(*shape, generator=gen, dtype=torch.float64) * math.radians(sigma_deg)
+    cross = torch.zeros(*shape, 3, 3, dtype=torch.float64)
+    cross[..., 0, 1], cross[..., 0, 2], cross[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
+    cross = cross - cross.transpose(-1, -2)
+    sin, cos = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
+    return torch.eye(3, dtype=torch.float64) + sin * cross + (1.0 - cos) * cross @ cross
+
+
+def turn_limbs(poses: torch.Tensor, turns: torch.Tensor) -> torch.Tensor:
+    """(N, J, 3) poses with each LIMB_SEGMENTS segment turned about its pivot joint by the
+    (N, len(LIMB_SEGMENTS), 3, 3) rotations `turns`: new poses from the same people, every bone
+    keeping its length."""
+    out = poses.to(torch.float64).clone()
+    for k, (pivot, moved) in enumerate(LIMB_SEGMENTS):
+        centre = out[:, pivot : pivot + 1]
+        out[:, list(moved)] = centre + (out[:, list(moved)] - centre) @ turns[:, k].transpose(1, 2)
+    return out.to(poses.dtype)
+
+
 def mirror(poses: torch.Tensor) -> torch.Tensor:
     """(N, J, 3) poses -> their mirror images: x negated, left and right joints swapped.
 
@@ -83,6 +125,8 @@ def sample(
     rotation_target: str = "axis",
     mirror_prob: float = 0.0,
     noise_power: float = 1.0,
+    limb_turn_deg: float = 0.0,
+    limb_turn_prob: float = 0.5,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """A synthetic batch: (B, J, 2) pixels with detector-like noise, the (B, J, 3) target (the
     same pose aligned to the template, metres: what the generator outputs) and, given the
@@ -98,10 +142,25 @@ def sample(
     learns them as they are lifts their mirror images worse.
 
     noise_px, noise_power -- each pose's pixels get N(0, sigma) noise, sigma = noise_px * u **
-    noise_power with u ~ U(0, 1): E[sigma^2] = noise_px^2 / (2 noise_power + 1)."""
+    noise_power with u ~ U(0, 1): E[sigma^2] = noise_px^2 / (2 noise_power + 1).
+
+    limb_turn_deg, limb_turn_prob -- in that share of the poses, every forearm, upper arm, shin
+    and thigh turns about its joint by N(0, limb_turn_deg) degrees about a random axis (turn_limbs),
+    in the world pose and its aligned target alike: poses near the training poses that the
+    training subjects never held. Needs align_rotations (the turn is drawn in the template frame)."""
     idx = torch.randint(0, poses_world_mm.shape[0], (batch,), generator=gen)
     rot, position = random_views(batch, gen)
     world, aligned = poses_world_mm[idx], poses_aligned_m[idx]
+    if limb_turn_deg > 0:
+        if align_rotations is None:
+            raise ValueError("limb turns need the rotations that aligned the world poses (align_rotations)")
+        turns = random_turns((batch, len(LIMB_SEGMENTS)), limb_turn_deg, gen)
+        chosen = torch.rand(batch, generator=gen) < limb_turn_prob
+        turns = torch.where(chosen[:, None, None, None], turns, torch.eye(3, dtype=turns.dtype))
+        # aligned = s * world @ A^T: a turn R in the template frame is A^T R A in the world frame.
+        align = align_rotations[idx].to(torch.float64)[:, None]  # (B, 1, 3, 3)
+        world = turn_limbs(world, align.transpose(-1, -2) @ turns @ align)
+        aligned = turn_limbs(aligned, turns.to(aligned.device))
     flip = None
     if mirror_prob > 0:
         flip = torch.rand(batch, generator=gen) < mirror_prob

@@ -208,7 +208,7 @@ class Trainer:
         self.mean_bones = bone_lengths(self.real_pool).mean(dim=0)  # (B,) metres
         # The rotation that aligned each world pose to the template (exact: a similarity).
         self.align_rotations: torch.Tensor | None = None
-        if config.camera_rotation_weight > 0:
+        if config.camera_rotation_weight > 0 or config.limb_turn_deg > 0:
             _, rotations, _ = data.procrustes(world.astype(np.float64), pool.poses_3d.astype(np.float64))
             self.align_rotations = torch.from_numpy(rotations)
         self.generator = RepNet(model_config).to(device)
@@ -260,12 +260,14 @@ class Trainer:
             config.camera_rotation_target,
             config.mirror_prob,
             config.synthetic_noise_power,
+            config.limb_turn_deg,
+            config.limb_turn_prob,
         )
         visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
         points = normalize_keypoints(pixels.to(self.device), visible)
         pose, camera = self.generate(points, visible)
         fit = reprojection_loss(points, visible, target, camera, config.reprojection_norm)
-        if to_camera is not None:
+        if to_camera is not None and config.camera_rotation_weight > 0:
             rows = camera / camera_scale(camera).clamp_min(1e-6)[:, None, None]
             fit = fit + config.camera_rotation_weight * (rows - to_camera[:, :2].to(self.device)).abs().mean()
         return (

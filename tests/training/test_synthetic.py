@@ -175,3 +175,80 @@ def test_the_noise_power_keeps_the_largest_sigma_and_makes_most_poses_cleaner(po
     assert noise.pow(2).mean().item() == pytest.approx(400.0 / (2 * power + 1), rel=0.03)
     per_pose = noise.std(dim=(1, 2))  # about each pose's sigma: the median pose has 20 * 0.5 ** power
     assert per_pose.median().item() == pytest.approx(20.0 * 0.5**power, rel=0.1)
+
+
+def test_turned_limbs_keep_every_bone_and_the_torso_and_turn_about_their_joints() -> None:
+    world, _, _ = _jittered_poses(7)
+    poses = torch.from_numpy(world)
+    turns = synthetic.random_turns((20, len(synthetic.LIMB_SEGMENTS)), 20.0, torch.Generator().manual_seed(1))
+    torch.testing.assert_close(
+        turns @ turns.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand_as(turns)
+    )
+    turned = synthetic.turn_limbs(poses, turns)
+    bones = np.array(skeleton.BONES)
+    torch.testing.assert_close(
+        (turned[:, bones[:, 1]] - turned[:, bones[:, 0]]).norm(dim=-1),
+        (poses[:, bones[:, 1]] - poses[:, bones[:, 0]]).norm(dim=-1),
+        atol=1e-3,
+        rtol=0.0,
+    )
+    unmoved = [
+        j for j in range(skeleton.NUM_JOINTS) if j not in {m for _, ms in synthetic.LIMB_SEGMENTS for m in ms}
+    ]
+    assert set(skeleton.TORSO_JOINTS) <= set(unmoved)
+    torch.testing.assert_close(turned[:, unmoved], poses[:, unmoved])
+    assert (turned - poses).norm(dim=-1).max() > 50.0
+    # Known value: the right forearm alone turned 90 degrees about an axis across it moves the
+    # wrist by sqrt(2) forearm lengths, and the elbow stays.
+    elbow, wrist = skeleton.JOINT_NAMES.index("right_elbow"), skeleton.JOINT_NAMES.index("right_wrist")
+    k = next(i for i, (pivot, _) in enumerate(synthetic.LIMB_SEGMENTS) if pivot == elbow)
+    forearm = (poses[0, wrist] - poses[0, elbow]).to(torch.float64)
+    axis = torch.linalg.cross(forearm, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    axis = axis / axis.norm()
+    cross = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    one = torch.eye(3, dtype=torch.float64).repeat(1, len(synthetic.LIMB_SEGMENTS), 1, 1)
+    one[0, k] = torch.eye(3, dtype=torch.float64) + cross + cross @ cross  # Rodrigues at 90 degrees
+    moved = synthetic.turn_limbs(poses[:1], one)
+    assert float((moved[0, wrist] - poses[0, wrist]).norm()) == pytest.approx(
+        float(np.sqrt(2.0) * forearm.norm()), rel=1e-4
+    )
+    torch.testing.assert_close(moved[0, :wrist], poses[0, :wrist])
+
+
+def test_samples_with_turned_limbs_turn_the_world_pose_and_its_target_alike() -> None:
+    world, aligned, align_rotations = _jittered_poses(8)
+    args = (torch.from_numpy(world), torch.from_numpy(aligned / 1000), 64, 0.0)
+    rotations = torch.from_numpy(align_rotations)
+    plain = synthetic.sample(*args, torch.Generator().manual_seed(9), rotations)
+    pixels, target, to_camera = synthetic.sample(
+        *args, torch.Generator().manual_seed(9), rotations, limb_turn_deg=20.0, limb_turn_prob=0.5
+    )
+    assert to_camera is not None and plain[2] is not None
+    changed = (target - plain[1]).norm(dim=-1).amax(dim=1) > 1e-3  # metres
+    assert 10 < int(changed.sum()) < 54  # about half of the poses turned
+    torch.testing.assert_close(to_camera, plain[2])  # the same views and alignment
+    torch.testing.assert_close(target[~changed], plain[1][~changed])
+    # The turned targets keep their bones, and their pixels are still the target seen through the
+    # camera target: the world pose turned exactly as its aligned copy.
+    bones = np.array(skeleton.BONES)
+    torch.testing.assert_close(
+        (target[:, bones[:, 1]] - target[:, bones[:, 0]]).norm(dim=-1),
+        (plain[1][:, bones[:, 1]] - plain[1][:, bones[:, 0]]).norm(dim=-1),
+        atol=1e-5,
+        rtol=0.0,
+    )
+    gen = torch.Generator().manual_seed(9)
+    torch.randint(0, 20, (64,), generator=gen)
+    _, position = synthetic.random_views(64, gen)
+    in_camera = target.to(torch.float64) @ to_camera.to(torch.float64).transpose(1, 2) + position[:, None]
+    seen = synthetic.FOCAL_PX * in_camera[..., :2] / in_camera[..., 2:3]
+    seen = seen - seen.mean(dim=1, keepdim=True)
+    shown = (pixels - pixels.mean(dim=1, keepdim=True)).to(torch.float64)
+    ratio = (seen * shown).sum(dim=(1, 2)) / (seen**2).sum(dim=(1, 2))
+    residual = (seen * ratio[:, None, None] - shown).norm(dim=-1).mean(dim=1)
+    assert residual.max() < 2.0, residual.max()
+    # Without the turn applied to the world pose, the pixels would not match the turned target.
+    plain_shown = (plain[0] - plain[0].mean(dim=1, keepdim=True)).to(torch.float64)
+    assert (seen * ratio[:, None, None] - plain_shown).norm(dim=-1).mean(dim=1)[changed].min() > 2.0
+    with pytest.raises(ValueError, match="align_rotations"):
+        synthetic.sample(*args, torch.Generator().manual_seed(9), limb_turn_deg=20.0)

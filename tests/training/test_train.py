@@ -46,13 +46,14 @@ def test_resume_continues_from_the_checkpoint(synthetic_h36m: Path, tmp_path: Pa
 
 
 def _recipe(data_dir: Path, out: Path) -> TrainConfig:
-    """Warm start for 15 steps, then the adversarial phase with the synthetic term; the schedule
-    runs over 40 steps whatever stretch of them one call trains."""
+    """Warm start for 15 steps (mirrored poses, turned limbs), then the adversarial phase with the
+    synthetic term; the schedule runs over 40 steps whatever stretch of them one call trains."""
     return dataclasses.replace(
         _config(data_dir, out, 40),
         warm_start_steps=15,
         synthetic_weight=0.5,
         mirror_prob=0.5,
+        limb_turn_deg=15.0,
         adversarial_ramp=10,
         schedule="step",
         log_every=5,
