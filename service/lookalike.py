@@ -21,11 +21,11 @@ FORMAT_NAMES: tuple[str, ...] = tuple(FORMATS)  # ModelInput.format_index points
 # deviation of its visible coordinates) plus GEOMETRY_WEIGHT times the geometric evidence (in
 # [-1, 1]) that it is in the other format; a warning is given above THRESHOLD. Chosen on
 # Human3.6M S1-S8 and measured on S9/S11 by bench/format_mixup.py (docs/BENCHMARKS.md). With the
-# bundled repnet-h36m-v5 on S1-S8 (every 10th frame), poses in the right format have a relative
-# reprojection error under 0.205 (h36m17) and 0.231 (coco17) at the 99.5th percentile, the same
-# poses under the wrong label over 0.72 at the 0.5th: the threshold sits between (v4: 0.200, 0.226
-# and 0.66; v3: 0.225, 0.255 and 0.68; v2: 0.25, 0.28 and 0.79). (v1, which fitted the 2D more
-# tightly, had 0.21 and 0.30 and a threshold of 0.25.)
+# bundled repnet-h36m-v6 on S1-S8 (every 10th frame), poses in the right format have a relative
+# reprojection error under 0.198 (h36m17) and 0.227 (coco17) at the 99.5th percentile, the same
+# poses under the wrong label over 0.75 at the 0.5th: the threshold sits between (v5: 0.205, 0.231
+# and 0.72; v4: 0.200, 0.226 and 0.66; v3: 0.225, 0.255 and 0.68; v2: 0.25, 0.28 and 0.79). (v1,
+# which fitted the 2D more tightly, had 0.21 and 0.30 and a threshold of 0.25.)
 GEOMETRY_WEIGHT = 0.05
 THRESHOLD = 0.5
 # With a plausibility output (a percentile among real poses), a 3D pose below PLAUSIBILITY_FLOOR
