@@ -81,6 +81,19 @@ def _jittered_poses(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return world, aligned, align_rotations
 
 
+def _residual_px(
+    pixels: torch.Tensor, target: torch.Tensor, to_camera: torch.Tensor, position: torch.Tensor
+) -> torch.Tensor:
+    """(B,) mean distance (px) of the pixels from the (B, J, 3) targets seen through the camera
+    targets at the synthetic positions, both centred, the targets' projection best scaled."""
+    in_camera = target.to(torch.float64) @ to_camera.to(torch.float64).transpose(1, 2) + position[:, None]
+    seen = synthetic.FOCAL_PX * in_camera[..., :2] / in_camera[..., 2:3]
+    seen = seen - seen.mean(dim=1, keepdim=True)
+    shown = (pixels - pixels.mean(dim=1, keepdim=True)).to(torch.float64)
+    ratio = (seen * shown).sum(dim=(1, 2)) / (seen**2).sum(dim=(1, 2))
+    return (seen * ratio[:, None, None] - shown).norm(dim=-1).mean(dim=1)
+
+
 def test_the_camera_target_rotates_the_template_pose_into_the_synthetic_camera() -> None:
     world, aligned, align_rotations = _jittered_poses(1)
     _, target, to_camera = synthetic.sample(
@@ -151,12 +164,7 @@ def test_mirrored_samples_keep_pixels_target_and_camera_target_consistent() -> N
     torch.testing.assert_close(pixels[~flip], plain[0][~flip])
     torch.testing.assert_close(target[flip], synthetic.mirror(plain[1][flip]))
     # Every pose's pixels are its target seen through its camera target (up to scale and shift).
-    in_camera = target.to(torch.float64) @ to_camera.to(torch.float64).transpose(1, 2) + position[:, None]
-    seen = synthetic.FOCAL_PX * in_camera[..., :2] / in_camera[..., 2:3]
-    seen = seen - seen.mean(dim=1, keepdim=True)
-    shown = (pixels - pixels.mean(dim=1, keepdim=True)).to(torch.float64)
-    ratio = (seen * shown).sum(dim=(1, 2)) / (seen**2).sum(dim=(1, 2))
-    residual = (seen * ratio[:, None, None] - shown).norm(dim=-1).mean(dim=1)
+    residual = _residual_px(pixels, target, to_camera, position)
     assert residual.max() < 2.0, residual.max()
 
 
@@ -240,15 +248,9 @@ def test_samples_with_turned_limbs_turn_the_world_pose_and_its_target_alike() ->
     gen = torch.Generator().manual_seed(9)
     torch.randint(0, 20, (64,), generator=gen)
     _, position = synthetic.random_views(64, gen)
-    in_camera = target.to(torch.float64) @ to_camera.to(torch.float64).transpose(1, 2) + position[:, None]
-    seen = synthetic.FOCAL_PX * in_camera[..., :2] / in_camera[..., 2:3]
-    seen = seen - seen.mean(dim=1, keepdim=True)
-    shown = (pixels - pixels.mean(dim=1, keepdim=True)).to(torch.float64)
-    ratio = (seen * shown).sum(dim=(1, 2)) / (seen**2).sum(dim=(1, 2))
-    residual = (seen * ratio[:, None, None] - shown).norm(dim=-1).mean(dim=1)
+    residual = _residual_px(pixels, target, to_camera, position)
     assert residual.max() < 2.0, residual.max()
     # Without the turn applied to the world pose, the pixels would not match the turned target.
-    plain_shown = (plain[0] - plain[0].mean(dim=1, keepdim=True)).to(torch.float64)
-    assert (seen * ratio[:, None, None] - plain_shown).norm(dim=-1).mean(dim=1)[changed].min() > 2.0
+    assert _residual_px(plain[0], target, to_camera, position)[changed].min() > 2.0
     with pytest.raises(ValueError, match="align_rotations"):
         synthetic.sample(*args, torch.Generator().manual_seed(9), limb_turn_deg=20.0)
