@@ -86,9 +86,9 @@ def random_turns(shape: tuple[int, ...], sigma_deg: float, gen: torch.Generator)
     axis = torch.randn(*shape, 3, generator=gen, dtype=torch.float64)
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     angle = torch.randn(*shape, generator=gen, dtype=torch.float64) * math.radians(sigma_deg)
-    cross = torch.zeros(*shape, 3, 3, dtype=torch.float64)
-    cross[..., 0, 1], cross[..., 0, 2], cross[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
-    cross = cross - cross.transpose(-1, -2)
+    x, y, z = axis.unbind(-1)
+    zero = torch.zeros_like(x)
+    cross = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*shape, 3, 3)
     sin, cos = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
     return torch.eye(3, dtype=torch.float64) + sin * cross + (1.0 - cos) * cross @ cross
 
@@ -122,7 +122,7 @@ def sample(
     noise_px: float,
     gen: torch.Generator,
     align_rotations: torch.Tensor | None = None,
-    rotation_target: str = "axis",
+    rotation_target: str | None = "axis",
     mirror_prob: float = 0.0,
     noise_power: float = 1.0,
     limb_turn_deg: float = 0.0,
@@ -135,7 +135,8 @@ def sample(
 
     rotation_target "axis": into the camera frame itself; "ray": into the frame that looks along
     the ray from the camera to the pelvis, the one view a centred input can show (the camera
-    frame is this turned by metrics.rotation_to_ray of the pelvis' direction).
+    frame is this turned by metrics.rotation_to_ray of the pelvis' direction); None: no rotation
+    (align_rotations then serve the limb turns alone).
 
     mirror_prob -- the share of poses mirrored (mirror) before they are seen: the training
     subjects' poses are not left-right balanced (a phone in the right hand), and a lifter that
@@ -172,7 +173,7 @@ def sample(
         pixels = pixels + sigma * torch.randn(pixels.shape, generator=gen)
     # aligned = s * world @ A^T, camera = world @ V^T, so camera = aligned @ (V A^T)^T / s.
     to_camera = None
-    if align_rotations is not None:
+    if align_rotations is not None and rotation_target is not None:
         template_to_world = align_rotations[idx].to(torch.float64).transpose(1, 2)
         if flip is not None:
             # Both poses mirrored in x: the aligning rotation becomes D A D, D = diag(-1, 1, 1).

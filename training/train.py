@@ -257,7 +257,7 @@ class Trainer:
             config.synthetic_noise_px,
             self.gen,
             self.align_rotations,
-            config.camera_rotation_target,
+            config.camera_rotation_target if config.camera_rotation_weight > 0 else None,
             config.mirror_prob,
             config.synthetic_noise_power,
             config.limb_turn_deg,
@@ -267,7 +267,7 @@ class Trainer:
         points = normalize_keypoints(pixels.to(self.device), visible)
         pose, camera = self.generate(points, visible)
         fit = reprojection_loss(points, visible, target, camera, config.reprojection_norm)
-        if to_camera is not None and config.camera_rotation_weight > 0:
+        if to_camera is not None:
             rows = camera / camera_scale(camera).clamp_min(1e-6)[:, None, None]
             fit = fit + config.camera_rotation_weight * (rows - to_camera[:, :2].to(self.device)).abs().mean()
         return (
