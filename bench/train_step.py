@@ -97,11 +97,11 @@ class MatmulFlops(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def random_pool(rng: np.random.Generator, n: int = 20000) -> data.LiftingSet:
+def random_pool(rng: np.random.Generator, n: int = 20000) -> data.TrainingPool:
     poses = rng.normal(0, 300, (n, J, 3)).astype(np.float32)
     poses -= poses[:, :1]
     points = rng.uniform(300, 700, (n, J, 2)).astype(np.float32)
-    return data.LiftingSet(poses, points, np.ones((n, J), np.float32), poses_world=poses)
+    return data.TrainingPool(poses, points, np.ones((n, J), np.float32), poses_world=poses)
 
 
 def matmul_roof(batch: int, seconds: float) -> float:

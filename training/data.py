@@ -1,4 +1,4 @@
-"""Human3.6M loading: cameras, projection, template alignment and 2D normalisation."""
+"""Human3.6M loading: cameras, projection, template alignment, training pools and validation sets."""
 
 from __future__ import annotations
 
@@ -147,20 +147,6 @@ def align_to_template(poses: np.ndarray) -> np.ndarray:
     return (scale[:, None, None] * rooted @ rot.transpose(0, 2, 1)).astype(np.float32)
 
 
-def normalize_2d(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
-    """Centre (N, J, 2) points on their visible joints and divide by their standard deviation.
-
-    Missing joints come out as 0. The standard deviation is taken over all coordinates of
-    the visible joints, so the aspect ratio is kept.
-    """
-    w = visible[..., None].astype(np.float64)
-    count = np.maximum(w.sum(axis=(1, 2)), 1.0)  # (N,)
-    mean = (points * w).sum(axis=1) / count[:, None]  # (N, 2)
-    centred = (points - mean[:, None]) * w
-    std = np.sqrt((centred**2).sum(axis=(1, 2)) / (2 * count))
-    return (centred / np.maximum(std, 1e-6)[:, None, None]).astype(np.float32)
-
-
 def hide_random_joints(
     points: np.ndarray, visible: np.ndarray, count: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -176,16 +162,25 @@ def hide_random_joints(
 
 
 @dataclass(frozen=True)
-class LiftingSet:
-    """Arrays for training or validation; 2D and 3D are paired only in validation sets."""
+class TrainingPool:
+    """What training draws from: M 3D poses and N 2D inputs of the training frames, never paired."""
 
-    poses_3d: np.ndarray  # (M, 17, 3) float32: template-aligned (training) or camera-frame (validation) mm
-    points_2d: np.ndarray  # (K, 17, 2) float32 pixels
-    visible: np.ndarray  # (K, 17) float32 in {0, 1}
-    # Training only: poses_3d before the alignment, world mm (Z up) with the pelvis at the origin;
-    # the synthetic warm start projects these through random cameras.
+    poses_aligned: np.ndarray  # (M, 17, 3) float32 template-aligned mm, pelvis at the origin
+    points_2d: np.ndarray  # (N, 17, 2) float32 pixels
+    visible: np.ndarray  # (N, 17) float32 in {0, 1}: the visibility of each 2D joint
+    # poses_aligned before the alignment: world mm (Z up) with the pelvis at the origin; the
+    # synthetic warm start projects these through random cameras.
     poses_world: np.ndarray | None = None
-    # Validation only: (K, 2) focal lengths and principal points (px) of each pose's camera.
+
+
+@dataclass(frozen=True)
+class ValidationSet:
+    """Held-out frames: N 2D inputs, each paired with its 3D pose in its camera's frame."""
+
+    poses_camera: np.ndarray  # (N, 17, 3) float32 camera-frame mm
+    points_2d: np.ndarray  # (N, 17, 2) float32 pixels
+    visible: np.ndarray  # (N, 17) float32 in {0, 1}: the visibility of each 2D joint
+    # (N, 2) focal lengths and principal points (px) of each pose's camera.
     focal: np.ndarray | None = None
     centre: np.ndarray | None = None
 
@@ -196,7 +191,7 @@ def _split(n: int, val_fraction: float) -> int:
 
 def build_training_sets(
     data_dir: Path, inputs: str, frame_step: int = 1, val_fraction: float = 0.1
-) -> tuple[LiftingSet, dict[str, LiftingSet]]:
+) -> tuple[TrainingPool, dict[str, ValidationSet]]:
     """Training pools and validation sets from the training subjects S1 S5 S6 S7 S8.
 
     The last `val_fraction` of every sequence is held out for validation (contiguous, so
@@ -237,8 +232,8 @@ def build_training_sets(
                 )
     pairs = train_2d["gt"] + train_2d["sh"]
     world = np.concatenate(train_3d)
-    train = LiftingSet(
-        poses_3d=align_to_template(world),
+    train = TrainingPool(
+        poses_aligned=align_to_template(world),
         points_2d=np.concatenate([p for p, _ in pairs]),
         visible=np.concatenate([v for _, v in pairs]),
         poses_world=(world - world[:, skeleton.ROOT : skeleton.ROOT + 1]).astype(np.float32),
@@ -247,5 +242,5 @@ def build_training_sets(
     for kind, items in val.items():
         if items:
             poses_cam, points, visible, focal, centre = (np.concatenate(a) for a in zip(*items, strict=True))
-            val_sets[kind] = LiftingSet(poses_cam, points, visible, focal=focal, centre=centre)
+            val_sets[kind] = ValidationSet(poses_cam, points, visible, focal=focal, centre=centre)
     return train, val_sets

@@ -186,7 +186,7 @@ def score(
             p1_ray.append(metrics.joint_errors(pose_ray, gt[batch]).astype(np.float32))
             p2.append(metrics.procrustes_errors(pose, gt[batch]).astype(np.float32))
             sym.append(metrics.symmetry_error(pose).astype(np.float32))
-            limbs.append(metrics.bone_lengths(pose, metrics.LIMB_BONES).astype(np.float32))
+            limbs.append(metrics.segment_lengths(pose, metrics.LIMB_BONES).astype(np.float32))
             if plausibility is not None:
                 plaus.append(plausibility.astype(np.float32))
             bar.update(len(pose))
@@ -203,7 +203,7 @@ def score(
 def bone_length_figures(scores: Scores, test: TestSet) -> dict[str, Any]:
     """Std of each arm and leg bone's length over the frames of one subject, averaged over the
     subjects (one person's bones keep their length), for the predictions and the ground truth."""
-    gt_limbs = metrics.bone_lengths(test.gt, metrics.LIMB_BONES)
+    gt_limbs = metrics.segment_lengths(test.gt, metrics.LIMB_BONES)
 
     def per_bone(lengths: np.ndarray) -> np.ndarray:
         return np.mean([lengths[test.subject == i].std(axis=0) for i in range(len(test.subjects))], axis=0)

@@ -226,10 +226,10 @@ def main(argv: list[str] | None = None) -> None:
                     "(exported without plausibility)"
                 )
         critic = load_critic(critic_state)
-        real = data.align_to_template(val_sets["gt"].poses_3d)
+        real = data.align_to_template(val_sets["gt"].poses_camera)
         table, bones = calibrate(critic, real), bone_range(real)
         plausibility = Plausibility(critic, torch.from_numpy(table), torch.from_numpy(bones))
-        log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_3d))
+        log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_camera))
     command = state.get("command", "")
     if args.plausibility and args.critic_checkpoint is not None:
         critic_command = critic_state.get("critic_command", critic_state.get("command", ""))

@@ -114,16 +114,17 @@ def auc(errors: np.ndarray, max_threshold: float = 150.0, steps: int = 31) -> fl
     return float(np.mean([pck(errors, t) for t in thresholds]))
 
 
-def bone_lengths(pose: np.ndarray, bones: tuple[tuple[int, int], ...]) -> np.ndarray:
-    """(N, J, 3) poses -> (N, len(bones)) lengths of (parent, child) bones."""
-    parents, children = np.asarray(bones).T
+def segment_lengths(pose: np.ndarray, segments: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """(N, J, 3) poses -> (N, len(segments)) lengths of the given (parent, child) joint pairs (numpy;
+    losses.bone_lengths is the differentiable torch one of all skeleton.BONES)."""
+    parents, children = np.asarray(segments).T
     return np.linalg.norm(pose[:, children] - pose[:, parents], axis=-1)
 
 
 def symmetry_error(pose: np.ndarray) -> np.ndarray:
     """(N,) RepNet symmetry error: sum over arm and leg bones of |left - right| length."""
-    left = bone_lengths(pose, tuple(pair[0] for pair in skeleton.SYMMETRIC_BONES))
-    right = bone_lengths(pose, tuple(pair[1] for pair in skeleton.SYMMETRIC_BONES))
+    left = segment_lengths(pose, tuple(pair[0] for pair in skeleton.SYMMETRIC_BONES))
+    right = segment_lengths(pose, tuple(pair[1] for pair in skeleton.SYMMETRIC_BONES))
     return np.abs(left - right).sum(axis=1)
 
 
@@ -175,4 +176,4 @@ def limb_length_std(pose: np.ndarray) -> np.ndarray:
     One subject's bones keep their length; a lifter whose limbs stretch and shrink from
     pose to pose shows it here (the ground truth of one subject: a few mm).
     """
-    return bone_lengths(pose, LIMB_BONES).std(axis=0)
+    return segment_lengths(pose, LIMB_BONES).std(axis=0)

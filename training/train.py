@@ -49,7 +49,7 @@ def augment_visibility(visible: torch.Tensor, config: TrainConfig, gen: torch.Ge
 
 
 def sample_2d(
-    pool: data.LiftingSet, config: TrainConfig, device: torch.device, gen: torch.Generator
+    pool: data.TrainingPool, config: TrainConfig, device: torch.device, gen: torch.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """A random normalised 2D batch: (B, J, 2) points and (B, J) visibility."""
     idx = torch.randint(0, pool.points_2d.shape[0], (config.batch_size,), generator=gen)
@@ -65,7 +65,7 @@ WILD_RATIO = 3.0
 
 
 def validate(
-    generator: RepNet, val: data.LiftingSet, device: torch.device, mirror_average: bool = False
+    generator: RepNet, val: data.ValidationSet, device: torch.device, mirror_average: bool = False
 ) -> dict[str, float]:
     """Protocol I and II MPJPE, symmetry error and limb bone length std (mm) on a validation set;
     mirror_average: of the graph that averages each answer with the mirrored one (LiftingGraph)."""
@@ -86,15 +86,15 @@ def validate(
     if val.focal is not None and val.centre is not None:
         rotation = metrics.ray_rotation(val.points_2d, val.visible, val.focal, val.centre)
         pose_cam, pose_ray = metrics.camera_frames(pose, camera, rotation)
-        ray["mpjpe_ray"] = metrics.mpjpe(pose_ray, val.poses_3d)
+        ray["mpjpe_ray"] = metrics.mpjpe(pose_ray, val.poses_camera)
     else:
         pose_cam = metrics.to_camera_frame(pose, camera)
     lengths = bone_lengths(torch.from_numpy(pose)).numpy()  # (N, B) mm
-    truth = bone_lengths(torch.from_numpy(val.poses_3d)).numpy().mean(axis=0)  # (B,)
+    truth = bone_lengths(torch.from_numpy(val.poses_camera)).numpy().mean(axis=0)  # (B,)
     return {
-        "mpjpe": metrics.mpjpe(pose_cam, val.poses_3d),
+        "mpjpe": metrics.mpjpe(pose_cam, val.poses_camera),
         **ray,
-        "pa_mpjpe": metrics.pa_mpjpe(pose, val.poses_3d),
+        "pa_mpjpe": metrics.pa_mpjpe(pose, val.poses_camera),
         "symmetry": float(metrics.symmetry_error(pose).mean()),
         "bone_std": float(metrics.limb_length_std(pose).mean()),
         "wild_pct": 100.0 * float(((lengths / truth).max(axis=1) > WILD_RATIO).mean()),
@@ -189,7 +189,7 @@ def resolve_resume(resume: str | Path | None, out_dir: Path) -> Path | None:
 class Trainer:
     """The networks, their optimisers and one training step; train() adds data, logs and checkpoints.
 
-    pool -- training LiftingSet (template-aligned 3D, 2D inputs, world poses for the synthetic
+    pool -- the TrainingPool (template-aligned 3D, 2D inputs, world poses for the synthetic
     warm start); gen -- the generator every random draw of the step comes from.
     """
 
@@ -197,19 +197,19 @@ class Trainer:
         self,
         config: TrainConfig,
         model_config: RepNetConfig,
-        pool: data.LiftingSet,
+        pool: data.TrainingPool,
         device: torch.device,
         gen: torch.Generator,
     ) -> None:
         self.config, self.pool, self.device, self.gen = config, pool, device, gen
-        self.real_pool = torch.from_numpy(pool.poses_3d / MM_PER_UNIT).to(device)  # (M, J, 3) metres
-        world = pool.poses_world if pool.poses_world is not None else pool.poses_3d
+        self.real_pool = torch.from_numpy(pool.poses_aligned / MM_PER_UNIT).to(device)  # (M, J, 3) metres
+        world = pool.poses_world if pool.poses_world is not None else pool.poses_aligned
         self.world_pool = torch.from_numpy(world)  # (M, J, 3) mm, world frame
         self.mean_bones = bone_lengths(self.real_pool).mean(dim=0)  # (B,) metres
         # The rotation that aligned each world pose to the template (exact: a similarity).
         self.align_rotations: torch.Tensor | None = None
         if config.camera_rotation_weight > 0 or config.limb_turn_deg > 0:
-            _, rotations, _ = data.procrustes(world.astype(np.float64), pool.poses_3d.astype(np.float64))
+            _, rotations, _ = data.procrustes(world.astype(np.float64), pool.poses_aligned.astype(np.float64))
             self.align_rotations = torch.from_numpy(rotations)
         self.generator = RepNet(model_config).to(device)
         self.critic = Critic(model_config).to(device)
@@ -370,7 +370,7 @@ def train(
     log.info(
         "training on %s: %d 3D poses, %d 2D poses, device %s",
         config.inputs,
-        len(pool.poses_3d),
+        len(pool.poses_aligned),
         len(pool.points_2d),
         device,
     )
@@ -457,7 +457,9 @@ def train(
     return out / "best.pt"
 
 
-def validation_sets(config: TrainConfig, held_out: dict[str, data.LiftingSet]) -> dict[str, data.LiftingSet]:
+def validation_sets(
+    config: TrainConfig, held_out: dict[str, data.ValidationSet]
+) -> dict[str, data.ValidationSet]:
     """The sets a run validates on, from build_training_sets' held-out tails: val_size poses of each
     input kind, and of GT 2D also with noise (gt_noise) and mirrored (gt_mirror). The same draw
     for the same seed, so runs and training.validate score the same poses."""
@@ -479,25 +481,27 @@ def _truncate_history(path: Path, step: int) -> None:
     path.write_text("".join(line + "\n" for line in kept))
 
 
-def _subsample(val: data.LiftingSet, size: int, rng: np.random.Generator) -> data.LiftingSet:
+def _subsample(val: data.ValidationSet, size: int, rng: np.random.Generator) -> data.ValidationSet:
     idx = np.sort(rng.choice(len(val.points_2d), size=min(size, len(val.points_2d)), replace=False))
     arrays = {f.name: getattr(val, f.name) for f in dataclasses.fields(val)}
-    return data.LiftingSet(**{name: None if a is None else a[idx] for name, a in arrays.items()})
+    return data.ValidationSet(**{name: None if a is None else a[idx] for name, a in arrays.items()})
 
 
-def with_noise(val: data.LiftingSet, sigma_px: float, rng: np.random.Generator) -> data.LiftingSet:
+def with_noise(val: data.ValidationSet, sigma_px: float, rng: np.random.Generator) -> data.ValidationSet:
     """The same validation poses with N(0, sigma_px) px added to their 2D points."""
     noise = rng.normal(0.0, sigma_px, val.points_2d.shape).astype(val.points_2d.dtype)
     return dataclasses.replace(val, points_2d=val.points_2d + noise)
 
 
-def with_hidden_joints(val: data.LiftingSet, count: int, rng: np.random.Generator) -> data.LiftingSet:
+def with_hidden_joints(
+    val: data.ValidationSet, count: int, rng: np.random.Generator
+) -> data.ValidationSet:
     """The same validation poses with `count` random non-root joints of each hidden."""
     points, visible = data.hide_random_joints(val.points_2d, val.visible, count, rng)
     return dataclasses.replace(val, points_2d=points, visible=visible)
 
 
-def _mirrored(val: data.LiftingSet) -> data.LiftingSet:
+def _mirrored(val: data.ValidationSet) -> data.ValidationSet:
     """The validation poses mirrored: 2D flipped about each camera's principal point, 3D (camera
     frame) flipped in x, left and right joints swapped in both."""
     if val.centre is None:
@@ -505,9 +509,9 @@ def _mirrored(val: data.LiftingSet) -> data.LiftingSet:
     swap = list(skeleton.MIRROR)
     points = val.points_2d[:, swap].copy()
     points[..., 0] = 2 * val.centre[:, None, 0] - points[..., 0]
-    poses = val.poses_3d[:, swap].copy()
+    poses = val.poses_camera[:, swap].copy()
     poses[..., 0] = -poses[..., 0]
-    return dataclasses.replace(val, poses_3d=poses, points_2d=points, visible=val.visible[:, swap].copy())
+    return dataclasses.replace(val, poses_camera=poses, points_2d=points, visible=val.visible[:, swap].copy())
 
 
 def _add_flags(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:

@@ -1,4 +1,4 @@
-"""Template alignment, 2D normalisation, projection and detection mapping."""
+"""Template alignment, projection, detection mapping and the training and validation sets."""
 
 from __future__ import annotations
 
@@ -31,17 +31,6 @@ def test_procrustes_recovers_a_known_similarity() -> None:
     np.testing.assert_allclose(scale, [0.8], rtol=1e-9)
     np.testing.assert_allclose(r[0], rot, atol=1e-9)
     np.testing.assert_allclose(t[0], [10.0, 20.0, 30.0], atol=1e-6)
-
-
-def test_normalize_2d_uses_visible_joints_only() -> None:
-    points = STANDING[None, :, :2] + 300.0
-    visible = np.ones((1, 17), dtype=np.float32)
-    visible[0, 0] = 0
-    points[0, 0] = 1e9
-    out = data.normalize_2d(points, visible)
-    assert out[0, 0].tolist() == [0.0, 0.0]
-    np.testing.assert_allclose(out[0, 1:].mean(axis=0), 0.0, atol=1e-6)
-    np.testing.assert_allclose((out[0, 1:] ** 2).mean(), 1.0, rtol=1e-5)
 
 
 def test_hide_random_joints_hides_that_many_non_root_joints_of_every_pose() -> None:
@@ -81,10 +70,10 @@ def test_projection_without_distortion_is_pinhole(synthetic_h36m: Path) -> None:
 
 def test_training_sets_hold_out_the_tail_of_each_sequence(synthetic_h36m: Path) -> None:
     train, val = data.build_training_sets(synthetic_h36m, "gt+sh", val_fraction=0.25)
-    assert train.poses_3d.shape == (5 * 90, 17, 3)
+    assert train.poses_aligned.shape == (5 * 90, 17, 3)
     assert train.points_2d.shape == (2 * 4 * 5 * 90, 17, 2)
     assert set(val) == {"gt", "sh"}
-    assert val["gt"].poses_3d.shape == (4 * 5 * 30, 17, 3)
+    assert val["gt"].poses_camera.shape == (4 * 5 * 30, 17, 3)
     assert np.all(val["sh"].visible[:, skeleton.SPINE] == 0)
 
 

@@ -105,16 +105,16 @@ def test_the_mirrored_validation_set_is_the_mirror_image_seen_by_the_same_camera
 
     visible = np.ones((5, 17), np.float32)
     visible[1, 13] = 0
-    val = data.LiftingSet(poses, project(poses), visible, focal=focal, centre=centre)
+    val = data.ValidationSet(poses, project(poses), visible, focal=focal, centre=centre)
     mirrored = train._mirrored(val)
-    np.testing.assert_allclose(mirrored.points_2d, project(mirrored.poses_3d), atol=1e-3)
+    np.testing.assert_allclose(mirrored.points_2d, project(mirrored.poses_camera), atol=1e-3)
     assert mirrored.visible[1, 16] == 0 and mirrored.visible[1, 13] == 1  # left wrist -> right wrist
     np.testing.assert_allclose(
-        metrics.symmetry_error(mirrored.poses_3d), metrics.symmetry_error(poses), atol=1e-3
+        metrics.symmetry_error(mirrored.poses_camera), metrics.symmetry_error(poses), atol=1e-3
     )
     twice = train._mirrored(mirrored)
     np.testing.assert_allclose(twice.points_2d, val.points_2d, atol=1e-3)
-    np.testing.assert_array_equal(twice.poses_3d, val.poses_3d)
+    np.testing.assert_array_equal(twice.poses_camera, val.poses_camera)
 
 
 def test_resume_auto_starts_fresh_without_a_checkpoint_and_a_named_one_must_exist(tmp_path: Path) -> None:
@@ -230,7 +230,7 @@ def test_a_critic_trained_against_corrupted_poses_ranks_a_real_pose_above_a_stre
     turn[:, 0, 0], turn[:, 0, 2], turn[:, 1, 1], turn[:, 2, 0], turn[:, 2, 2] = c, s, 1, -s, c
     poses = (STANDING[None] @ turn.transpose(0, 2, 1) + rng.normal(0, 5, (n, 17, 3))).astype(np.float32)
     poses -= poses[:, :1]
-    pool = data.LiftingSet(poses, np.zeros((1, 17, 2), np.float32), np.ones((1, 17), np.float32))
+    pool = data.TrainingPool(poses, np.zeros((1, 17, 2), np.float32), np.ones((1, 17), np.float32))
     config = TrainConfig(batch_size=128, critic_only=True, critic_fakes="corrupted", lr=1e-3)
     torch.manual_seed(0)
     trainer = train.Trainer(config, TINY, pool, torch.device("cpu"), torch.Generator().manual_seed(0))
@@ -292,7 +292,7 @@ def test_validation_counts_the_answers_with_a_bone_no_person_has() -> None:
             return torch.from_numpy(answers) / 1000, camera
 
     points = np.ascontiguousarray(truth[..., :2])
-    val = data.LiftingSet(truth, points, np.ones((8, 17), np.float32))
+    val = data.ValidationSet(truth, points, np.ones((8, 17), np.float32))
     figures = train.validate(Fixed(), val, torch.device("cpu"))  # type: ignore[arg-type]
     assert figures["wild_pct"] == 25.0
     assert figures["pa_mpjpe"] > 0
