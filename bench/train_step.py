@@ -28,7 +28,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from bench.stats import write_json
 from training import data, skeleton
 from training.config import RepNetConfig, TrainConfig
-from training.train import Trainer
+from training.trainer import Trainer
 
 J = skeleton.NUM_JOINTS
 

@@ -71,3 +71,16 @@ def from_onnx(path: Path) -> dict[str, Any]:
 
 def _strip(weights: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
     return {name[len(prefix) :]: value for name, value in weights.items() if name.startswith(prefix)}
+
+
+def resolve_resume(resume: str | Path | None, out_dir: Path) -> Path | None:
+    """--resume: a checkpoint path, or "auto" for out_dir/last.pt when it exists (else a fresh start)."""
+    if resume is None or str(resume) == "":
+        return None
+    if str(resume) == "auto":
+        last = out_dir / "last.pt"
+        return last if last.is_file() else None
+    path = Path(resume)
+    if not path.is_file():
+        raise FileNotFoundError(f"--resume {path}: no such checkpoint")
+    return path

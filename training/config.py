@@ -28,9 +28,16 @@ class RepNetConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. The defaults are the paper's adversarial recipe (from scratch, 5 critic
-    steps per generator step); the bundled model's recipe, a synthetic warm start with the bone
-    prior and then a critic-only stage, is the pair of commands in docs/RESULTS.md."""
+    """One training run.
+
+    The defaults are an adversarial run from scratch (no warm start): batch 256, five critic
+    updates per generator update that judge the last generator step's poses, Adam lr 1e-4 with
+    betas (0.5, 0.9) on a cosine down to a tenth over 20,000 steps, Frobenius reprojection and
+    camera losses, gradient-penalty weight 10. That is neither the paper's recipe (Wandt &
+    Rosenhahn 2019: lr 0.001 with exponential decay) nor the authors' released script (batch 32,
+    one critic update per generator update, Adam lr 1e-4 with betas (0.5, 0.9), L1 losses). A
+    shipped model comes from a named preset (training.presets), which sets every field it needs.
+    """
 
     data_dir: str = ""
     inputs: str = "gt"  # gt | sh | gt+sh

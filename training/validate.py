@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import data, train
+from training import data, validation
 from training.config import TrainConfig
 from training.export import load_generator
 
@@ -55,19 +55,19 @@ def score(
         config.frame_step,
         config.val_fraction,
     )
-    sets = train.validation_sets(config, held_out)
+    sets = validation.validation_sets(config, held_out)
     for sigma in noise_px:
         rng = np.random.default_rng(config.seed + 1)
-        sets[f"gt_noise{sigma:g}"] = train.with_noise(sets["gt"], sigma, rng)
+        sets[f"gt_noise{sigma:g}"] = validation.with_noise(sets["gt"], sigma, rng)
     for count in hidden_joints:
         rng = np.random.default_rng([config.seed, 2, count])
-        sets[f"gt_hidden{count}"] = train.with_hidden_joints(sets["gt"], count, rng)
+        sets[f"gt_hidden{count}"] = validation.with_hidden_joints(sets["gt"], count, rng)
     device = torch.device("cpu")
     return {
         "mirror_average" if mirrored else "plain": {
             kind: {
                 name: round(value, 2)
-                for name, value in train.validate(generator, val, device, mirrored).items()
+                for name, value in validation.validate(generator, val, device, mirrored).items()
             }
             for kind, val in sets.items()
         }

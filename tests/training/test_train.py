@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from tests.training.conftest import STANDING, tiny_config
-from training import data, metrics, train
+from training import augment, checkpoint, data, metrics, train, trainer, validation
 from training.config import RepNetConfig, TrainConfig
+from training.model import RepNet
 
 TINY = RepNetConfig(width=64, critic_width=64, kcs_width=16)
 
@@ -106,37 +107,37 @@ def test_the_mirrored_validation_set_is_the_mirror_image_seen_by_the_same_camera
     visible = np.ones((5, 17), np.float32)
     visible[1, 13] = 0
     val = data.ValidationSet(poses, project(poses), visible, focal=focal, centre=centre)
-    mirrored = train._mirrored(val)
+    mirrored = validation.mirrored(val)
     np.testing.assert_allclose(mirrored.points_2d, project(mirrored.poses_camera), atol=1e-3)
     assert mirrored.visible[1, 16] == 0 and mirrored.visible[1, 13] == 1  # left wrist -> right wrist
     np.testing.assert_allclose(
         metrics.symmetry_error(mirrored.poses_camera), metrics.symmetry_error(poses), atol=1e-3
     )
-    twice = train._mirrored(mirrored)
+    twice = validation.mirrored(mirrored)
     np.testing.assert_allclose(twice.points_2d, val.points_2d, atol=1e-3)
     np.testing.assert_array_equal(twice.poses_camera, val.poses_camera)
 
 
 def test_resume_auto_starts_fresh_without_a_checkpoint_and_a_named_one_must_exist(tmp_path: Path) -> None:
-    assert train.resolve_resume("auto", tmp_path) is None
+    assert checkpoint.resolve_resume("auto", tmp_path) is None
     (tmp_path / "last.pt").write_bytes(b"")
-    assert train.resolve_resume("auto", tmp_path) == tmp_path / "last.pt"
-    assert train.resolve_resume(None, tmp_path) is None
+    assert checkpoint.resolve_resume("auto", tmp_path) == tmp_path / "last.pt"
+    assert checkpoint.resolve_resume(None, tmp_path) is None
     with pytest.raises(FileNotFoundError, match="no such checkpoint"):
-        train.resolve_resume(tmp_path / "missing.pt", tmp_path)
+        checkpoint.resolve_resume(tmp_path / "missing.pt", tmp_path)
 
 
 def test_schedules_follow_the_step_count_alone() -> None:
     step = TrainConfig(lr=1e-3, iterations=200, schedule="step", max_minutes=1.0)
-    assert [train.learning_rate(step, s) for s in (0, 49, 50, 100, 150, 199)] == pytest.approx(
+    assert [trainer.learning_rate(step, s) for s in (0, 49, 50, 100, 150, 199)] == pytest.approx(
         [1e-3, 1e-3, 1e-4, 1e-5, 1e-6, 1e-6]
     )
     cosine = TrainConfig(lr=1e-3, iterations=100, schedule="cosine", lr_decay=0.1)
-    assert train.learning_rate(cosine, 0) == pytest.approx(1e-3)
-    assert train.learning_rate(cosine, 50) == pytest.approx(0.55e-3)
-    assert train.learning_rate(cosine, 100) == pytest.approx(1e-4)
+    assert trainer.learning_rate(cosine, 0) == pytest.approx(1e-3)
+    assert trainer.learning_rate(cosine, 50) == pytest.approx(0.55e-3)
+    assert trainer.learning_rate(cosine, 100) == pytest.approx(1e-4)
     ramp = TrainConfig(warm_start_steps=10, adversarial_ramp=4, adversarial_weight=0.5)
-    assert [train.adversarial_weight(ramp, s) for s in (0, 9, 10, 11, 13, 50)] == [
+    assert [trainer.adversarial_weight(ramp, s) for s in (0, 9, 10, 11, 13, 50)] == [
         0,
         0,
         0.125,
@@ -149,7 +150,7 @@ def test_schedules_follow_the_step_count_alone() -> None:
 def test_visibility_augmentation_hides_joints_but_never_the_root() -> None:
     config = TrainConfig(mask_prob=1.0, mask_max=3, spine_mask_prob=0.0)
     gen = torch.Generator().manual_seed(0)
-    visible = train.augment_visibility(torch.ones(500, 17), config, gen)
+    visible = augment.augment_visibility(torch.ones(500, 17), config, gen)
     hidden = (visible == 0).sum(dim=1)
     assert hidden.min() >= 1 and hidden.max() <= 3
     assert torch.all(visible[:, 0] == 1)
@@ -202,7 +203,7 @@ def test_init_from_takes_the_weights_but_starts_at_step_zero(synthetic_h36m: Pat
 def test_corrupted_poses_break_one_thing_and_keep_the_root() -> None:
     gen = torch.Generator().manual_seed(0)
     real = torch.from_numpy(np.repeat(STANDING[None] / 1000, 600, axis=0)).float()
-    fake = train.corrupt_poses(real, gen)
+    fake = augment.corrupt_poses(real, gen)
     assert torch.all(fake[:, 0] == 0)
     limbs = [(p, c) for p, c in metrics.LIMB_BONES]
     lengths = torch.stack([(fake[:, c] - fake[:, p]).norm(dim=1) for p, c in limbs], dim=1)
@@ -233,16 +234,18 @@ def test_a_critic_trained_against_corrupted_poses_ranks_a_real_pose_above_a_stre
     pool = data.TrainingPool(poses, np.zeros((1, 17, 2), np.float32), np.ones((1, 17), np.float32))
     config = TrainConfig(batch_size=128, critic_only=True, critic_fakes="corrupted", lr=1e-3)
     torch.manual_seed(0)
-    trainer = train.Trainer(config, TINY, pool, torch.device("cpu"), torch.Generator().manual_seed(0))
+    critic_trainer = trainer.Trainer(
+        config, TINY, pool, torch.device("cpu"), torch.Generator().manual_seed(0)
+    )
     for step in range(300):
-        trainer.step(step)
-    critic = trainer.critic.eval()
+        critic_trainer.step(step)
+    critic = critic_trainer.critic.eval()
     table = torch.from_numpy(calibrate(critic, poses[:2000]))
     plausibility = Plausibility(critic, table)
     test = torch.from_numpy(poses[2000:2100]) / 1000
     for parent, child in metrics.LIMB_BONES:
         broken = test.clone()
-        moved = train.SUBTREES[child]
+        moved = augment.SUBTREES[child]
         broken[:, moved] += 0.3 * (test[:, child] - test[:, parent])[:, None]
         with torch.no_grad():
             assert torch.all(plausibility(test) > plausibility(broken)), (parent, child)
@@ -254,7 +257,7 @@ def test_a_compiled_generator_trains_and_saves_plain_weights(synthetic_h36m: Pat
     state = torch.load(tmp_path / "last.pt", weights_only=False)
     assert state["step"] == 10
     assert not any(key.startswith("_orig_mod") for key in state["generator"])  # loadable by export
-    plain = train.RepNet(TINY)
+    plain = RepNet(TINY)
     plain.load_state_dict(state["generator"])
 
 
@@ -293,6 +296,6 @@ def test_validation_counts_the_answers_with_a_bone_no_person_has() -> None:
 
     points = np.ascontiguousarray(truth[..., :2])
     val = data.ValidationSet(truth, points, np.ones((8, 17), np.float32))
-    figures = train.validate(Fixed(), val, torch.device("cpu"))  # type: ignore[arg-type]
+    figures = validation.validate(Fixed(), val, torch.device("cpu"))  # type: ignore[arg-type]
     assert figures["wild_pct"] == 25.0
     assert figures["pa_mpjpe"] > 0
