@@ -7,6 +7,7 @@ import torch
 from training import data, metrics, skeleton
 from training.config import TrainConfig
 from training.model import normalize_keypoints
+from training.shapes import check_shape
 
 
 def augment_visibility(visible: torch.Tensor, config: TrainConfig, gen: torch.Generator) -> torch.Tensor:
@@ -56,7 +57,7 @@ def corrupt_poses(poses: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """Implausible versions of (N, J, 3) real poses (metres), a third each way: one arm or leg
     bone 25-50 % longer or 20-40 % shorter (the joints below it moved along); two non-root
     joints swapped; every joint jittered by N(0, 3-8 cm)."""
-    assert poses.dim() == 3 and poses.shape[-1] == 3, f"expected (N, J, 3) poses, got {tuple(poses.shape)}"
+    check_shape(poses, (None, skeleton.NUM_JOINTS, 3), "real poses (N, J, 3)")
     n = poses.shape[0]
     out = poses.clone()
     kind = torch.randint(0, 3, (n,), generator=gen)

@@ -17,6 +17,8 @@ CAMERAS: tuple[str, ...] = ("54138969", "55011271", "58860488", "60457274")
 # S9 sequences whose ground truth is misaligned with the video (data README).
 MISALIGNED: tuple[str, ...] = ("S9/Greeting", "S9/SittingDown 1", "S9/Waiting 1")
 
+# A Stacked-Hourglass detection's joints, in MPII order: D = 16 (the model's J = 17).
+MPII_JOINTS = 16
 # MPII-16 (Stacked-Hourglass) joint feeding each Human3.6M-17 slot; -1: no source (masked).
 MPII_TO_H36M: tuple[int, ...] = (6, 2, 1, 0, 3, 4, 5, -1, 7, 8, 9, 13, 14, 15, 12, 11, 10)
 
@@ -79,7 +81,7 @@ def load_poses(data_dir: Path, split: str) -> dict[str, np.ndarray]:
 
 
 def load_detections(path: Path) -> dict[str, np.ndarray]:
-    """{"S1/Walking 1/54138969": (N, 16, 2) float32 px} in MPII-16 order."""
+    """{"S1/Walking 1/54138969": (N, D, 2) float32 px}, D = MPII_JOINTS in MPII order."""
     with np.load(path) as npz:
         return {key: npz[key] for key in npz.files}
 
@@ -105,7 +107,10 @@ def project_to_pixels(x_world: np.ndarray, cam: Camera) -> np.ndarray:
 
 
 def mpii_to_h36m(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 16, 2) MPII detections -> ((N, 17, 2) points, (N, 17) visibility); spine masked."""
+    """(N, D, 2) MPII detections, D = MPII_JOINTS -> ((N, 17, 2) points, (N, 17) visibility);
+    the spine, which MPII lacks, hidden."""
+    if points.shape[1:] != (MPII_JOINTS, 2):
+        raise ValueError(f"expected (N, {MPII_JOINTS}, 2) MPII detections, got {points.shape}")
     index = np.asarray(MPII_TO_H36M)
     out = points[:, np.maximum(index, 0)].astype(np.float32)
     visible = np.broadcast_to((index >= 0).astype(np.float32), out.shape[:2]).copy()
@@ -116,12 +121,12 @@ def mpii_to_h36m(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def procrustes(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Similarity that best maps source onto target, per pose (Umeyama 1991).
 
-    source, target -- (N, K, 3) point sets; returns scale (N,), rotation (N, 3, 3) and
+    source, target -- (N, P, 3) sets of P points; returns scale (N,), rotation (N, 3, 3) and
     translation (N, 3) with target ~= scale * source @ R.T + t.
     """
     mu_s, mu_t = source.mean(axis=1, keepdims=True), target.mean(axis=1, keepdims=True)
     s0, t0 = source - mu_s, target - mu_t
-    cov = np.einsum("nki,nkj->nij", t0, s0)  # (N, 3, 3)
+    cov = np.einsum("npi,npj->nij", t0, s0)  # (N, 3, 3)
     u, sig, vt = np.linalg.svd(cov)
     d = np.sign(np.linalg.det(u @ vt))
     fix = np.ones_like(sig)

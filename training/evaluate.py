@@ -74,7 +74,8 @@ def action_name(sequence: str) -> str:
 def _detections_2d(
     det: np.ndarray, world: np.ndarray, name: str, frame_step: int, notes: list[str]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N, 16, 2) MPII detections of a camera sequence -> (world, points, visible), stepped."""
+    """(N, D, 2) MPII detections of a camera sequence, D = data.MPII_JOINTS -> (world, points,
+    visible), stepped."""
     if len(det) != len(world):
         if abs(len(det) - len(world)) > MAX_LENGTH_MISMATCH * len(world):
             raise ValueError(
@@ -179,7 +180,7 @@ def score(
     with tqdm(total=len(points), desc=desc, unit="pose", unit_scale=True, leave=False) as bar:
         for start in range(0, len(points), batch_size):
             batch = slice(start, start + batch_size)
-            pose, camera, plausibility = lift(points[batch], visible[batch])  # (B, 17, 3), (B, 2, 3), (B,)
+            pose, camera, plausibility = lift(points[batch], visible[batch])  # (n, 17, 3), (n, 2, 3), (n,)
             ray = metrics.ray_rotation(points[batch], visible[batch], test.focal[batch], test.centre[batch])
             pose_cam, pose_ray = metrics.camera_frames(pose, camera, ray)  # Protocol I, and along the ray
             p1.append(metrics.joint_errors(pose_cam, gt[batch]).astype(np.float32))

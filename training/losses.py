@@ -8,6 +8,7 @@ import torch
 
 from training import skeleton
 from training.camera import masked_centre, project_weak_perspective
+from training.shapes import check_shape
 
 
 def reprojection_loss(
@@ -17,7 +18,8 @@ def reprojection_loss(
     camera: torch.Tensor,
     norm: str = "fro",
 ) -> torch.Tensor:
-    """Mean over the batch of ||W - K X||_F with missing joints' columns zeroed (Eq. 3).
+    """Reprojection loss L_rep: mean over the batch of ||W - K X||_F, the columns of hidden joints
+    zeroed (Wandt & Rosenhahn 2019, Eq. 2).
 
     points_2d -- (N, J, 2) normalised input W (centred on its visible joints);
     visible -- (N, J); pose -- (N, J, 3); camera -- (N, 2, 3).
@@ -26,6 +28,11 @@ def reprojection_loss(
     |W - K X| over the coordinates, weighted per joint (skeleton.REPROJECTION_WEIGHTS),
     divided by 2J.
     """
+    n, j = points_2d.shape[:2]
+    check_shape(points_2d, (n, j, 2), "W (N, J, 2)")
+    check_shape(visible, (n, j), "visibility (N, J)")
+    check_shape(pose, (n, j, 3), "pose X (N, J, 3)")
+    check_shape(camera, (n, 2, 3), "camera K (N, 2, 3)")
     reprojected = masked_centre(project_weak_perspective(camera, pose), visible)  # (N, J, 2)
     diff = (points_2d - reprojected) * visible.unsqueeze(-1)
     if norm == "l1":
@@ -37,11 +44,13 @@ def reprojection_loss(
 
 
 def camera_loss(camera: torch.Tensor, norm: str = "fro") -> torch.Tensor:
-    """Mean of ||(2 / trace(K K^T)) K K^T - I_2||_F over (N, 2, 3) K (Eq. 6); norm "l1" sums
-    the absolute entries instead (the authors' code).
+    """Camera loss L_cam: mean of ||(2 / trace(K K^T)) K K^T - I_2||_F over (N, 2, 3) K (Wandt &
+    Rosenhahn 2019, Eq. 10); norm "l1" sums the absolute entries instead (the authors' code).
 
-    Zero exactly when K is a scaled orthographic projection (rows orthogonal, equal norm).
+    Zero exactly when K K^T = s^2 I (Eq. 8): K is a scaled orthographic projection (rows
+    orthogonal, equal norm).
     """
+    check_shape(camera, (None, 2, 3), "camera K (N, 2, 3)")
     kkt = camera @ camera.transpose(1, 2)  # (N, 2, 2)
     trace = kkt.diagonal(dim1=1, dim2=2).sum(dim=1).clamp_min(1e-12)  # (N,)
     eye = torch.eye(2, dtype=camera.dtype, device=camera.device)
@@ -54,18 +63,23 @@ def camera_loss(camera: torch.Tensor, norm: str = "fro") -> torch.Tensor:
 
 
 def bone_lengths(pose: torch.Tensor) -> torch.Tensor:
-    """(N, J, 3) poses -> (N, B) lengths of the skeleton's bones (child minus parent)."""
+    """(N, J, 3) poses -> (N, B) lengths of the skeleton's bone vectors b = child - parent
+    (Wandt & Rosenhahn 2019, Eq. 3), differentiable."""
+    check_shape(pose, (None, None, 3), "poses (N, J, 3)")
     parents, children = zip(*skeleton.BONES, strict=True)
     return (pose[:, list(children)] - pose[:, list(parents)]).pow(2).sum(dim=-1).add(1e-12).sqrt()
 
 
 def bone_loss(pose: torch.Tensor, mean_lengths: torch.Tensor) -> torch.Tensor:
     """Mean |bone length - its mean over real poses| of (N, J, 3) poses; mean_lengths (B,)."""
+    check_shape(mean_lengths, (len(skeleton.BONES),), "mean lengths (B,)")
     return (bone_lengths(pose) - mean_lengths).abs().mean()
 
 
 def pose_loss(pose: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean per-joint Euclidean distance of (N, J, 3) poses (the synthetic warm start)."""
+    check_shape(pose, (None, None, 3), "poses (N, J, 3)")
+    check_shape(target, tuple(pose.shape), "targets (N, J, 3)")
     return (pose - target).pow(2).sum(dim=-1).add(1e-12).sqrt().mean()
 
 
@@ -76,6 +90,8 @@ def gradient_penalty(
 
     real, fake -- (N, J, 3) poses.
     """
+    check_shape(real, (None, None, 3), "real poses (N, J, 3)")
+    check_shape(fake, tuple(real.shape), "fake poses (N, J, 3)")
     alpha = torch.rand(real.shape[0], 1, 1, dtype=real.dtype, device=real.device)
     mixed = (alpha * real + (1 - alpha) * fake).requires_grad_(True)
     (grad,) = torch.autograd.grad(critic(mixed).sum(), mixed, create_graph=True)

@@ -50,7 +50,7 @@ def camera_frames(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray) -> tupl
     """(N, J, 3) poses turned by K's rotation (Protocol I), and the same turned along the ray too:
     to_camera_frame without and with `ray`, with one polar decomposition of K."""
     rotation = rotation_from_camera(camera)
-    return np.einsum("nij,nkj->nki", rotation, pose), np.einsum("nij,nkj->nki", ray @ rotation, pose)
+    return np.einsum("nrc,njc->njr", rotation, pose), np.einsum("nrc,njc->njr", ray @ rotation, pose)
 
 
 def to_camera_frame(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray | None = None) -> np.ndarray:
@@ -59,7 +59,7 @@ def to_camera_frame(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray | None
     rotation = rotation_from_camera(camera)
     if ray is not None:
         rotation = ray @ rotation
-    return np.einsum("nij,nkj->nki", rotation, pose)
+    return np.einsum("nrc,njc->njr", rotation, pose)
 
 
 def off_axis_errors(gt: np.ndarray, ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +70,7 @@ def off_axis_errors(gt: np.ndarray, ray: np.ndarray) -> tuple[np.ndarray, np.nda
     in the camera frame is the (N, J, 3) camera-frame ground truth turned back by the ray: the
     floor of the plain P-I for any lifter of centred 2D inputs, which cannot see where in the
     image the person stands."""
-    seen = np.einsum("nji,nkj->nki", ray, root_align(gt.astype(np.float64)))
+    seen = np.einsum("ncr,njc->njr", ray, root_align(gt.astype(np.float64)))  # ray^T X
     cosine = (np.trace(ray, axis1=1, axis2=2) - 1.0) / 2.0
     return joint_errors(seen, gt), np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
 
@@ -122,7 +122,8 @@ def segment_lengths(pose: np.ndarray, segments: tuple[tuple[int, int], ...]) -> 
 
 
 def symmetry_error(pose: np.ndarray) -> np.ndarray:
-    """(N,) RepNet symmetry error: sum over arm and leg bones of |left - right| length."""
+    """(N,) symmetry error of (N, J, 3) poses: the sum over the arm and leg bones of |left - right|
+    length (Wandt & Rosenhahn 2019, Sec. 4.3)."""
     left = segment_lengths(pose, tuple(pair[0] for pair in skeleton.SYMMETRIC_BONES))
     right = segment_lengths(pose, tuple(pair[1] for pair in skeleton.SYMMETRIC_BONES))
     return np.abs(left - right).sum(axis=1)

@@ -87,7 +87,8 @@ class RepNet(nn.Module):
 
 
 class KCS(nn.Module):
-    """Kinematic chain space layer: Psi = B^T B with bone vectors B = X C (Eq. 4-5)."""
+    """Kinematic chain space layer: Psi = B^T B (Wandt & Rosenhahn 2019, Eq. 7) of the bone
+    vectors B = X C (Eq. 5-6), C the bone matrix (skeleton.bone_matrix)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -95,8 +96,8 @@ class KCS(nn.Module):
 
     def forward(self, pose: torch.Tensor) -> torch.Tensor:
         """(N, J, 3) pose -> (N, B, B) Psi; its diagonal holds the squared bone lengths."""
-        b = torch.einsum("njd,jb->nbd", pose, self.bones)  # (N, B, 3)
-        return b @ b.transpose(1, 2)
+        bones = torch.einsum("njd,jb->nbd", pose, self.bones)  # (N, B, 3): B = X C, one row per bone
+        return bones @ bones.transpose(1, 2)
 
 
 class Critic(nn.Module):
@@ -104,23 +105,23 @@ class Critic(nn.Module):
 
     def __init__(self, config: RepNetConfig) -> None:
         super().__init__()
-        j, w, k, slope = config.num_joints, config.critic_width, config.kcs_width, config.leaky_slope
+        j, w, kcs, slope = config.num_joints, config.critic_width, config.kcs_width, config.leaky_slope
         act = nn.LeakyReLU(slope)
         self.pose_path = nn.Sequential(
             nn.Linear(3 * j, w), act, ResidualBlock(w, slope), nn.Linear(w, 100), act
         )
         self.kcs = KCS()
         nb = skeleton.NUM_BONES
-        # Dense k, then Dense k twice with a skip from the first (the authors' code).
-        self.kcs_path = nn.Sequential(nn.Linear(nb * nb, k), act, ResidualBlock(k, slope))
-        self.head = nn.Sequential(nn.Linear(100 + k, 100), act, nn.Linear(100, 1))
+        # Dense kcs_width, then twice more with a skip from the first (the authors' code).
+        self.kcs_path = nn.Sequential(nn.Linear(nb * nb, kcs), act, ResidualBlock(kcs, slope))
+        self.head = nn.Sequential(nn.Linear(100 + kcs, 100), act, nn.Linear(100, 1))
 
     def forward(self, pose: torch.Tensor) -> torch.Tensor:
         """(N, J, 3) pose in metres -> (N,) critic score (higher = more real)."""
         n = pose.shape[0]
-        a = self.pose_path(pose.reshape(n, -1))  # (N, 100)
-        b = self.kcs_path(self.kcs(pose).reshape(n, -1))  # (N, k)
-        return self.head(torch.cat([a, b], dim=1)).squeeze(1)
+        by_pose = self.pose_path(pose.reshape(n, -1))  # (N, 100)
+        by_kcs = self.kcs_path(self.kcs(pose).reshape(n, -1))  # (N, kcs_width)
+        return self.head(torch.cat([by_pose, by_kcs], dim=1)).squeeze(1)
 
 
 class Plausibility(nn.Module):

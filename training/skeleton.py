@@ -52,7 +52,7 @@ MIRROR: tuple[int, ...] = tuple(JOINT_NAMES.index(_mirror_name(name)) for name i
 BONES: tuple[tuple[int, int], ...] = tuple((p, j) for j, p in enumerate(PARENTS) if p >= 0)
 NUM_BONES = len(BONES)
 
-# Left/right bone pairs for the symmetry error (RepNet, Sec. 5): upper/lower arm and leg.
+# Left/right bone pairs of the symmetry error (Wandt & Rosenhahn 2019, Sec. 4.3): upper/lower arm and leg.
 SYMMETRIC_BONES: tuple[tuple[tuple[int, int], tuple[int, int]], ...] = (
     ((4, 5), (1, 2)),  # thigh
     ((5, 6), (2, 3)),  # shin
@@ -76,9 +76,11 @@ TEMPLATE_TORSO = np.array(
 
 
 def bone_matrix() -> np.ndarray:
-    """The KCS bone matrix C (J, B): B = X C gives bone vectors for X (3, J).
+    """The KCS bone matrix C (J, B): B = X C gives the bone vectors of a pose X (3, J)
+    (Wandt & Rosenhahn 2019, Eq. 5-6).
 
-    Column b has +1 at the bone's child joint and -1 at its parent (Wandt et al. 2019, Eq. 4).
+    Column c of a bone has +1 at its child joint and -1 at its parent (Eq. 4), so that X c is the
+    bone vector b = child - parent (Eq. 3).
     """
     c = np.zeros((NUM_JOINTS, NUM_BONES), dtype=np.float32)
     for b, (parent, child) in enumerate(BONES):

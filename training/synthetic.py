@@ -98,9 +98,9 @@ def turn_limbs(poses: torch.Tensor, turns: torch.Tensor) -> torch.Tensor:
     (N, len(LIMB_SEGMENTS), 3, 3) rotations `turns`: new poses from the same people, every bone
     keeping its length."""
     out = poses.to(torch.float64).clone()
-    for k, (pivot, moved) in enumerate(LIMB_SEGMENTS):
+    for segment, (pivot, moved) in enumerate(LIMB_SEGMENTS):
         centre = out[:, pivot : pivot + 1]
-        out[:, list(moved)] = centre + (out[:, list(moved)] - centre) @ turns[:, k].transpose(1, 2)
+        out[:, list(moved)] = centre + (out[:, list(moved)] - centre) @ turns[:, segment].transpose(1, 2)
     return out.to(poses.dtype)
 
 
@@ -128,9 +128,10 @@ def sample(
     limb_turn_deg: float = 0.0,
     limb_turn_prob: float = 0.5,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """A synthetic batch: (B, J, 2) pixels with detector-like noise, the (B, J, 3) target (the
-    same pose aligned to the template, metres: what the generator outputs) and, given the
-    (M, 3, 3) rotations that aligned each world pose to the template, the (B, 3, 3) rotation
+    """A synthetic batch of N = `batch` poses: (N, J, 2) pixels with detector-like noise, the
+    (N, J, 3) target (the same pose aligned to the template, metres: what the generator outputs)
+    and, given the
+    (M, 3, 3) rotations that aligned each world pose to the template, the (N, 3, 3) rotation
     from the template frame into the synthetic camera (what the camera K should hold).
 
     rotation_target "axis": into the camera frame itself; "ray": into the frame that looks along
@@ -159,7 +160,7 @@ def sample(
         chosen = torch.rand(batch, generator=gen) < limb_turn_prob
         turns = torch.where(chosen[:, None, None, None], turns, torch.eye(3, dtype=turns.dtype))
         # aligned = s * world @ A^T: a turn R in the template frame is A^T R A in the world frame.
-        align = align_rotations[idx].to(torch.float64)[:, None]  # (B, 1, 3, 3)
+        align = align_rotations[idx].to(torch.float64)[:, None]  # (N, 1, 3, 3)
         world = turn_limbs(world, align.transpose(-1, -2) @ turns @ align)
         aligned = turn_limbs(aligned, turns.to(aligned.device))
     flip = None

@@ -124,3 +124,13 @@ def test_bone_loss_is_zero_at_the_mean_skeleton_and_grows_with_a_stretched_limb(
     stretched[0, 6] += 0.3 * (pose[0, 6] - pose[0, 5])  # the left shin 30 % longer
     shin = (pose[0, 6] - pose[0, 5]).norm().item()
     assert abs(bone_loss(stretched, lengths).item() - 0.3 * shin / skeleton.NUM_BONES) < 1e-5
+
+
+def test_the_losses_assert_their_shapes() -> None:
+    camera = torch.zeros(2, 2, 3)
+    with pytest.raises(AssertionError, match=r"pose X \(N, J, 3\)"):
+        reprojection_loss(torch.zeros(2, 17, 2), torch.ones(2, 17), torch.zeros(2, 16, 3), camera)
+    with pytest.raises(AssertionError, match=r"camera K \(N, 2, 3\)"):
+        camera_loss(torch.zeros(2, 3, 2))
+    with pytest.raises(AssertionError, match="fake poses"):
+        critic_loss(lambda x: x.sum(dim=(1, 2)), torch.zeros(4, 17, 3), torch.zeros(3, 17, 3), 10.0)

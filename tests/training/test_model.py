@@ -35,6 +35,14 @@ def test_kcs_diagonal_holds_squared_bone_lengths() -> None:
     assert psi.shape == (skeleton.NUM_BONES, skeleton.NUM_BONES)
 
 
+def test_kcs_is_the_gram_matrix_of_the_bone_vectors() -> None:
+    rng = np.random.default_rng(0)
+    poses = STANDING[None] + rng.normal(0, 30, (3, 17, 3))
+    psi = KCS()(torch.from_numpy(poses).float()).numpy()
+    bones = np.stack([poses[:, c] - poses[:, p] for p, c in skeleton.BONES], axis=1)  # (N, B, 3)
+    np.testing.assert_allclose(psi, bones @ bones.transpose(0, 2, 1), rtol=1e-4, atol=1e-2)  # Psi = B^T B
+
+
 def test_normalize_keypoints_is_centred_unit_std_and_zero_for_missing() -> None:
     points = torch.tensor(STANDING[None, :, :2] * 0.3 + 500.0, dtype=torch.float32)
     visible = torch.ones(1, 17)
