@@ -28,7 +28,7 @@ from service.config import BUNDLED_MODEL
 from service.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
 from service.lifter import Lifter
 from training import data, metrics
-from training.evaluate import DATASET_LABEL, build_test_set, select_sequences
+from training.testset import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.format_accuracy")
 BATCH = 4096

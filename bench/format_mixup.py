@@ -32,7 +32,7 @@ from service.keypoints import Limits, PoseInput, prepare_poses
 from service.lifter import Lifter
 from service.lookalike import GEOMETRY_WEIGHT, THRESHOLD, format_warnings, lookalike_of, relative_error
 from training import data
-from training.evaluate import DATASET_LABEL, build_test_set, select_sequences
+from training.testset import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.format_mixup")
 BATCH = 4096

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from training import data
 from training.config import TrainConfig
 
 # A standing pose in the template frame (mm; x right, y down, z away from the camera).
@@ -59,8 +60,6 @@ def synthetic_sequence(rng: np.random.Generator, frames: int) -> np.ndarray:
 
 def write_synthetic_h36m(folder: Path, seed: int = 0, frames: int = 120) -> Path:
     """Write poses_3d_{train,test}.npz, cameras.json and detections_sh_train.npz to folder."""
-    from training import data
-
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True, exist_ok=True)
     cameras: dict[str, dict[str, dict[str, list[float]]]] = {}
@@ -95,6 +94,56 @@ def write_synthetic_h36m(folder: Path, seed: int = 0, frames: int = 120) -> Path
             detections[f"{key}/{cam_id}"] = np.round(px + rng.normal(0, 3, px.shape)).astype(np.float32)
     np.savez(folder / "detections_sh_train.npz", **detections)
     return folder
+
+
+# Test sequences and their frame counts: two takes of Walking, one misaligned sequence.
+SEQUENCES = {"S9/Walking": 9, "S9/Walking 1": 7, "S9/Greeting": 6, "S11/Directions": 8, "S11/Eating 2": 5}
+MISSING_DETECTIONS = "S11/Directions/54138969"  # as in the real data
+MPII_FROM_H36M = [3, 2, 1, 4, 5, 6, 0, 8, 8, 10, 16, 15, 14, 11, 12, 13]  # data README
+
+
+def write_test_h36m(folder: Path) -> Path:
+    """poses_3d_{train,test}.npz and cameras.json of the test subjects, with distortion as in the
+    real data: what training.evaluate reads."""
+    rng = np.random.default_rng(3)
+    folder.mkdir(parents=True, exist_ok=True)
+    cameras = {}
+    for subject in data.TEST_SUBJECTS:
+        cameras[subject] = {}
+        for i, cam in enumerate(data.CAMERAS):
+            a = 0.3 + i * np.pi / 2
+            centre = np.array([4500 * np.cos(a), 4500 * np.sin(a), 1600.0])
+            cameras[subject][cam] = {
+                "R": look_at(centre, np.array([0.0, 0.0, 900.0])).tolist(),
+                "T": centre.tolist(),
+                "f": [1145.0, 1144.0],
+                "c": [512.0, 515.0],
+                "k": [-0.2, 0.24, -0.0015],
+                "p": [-0.0009, -0.0002],
+            }
+    (folder / "cameras.json").write_text(json.dumps(cameras))
+    np.savez(folder / "poses_3d_train.npz", **{"S1/Walking": synthetic_sequence(rng, 4)})
+    np.savez(folder / "poses_3d_test.npz", **{k: synthetic_sequence(rng, n) for k, n in SEQUENCES.items()})
+    return folder
+
+
+def write_detections(folder: Path, path: Path) -> Path:
+    """MPII-16 detections from the GT projections, one camera sequence left out."""
+    cameras = data.load_cameras(folder)
+    detections = {}
+    for key, world in data.load_poses(folder, "test").items():
+        for cam_id in data.CAMERAS:
+            if f"{key}/{cam_id}" != MISSING_DETECTIONS:
+                px = data.project_to_pixels(world, cameras[key.split("/")[0]][cam_id])
+                detections[f"{key}/{cam_id}"] = px[:, MPII_FROM_H36M]
+    np.savez(path, **detections)
+    return path
+
+
+@pytest.fixture(scope="session")
+def h36m_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A test-subject folder for training.evaluate (write_test_h36m)."""
+    return write_test_h36m(tmp_path_factory.mktemp("h36m_eval"))
 
 
 @pytest.fixture(scope="session")

@@ -8,55 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.training.conftest import look_at, synthetic_sequence
-from training import data, evaluate, metrics, skeleton
-
-# Test sequences and their frame counts: two takes of Walking, one misaligned sequence.
-SEQUENCES = {"S9/Walking": 9, "S9/Walking 1": 7, "S9/Greeting": 6, "S11/Directions": 8, "S11/Eating 2": 5}
-MISSING_DETECTIONS = "S11/Directions/54138969"  # as in the real data
-MPII_FROM_H36M = [3, 2, 1, 4, 5, 6, 0, 8, 8, 10, 16, 15, 14, 11, 12, 13]  # data README
-
-
-def write_test_folder(folder: Path) -> Path:
-    """poses_3d_{train,test}.npz and cameras.json with distortion, as in the real data."""
-    rng = np.random.default_rng(3)
-    folder.mkdir(parents=True, exist_ok=True)
-    cameras = {}
-    for subject in data.TEST_SUBJECTS:
-        cameras[subject] = {}
-        for i, cam in enumerate(data.CAMERAS):
-            a = 0.3 + i * np.pi / 2
-            centre = np.array([4500 * np.cos(a), 4500 * np.sin(a), 1600.0])
-            cameras[subject][cam] = {
-                "R": look_at(centre, np.array([0.0, 0.0, 900.0])).tolist(),
-                "T": centre.tolist(),
-                "f": [1145.0, 1144.0],
-                "c": [512.0, 515.0],
-                "k": [-0.2, 0.24, -0.0015],
-                "p": [-0.0009, -0.0002],
-            }
-    (folder / "cameras.json").write_text(json.dumps(cameras))
-    np.savez(folder / "poses_3d_train.npz", **{"S1/Walking": synthetic_sequence(rng, 4)})
-    np.savez(folder / "poses_3d_test.npz", **{k: synthetic_sequence(rng, n) for k, n in SEQUENCES.items()})
-    return folder
-
-
-def write_detections(folder: Path, path: Path) -> Path:
-    """MPII-16 detections from the GT projections, one camera sequence left out."""
-    cameras = data.load_cameras(folder)
-    detections = {}
-    for key, world in data.load_poses(folder, "test").items():
-        for cam_id in data.CAMERAS:
-            if f"{key}/{cam_id}" != MISSING_DETECTIONS:
-                px = data.project_to_pixels(world, cameras[key.split("/")[0]][cam_id])
-                detections[f"{key}/{cam_id}"] = px[:, MPII_FROM_H36M]
-    np.savez(path, **detections)
-    return path
-
-
-@pytest.fixture(scope="module")
-def h36m_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_test_folder(tmp_path_factory.mktemp("h36m_eval"))
+from tests.training.conftest import MISSING_DETECTIONS, SEQUENCES, write_detections
+from training import data, evaluate, metrics, skeleton, testset
 
 
 @pytest.fixture(scope="module")
@@ -78,12 +31,6 @@ def _run(model: Path, h36m: Path, out: Path, *extra: str) -> dict:
     argv = ["--model", str(model), "--data-dir", str(h36m), "--out-dir", str(out), "--threads", "1"]
     evaluate.main([*argv, *extra])
     return json.loads((out / "evaluation.json").read_text())
-
-
-def test_action_name_merges_the_takes_of_an_action() -> None:
-    assert [evaluate.action_name(s) for s in ("Walking 1", "WalkDog", "Eating 2", "Photo 1")] == [
-        "Walking", "WalkDog", "Eating", "Photo",
-    ]  # fmt: skip
 
 
 def test_evaluation_with_gt_inputs_writes_all_figures(tiny_model, h36m_dir, tmp_path, capsys) -> None:
@@ -138,7 +85,7 @@ def test_evaluation_figures_match_a_direct_computation(tiny_model, h36m_dir, tmp
 
 
 def test_protocol_one_is_zero_for_an_oracle_and_catches_a_wrong_rotation(h36m_dir) -> None:
-    test = evaluate.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), None)
+    test = testset.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), None)
     rng = np.random.default_rng(0)
     q, _ = np.linalg.qr(rng.normal(size=(len(test.gt), 3, 3)))
     rot = q * np.sign(np.linalg.det(q))[:, None, None]  # (M, 3, 3) proper rotations
@@ -164,7 +111,7 @@ def test_protocol_one_is_zero_for_an_oracle_and_catches_a_wrong_rotation(h36m_di
 def test_protocol_one_along_the_ray_is_zero_for_an_oracle_of_the_view_along_the_ray(h36m_dir) -> None:
     """A lifter that gives K the rotation of the view along the ray to the person (all that a
     centred input shows) is exact under P-I along the ray, and off under K's rotation alone."""
-    test = evaluate.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), None)
+    test = testset.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), None)
     ray = metrics.ray_rotation(test.points, test.visible, test.focal, test.centre)
     view = ray.transpose(0, 2, 1)  # camera frame -> the frame looking along the ray
     template = np.einsum("nij,nkj->nki", view, test.gt)  # what the lifter outputs (K's rotation: view)
@@ -188,7 +135,7 @@ def test_detections_are_mapped_and_missing_cameras_skipped(tiny_model, h36m_dir,
     det_path = write_detections(h36m_dir, tmp_path / "det.npz")
     detections = data.load_detections(det_path)
     detections["S9/Walking/55011271"][2, 5] = np.nan  # a missed joint
-    test = evaluate.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), detections)
+    test = testset.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), detections)
     assert test.skipped == (MISSING_DETECTIONS,)
     assert test.sequences == 4 * len(SEQUENCES) - 1
     assert np.all(test.visible[:, skeleton.SPINE] == 0)
@@ -202,17 +149,6 @@ def test_detections_are_mapped_and_missing_cameras_skipped(tiny_model, h36m_dir,
     assert result["skipped_sequences"] == [MISSING_DETECTIONS]
     assert result["all"]["overall"]["poses"] == 4 * sum(SEQUENCES.values()) - SEQUENCES["S11/Directions"]
     assert result["tables"]["poses"] == 4 * sum((n + 2) // 3 for n in SEQUENCES.values())  # GT 2D
-
-
-def test_detection_length_mismatch_is_trimmed_or_rejected(h36m_dir, tmp_path) -> None:
-    poses, cameras = data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir)
-    long = {"S9/Walking": np.zeros((100, 17, 3), dtype=np.float32)}
-    det = {f"S9/Walking/{c}": np.ones((99, 16, 2), dtype=np.float32) for c in data.CAMERAS}
-    test = evaluate.build_test_set(long, cameras, det)
-    assert len(test.gt) == 4 * 99 and len(test.notes) == 4
-    det = {f"S9/Walking/{c}": np.ones((len(poses["S9/Walking"]) // 2, 16, 2), "f4") for c in data.CAMERAS}
-    with pytest.raises(ValueError, match="expected 9 frames"):
-        evaluate.build_test_set({"S9/Walking": poses["S9/Walking"]}, cameras, det)
 
 
 def test_open_model_rejects_a_model_without_the_contract(tmp_path) -> None:
@@ -251,6 +187,6 @@ def test_evaluation_on_the_real_test_set_subset(tiny_model, tmp_path) -> None:
     assert result["all"]["overall"]["poses"] == 4 * sum((len(v) + 39) // 40 for v in walking.values())
     assert result["without_misaligned"]["overall"] == result["all"]["overall"]  # S11 has none
     assert result["all"]["overall"]["gt_symmetry_max"] < 1.0  # Human3.6M skeletons are symmetric
-    test = evaluate.build_test_set(walking, data.load_cameras(h36m), None, frame_step=40)
+    test = testset.build_test_set(walking, data.load_cameras(h36m), None, frame_step=40)
     assert np.all(test.gt[..., 2] > 1000.0)  # every joint well in front of every camera
     assert np.all((test.points > 0) & (test.points < 1002))  # and inside the image
