@@ -58,24 +58,36 @@ def synthetic_sequence(rng: np.random.Generator, frames: int) -> np.ndarray:
     return (poses @ rot.transpose(0, 2, 1) + [0, 0, 950]).astype(np.float32)
 
 
-def write_synthetic_h36m(folder: Path, seed: int = 0, frames: int = 120) -> Path:
-    """Write poses_3d_{train,test}.npz, cameras.json and detections_sh_train.npz to folder."""
-    rng = np.random.default_rng(seed)
-    folder.mkdir(parents=True, exist_ok=True)
+def camera_ring(
+    subjects: tuple[str, ...],
+    radius: float,
+    height: float,
+    first_angle: float,
+    distortion: dict[str, list[float]] | None = None,
+) -> dict[str, dict[str, dict[str, list[float]]]]:
+    """cameras.json content: each subject's four cameras on a circle (mm) a quarter turn apart,
+    looking at the person's chest; no lens distortion unless given ({"k": [3], "p": [2]})."""
     cameras: dict[str, dict[str, dict[str, list[float]]]] = {}
-    for subject in data.TRAIN_SUBJECTS + data.TEST_SUBJECTS:
+    for subject in subjects:
         cameras[subject] = {}
         for i, cam in enumerate(data.CAMERAS):
-            a = np.pi / 4 + i * np.pi / 2
-            centre = np.array([4000 * np.cos(a), 4000 * np.sin(a), 1500.0])
+            a = first_angle + i * np.pi / 2
+            centre = np.array([radius * np.cos(a), radius * np.sin(a), height])
             cameras[subject][cam] = {
                 "R": look_at(centre, np.array([0.0, 0.0, 900.0])).tolist(),
                 "T": centre.tolist(),
                 "f": [1145.0, 1144.0],
                 "c": [512.0, 515.0],
-                "k": [0.0, 0.0, 0.0],
-                "p": [0.0, 0.0],
+                **(distortion or {"k": [0.0, 0.0, 0.0], "p": [0.0, 0.0]}),
             }
+    return cameras
+
+
+def write_synthetic_h36m(folder: Path, seed: int = 0, frames: int = 120) -> Path:
+    """Write poses_3d_{train,test}.npz, cameras.json and detections_sh_train.npz to folder."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    cameras = camera_ring(data.TRAIN_SUBJECTS + data.TEST_SUBJECTS, 4000.0, 1500.0, np.pi / 4)
     (folder / "cameras.json").write_text(json.dumps(cameras))
     train = {f"{s}/Walking": synthetic_sequence(rng, frames) for s in data.TRAIN_SUBJECTS}
     test = {
@@ -107,20 +119,8 @@ def write_test_h36m(folder: Path) -> Path:
     real data: what training.evaluate reads."""
     rng = np.random.default_rng(3)
     folder.mkdir(parents=True, exist_ok=True)
-    cameras = {}
-    for subject in data.TEST_SUBJECTS:
-        cameras[subject] = {}
-        for i, cam in enumerate(data.CAMERAS):
-            a = 0.3 + i * np.pi / 2
-            centre = np.array([4500 * np.cos(a), 4500 * np.sin(a), 1600.0])
-            cameras[subject][cam] = {
-                "R": look_at(centre, np.array([0.0, 0.0, 900.0])).tolist(),
-                "T": centre.tolist(),
-                "f": [1145.0, 1144.0],
-                "c": [512.0, 515.0],
-                "k": [-0.2, 0.24, -0.0015],
-                "p": [-0.0009, -0.0002],
-            }
+    distortion = {"k": [-0.2, 0.24, -0.0015], "p": [-0.0009, -0.0002]}
+    cameras = camera_ring(data.TEST_SUBJECTS, 4500.0, 1600.0, 0.3, distortion)
     (folder / "cameras.json").write_text(json.dumps(cameras))
     np.savez(folder / "poses_3d_train.npz", **{"S1/Walking": synthetic_sequence(rng, 4)})
     np.savez(folder / "poses_3d_test.npz", **{k: synthetic_sequence(rng, n) for k, n in SEQUENCES.items()})
