@@ -8,14 +8,47 @@ shipped model, or to reuse its critic, when the run's own checkpoints are gone.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from training.config import RepNetConfig, TrainConfig
+
 GENERATOR_PREFIX = "generator."
 CRITIC_PREFIX = "plausibility.critic."
+# What a resumed run may change from the configuration stored in its checkpoint: where it writes and
+# reads, how often it logs and saves, when it stops, and how fast it runs. None of them changes
+# what is computed: the weights, the random draws and the schedule go on as stored. (threads,
+# device and compile can change the last bits of float results; init_from is read only at step 0,
+# so a resumed run ignores it.)
+RESUME_MAY_CHANGE = frozenset(
+    {
+        "max_minutes",
+        "stop_step",
+        "threads",
+        "device",
+        "compile",
+        "checkpoint_every",
+        "checkpoint_minutes",
+        "log_every",
+        "out_dir",
+        "data_dir",
+        "init_from",
+    }
+)
+# What --extend lets change besides: the length of the schedule and of the warm start within it,
+# as when a finished 60,000-step run goes on to 120,000 steps of a longer cosine (and a warm start
+# that spanned the whole run spans the longer one).
+EXTEND_MAY_CHANGE = frozenset({"iterations", "warm_start_steps"})
+
+
+class ConfigChanged(ValueError):
+    """A resumed run was given a configuration that differs from its checkpoint's."""
+
+
 # How an export whose critic came from another run names the two commands in its train_command.
 GENERATOR_LABEL, CRITIC_COMMAND = "generator: ", "; critic: "
 
@@ -84,3 +117,41 @@ def resolve_resume(resume: str | Path | None, out_dir: Path) -> Path | None:
     if not path.is_file():
         raise FileNotFoundError(f"--resume {path}: no such checkpoint")
     return path
+
+
+def config_changes(
+    state: dict[str, Any], config: TrainConfig, model_config: RepNetConfig, extend: bool = False
+) -> list[str]:
+    """The fields in which `config` and `model_config` differ from the checkpoint's stored ones
+    ("lr: 0.001 -> 0.002"), leaving out RESUME_MAY_CHANGE (and with extend EXTEND_MAY_CHANGE). A
+    field the checkpoint does not store (added since) counts as its default."""
+    allowed = RESUME_MAY_CHANGE | (EXTEND_MAY_CHANGE if extend else frozenset())
+    changes = []
+    for key, new in (("train_config", config), ("model_config", model_config)):
+        stored = state.get(key) or {}
+        for field in dataclasses.fields(new):
+            old = stored.get(field.name, field.default)
+            value = getattr(new, field.name)
+            if field.name not in allowed and old != value:
+                changes.append(f"{field.name}: {old!r} -> {value!r}")
+    return changes
+
+
+def check_resume(
+    path: Path, state: dict[str, Any], config: TrainConfig, model_config: RepNetConfig, extend: bool = False
+) -> None:
+    """Raise ConfigChanged when resuming `state` (read from `path`) with these configurations would
+    silently train something other than the stored run (config_changes); with extend, the schedule
+    may be lengthened, never shortened below the checkpoint's step."""
+    changes = config_changes(state, config, model_config, extend)
+    if changes:
+        hint = "" if extend else "; to lengthen a finished run's schedule, resume it with --extend"
+        raise ConfigChanged(
+            f"resuming {path} with a configuration that differs from the checkpoint's in "
+            f"{len(changes)} field(s): {'; '.join(changes)}. A resumed run may change only "
+            f"{', '.join(sorted(RESUME_MAY_CHANGE))}{hint}"
+        )
+    if extend and config.iterations < state["step"]:
+        raise ConfigChanged(
+            f"--extend {path} to {config.iterations} iterations: the checkpoint is at step {state['step']}"
+        )

@@ -115,12 +115,15 @@ def train(
     model_config: RepNetConfig,
     resume: str | Path | None = None,
     command: str = "",
+    extend: bool = False,
 ) -> Path:
     """Run training; returns the path of the best checkpoint (by validation PA-MPJPE).
 
     resume -- a checkpoint, or "auto" for out_dir/last.pt if there is one. A resumed run
     continues bit for bit: weights, optimiser moments, every random generator, the step
-    count (which alone drives the schedules) and the poses the next critic step judges.
+    count (which alone drives the schedules) and the poses the next critic step judges. Its
+    configuration must be the checkpoint's but for checkpoint.RESUME_MAY_CHANGE (ConfigChanged);
+    extend -- also let iterations and warm_start_steps grow: the run goes on along a longer schedule.
     """
     torch.manual_seed(config.seed)
     if config.threads:
@@ -129,6 +132,10 @@ def train(
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     resume_path = checkpoint.resolve_resume(resume, out)
+    state = None
+    if resume_path is not None:
+        state = torch.load(resume_path, map_location=device, weights_only=False)
+        checkpoint.check_resume(resume_path, state, config, model_config, extend)
     data_dir = data.resolve_data_dir(config.data_dir or None)
     pool, held_out = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)
     val_sets = validation_sets(config, held_out)
@@ -141,10 +148,9 @@ def train(
     )
     trainer = Trainer(config, model_config, pool, device, torch.Generator().manual_seed(config.seed))
     run = _Run(config, model_config, trainer, val_sets, command)
-    if config.init_from and resume_path is None:
+    if config.init_from and state is None:
         _initialise(trainer, config.init_from)
-    if resume_path is not None:
-        state = torch.load(resume_path, map_location=device, weights_only=False)
+    if state is not None:
         trainer.load_state_dict(state)
         run.step, run.elapsed, run.best = state["step"], state["elapsed_s"], state["best"]
         _truncate_history(out / "history.jsonl", run.step)
@@ -209,7 +215,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--resume",
         default="",
-        help="checkpoint to continue from (e.g. runs/x/last.pt), or 'auto': out-dir/last.pt when it exists",
+        help="checkpoint to continue from (e.g. runs/x/last.pt), or 'auto': out-dir/last.pt when it exists; "
+        "the flags must be the checkpoint's but for " + ", ".join(sorted(checkpoint.RESUME_MAY_CHANGE)),
+    )
+    parser.add_argument(
+        "--extend",
+        action="store_true",
+        help="with --resume: also let --iterations and --warm-start-steps grow (the run goes on along a "
+        "longer schedule, e.g. a finished 60,000-step run to 120,000)",
     )
     args = parser.parse_args(argv)
     values = vars(args)
@@ -222,7 +235,7 @@ def main(argv: list[str] | None = None) -> None:
         handlers=[logging.StreamHandler(), logging.FileHandler(Path(config.out_dir) / "train.log")],
     )
     command = "python -m training.train " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    best = train(config, model_config, resume=args.resume, command=command)
+    best = train(config, model_config, resume=args.resume, command=command, extend=args.extend)
     log.info("best checkpoint: %s", best)
 
 

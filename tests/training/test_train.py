@@ -40,10 +40,67 @@ def test_training_steps_reduce_reprojection_and_camera_losses(synthetic_h36m: Pa
 
 def test_resume_continues_from_the_checkpoint(synthetic_h36m: Path, tmp_path: Path) -> None:
     train.train(_config(synthetic_h36m, tmp_path, 20), TINY)
-    train.train(_config(synthetic_h36m, tmp_path, 40), TINY, resume=tmp_path / "last.pt")
+    train.train(_config(synthetic_h36m, tmp_path, 40), TINY, resume=tmp_path / "last.pt", extend=True)
     steps = [record["step"] for record in _history(tmp_path)]
     assert steps == [10, 20, 30, 40]
     assert torch.load(tmp_path / "last.pt", weights_only=False)["step"] == 40
+
+
+def test_resume_refuses_a_changed_configuration_and_names_every_changed_field(
+    synthetic_h36m: Path, tmp_path: Path
+) -> None:
+    config = _config(synthetic_h36m, tmp_path, 10)
+    train.train(config, TINY)
+    # The README's old critic stage: a finished generator run resumed as a critic-only run.
+    critic = dataclasses.replace(config, critic_only=True, iterations=30, lr=5e-4)
+    with pytest.raises(checkpoint.ConfigChanged) as refused:
+        train.train(critic, dataclasses.replace(TINY, width=32), resume="auto")
+    message = str(refused.value)
+    for change in (
+        "critic_only: False -> True",
+        "iterations: 10 -> 30",
+        "lr: 0.001 -> 0.0005",
+        "width: 64 -> 32",
+    ):
+        assert change in message
+    assert "4 field(s)" in message and "--extend" in message
+    assert torch.load(tmp_path / "last.pt", weights_only=False)["step"] == 10  # untouched
+    # --extend lets the schedule grow, nothing else, and never shrink below the checkpoint's step.
+    with pytest.raises(checkpoint.ConfigChanged, match="critic_only: False -> True"):
+        train.train(critic, TINY, resume="auto", extend=True)
+    with pytest.raises(checkpoint.ConfigChanged, match="at step 10"):
+        train.train(dataclasses.replace(config, iterations=5), TINY, resume="auto", extend=True)
+
+
+def test_a_resumed_run_may_change_only_how_it_runs() -> None:
+    stored = {"train_config": dataclasses.asdict(TrainConfig()), "model_config": dataclasses.asdict(TINY)}
+    runtime = dict(
+        max_minutes=5.0,
+        stop_step=7,
+        threads=2,
+        device="cpu",
+        compile=True,
+        checkpoint_every=3,
+        checkpoint_minutes=1.0,
+        log_every=1,
+        out_dir="elsewhere",
+        data_dir="/data",
+        init_from="x.pt",
+    )
+    assert set(runtime) == checkpoint.RESUME_MAY_CHANGE
+    assert checkpoint.config_changes(stored, TrainConfig(**runtime), TINY) == []
+    longer = TrainConfig(iterations=40000, warm_start_steps=40000)
+    assert checkpoint.config_changes(stored, longer, TINY) == [
+        "iterations: 20000 -> 40000",
+        "warm_start_steps: 0 -> 40000",
+    ]
+    assert checkpoint.config_changes(stored, longer, TINY, extend=True) == []
+    # A field the checkpoint predates counts as its default.
+    del stored["train_config"]["limb_turn_deg"]
+    assert checkpoint.config_changes(stored, TrainConfig(), TINY) == []
+    assert checkpoint.config_changes(stored, TrainConfig(limb_turn_deg=10.0), TINY) == [
+        "limb_turn_deg: 0.0 -> 10.0"
+    ]
 
 
 def _recipe(data_dir: Path, out: Path) -> TrainConfig:
@@ -161,8 +218,15 @@ def test_critic_only_stage_trains_the_critic_and_leaves_the_generator(
 ) -> None:
     first = _config(synthetic_h36m, tmp_path / "gen", 20)
     train.train(first, TINY)
-    stage = dataclasses.replace(first, out_dir=str(tmp_path / "critic"), iterations=30, critic_only=True)
-    train.train(stage, TINY, resume=tmp_path / "gen" / "last.pt")
+    # A stage of its own: it starts from the generator's checkpoint (and its critic) at step 0.
+    stage = dataclasses.replace(
+        first,
+        out_dir=str(tmp_path / "critic"),
+        iterations=30,
+        critic_only=True,
+        init_from=str(tmp_path / "gen" / "last.pt"),
+    )
+    train.train(stage, TINY)
     before = torch.load(tmp_path / "gen" / "last.pt", weights_only=False)
     after = torch.load(tmp_path / "critic" / "last.pt", weights_only=False)
     assert after["step"] == 30
