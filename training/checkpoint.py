@@ -70,7 +70,7 @@ def load(path: str | Path) -> dict[str, Any]:
 
 def from_onnx(path: Path) -> dict[str, Any]:
     """A checkpoint-like state from an exported model: generator (and critic) weights, model
-    config, the training command, step 0 and no optimiser state.
+    config, the training command and lineage, step 0 and no optimiser state.
 
     Raises ValueError when the file holds no generator weights (not a training.export graph).
     """
@@ -99,6 +99,7 @@ def from_onnx(path: Path) -> dict[str, Any]:
         "step": 0,
         "command": generator_command,
         "critic_command": critic_command or generator_command,
+        "lineage": json.loads(meta["lineage"]) if "lineage" in meta else None,
     }
 
 

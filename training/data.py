@@ -23,6 +23,8 @@ MPII_JOINTS = 16
 MPII_TO_H36M: tuple[int, ...] = (6, 2, 1, 0, 3, 4, 5, -1, 7, 8, 9, 13, 14, 15, 12, 11, 10)
 
 DATA_ENV = "REPNET_H36M_DIR"
+CAMERAS_FILE = "cameras.json"
+SH_TRAIN_FILE = "detections_sh_train.npz"  # Stacked-Hourglass detections of the training subjects
 
 
 class DataNotFound(FileNotFoundError):
@@ -64,7 +66,7 @@ class Camera:
 
 def load_cameras(data_dir: Path) -> dict[str, dict[str, Camera]]:
     """{subject: {camera id: Camera}} from cameras.json."""
-    raw = json.loads((data_dir / "cameras.json").read_text())
+    raw = json.loads((data_dir / CAMERAS_FILE).read_text())
     return {
         subject: {
             cam: Camera(**{key: np.asarray(val, dtype=np.float64) for key, val in params.items()})
@@ -76,7 +78,7 @@ def load_cameras(data_dir: Path) -> dict[str, dict[str, Camera]]:
 
 def load_poses(data_dir: Path, split: str) -> dict[str, np.ndarray]:
     """{"S1/Walking 1": (N, 17, 3) float32 world mm} for split "train" or "test"."""
-    with np.load(data_dir / f"poses_3d_{split}.npz") as npz:
+    with np.load(data_dir / poses_file(split)) as npz:
         return {key: npz[key] for key in npz.files}
 
 
@@ -194,6 +196,16 @@ def _split(n: int, val_fraction: float) -> int:
     return int(round(n * (1.0 - val_fraction)))
 
 
+def poses_file(split: str) -> str:
+    """The file of a split's 3D poses: poses_3d_train.npz or poses_3d_test.npz."""
+    return f"poses_3d_{split}.npz"
+
+
+def training_files(inputs: str) -> tuple[str, ...]:
+    """The files of the data folder that build_training_sets reads for these inputs."""
+    return (CAMERAS_FILE, poses_file("train")) + ((SH_TRAIN_FILE,) if "sh" in inputs.split("+") else ())
+
+
 def build_training_sets(
     data_dir: Path, inputs: str, frame_step: int = 1, val_fraction: float = 0.1
 ) -> tuple[TrainingPool, dict[str, ValidationSet]]:
@@ -210,7 +222,7 @@ def build_training_sets(
         raise ValueError(f"inputs must be gt, sh or gt+sh, got {inputs!r}")
     cameras = load_cameras(data_dir)
     poses = load_poses(data_dir, "train")
-    detections = load_detections(data_dir / "detections_sh_train.npz") if "sh" in kinds else {}
+    detections = load_detections(data_dir / SH_TRAIN_FILE) if "sh" in kinds else {}
     train_3d: list[np.ndarray] = []
     train_2d: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"gt": [], "sh": []}
     val: dict[str, list[tuple[np.ndarray, ...]]] = {"gt": [], "sh": []}

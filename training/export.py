@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import warnings
 from dataclasses import asdict
 from pathlib import Path
@@ -13,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import checkpoint, data, skeleton
+from training import checkpoint, data, lineage, skeleton
 from training.config import RepNetConfig
 from training.losses import bone_lengths
 from training.model import MM_PER_UNIT, Critic, LiftingGraph, Plausibility, RepNet
@@ -120,10 +121,11 @@ def build_metadata(
     calibration: np.ndarray | None = None,
     mirror_average: bool = False,
     bones: np.ndarray | None = None,
+    lineage: dict[str, Any] | None = None,
 ) -> dict[str, str]:
-    """ONNX custom metadata: joints, skeleton, provenance, licence, evaluation figures and, with
-    a plausibility output, its calibration table."""
-    extra: dict[str, str] = {}
+    """ONNX custom metadata: joints, skeleton, provenance (train_command and, given, the lineage as
+    JSON), licence, evaluation figures and, with a plausibility output, its calibration table."""
+    extra: dict[str, str] = {} if lineage is None else {"lineage": json.dumps(lineage)}
     if calibration is not None:
         extra["plausibility"] = (
             "plausibility (N,) in [0, 1]: the share of real Human3.6M validation poses (template-aligned "
@@ -177,6 +179,85 @@ def check_parity(
     return float(np.abs(pose_ort - pose_torch.numpy()).max())
 
 
+class NoCritic(ValueError):
+    """The checkpoint named for the plausibility critic holds none."""
+
+
+def run_root(checkpoint_path: Path) -> Path:
+    """The folder a lineage's paths are relative to: the one holding the checkpoint's run folder
+    (a preset's out-dir for a stage's checkpoint)."""
+    return checkpoint_path.resolve().parent.parent
+
+
+def export_model(
+    checkpoint_path: Path,
+    output: Path,
+    *,
+    model_id: str = "",
+    critic_checkpoint: Path | None = None,
+    plausibility: bool = True,
+    mirror_average: bool = False,
+    evaluation: dict[str, Any] | None = None,
+    data_dir: str | None = None,
+    command: str = "",
+    root: Path | None = None,
+) -> float:
+    """Export a checkpoint's generator (or an exported model's) to `output` with its metadata and
+    lineage; with plausibility, the critic of critic_checkpoint (default: the checkpoint's own),
+    calibrated on the real validation poses. Returns torch vs onnxruntime's max |diff| (mm).
+
+    command -- the export's command line, recorded path free (lineage); root -- the folder the
+    lineage's paths are relative to (default run_root(checkpoint_path)).
+    """
+    root = root or run_root(checkpoint_path)
+    generator, state = load_generator(checkpoint_path)
+    train = state.get("train_config", {})
+    critic_path = critic_checkpoint or checkpoint_path
+    critic_state = state if critic_checkpoint is None else checkpoint.load(critic_checkpoint)
+    calibration, table, bones, hashes = None, None, None, {}
+    if plausibility:
+        if not critic_state["critic"]:
+            raise NoCritic(
+                f"--critic-checkpoint {critic_path}: holds no critic (exported without plausibility)"
+            )
+        data_path = data.resolve_data_dir(data_dir)
+        _, val_sets = data.build_training_sets(data_path, "gt", val_fraction=train.get("val_fraction", 0.1))
+        hashes = lineage.data_hashes(data_path, data.training_files("gt"))
+        critic = load_critic(critic_state)
+        real = data.align_to_template(val_sets["gt"].poses_camera)
+        table, bones = calibrate(critic, real), bone_range(real)
+        calibration = Plausibility(critic, torch.from_numpy(table), torch.from_numpy(bones))
+        log.info("plausibility calibrated on %d real validation poses", len(real))
+    train_command = state.get("command", "")
+    if plausibility and critic_checkpoint is not None:
+        critic_command = critic_state.get("critic_command", critic_state.get("command", ""))
+        train_command = checkpoint.join_commands(train_command, critic_command)
+    sources = (checkpoint_path, state), ((critic_path, critic_state) if plausibility else None)
+    metadata = build_metadata(
+        generator.config,
+        model_id=model_id or output.stem,
+        train_command=lineage.path_free(train_command, root),
+        training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
+        evaluation=evaluation,
+        calibration=table,
+        mirror_average=mirror_average,
+        bones=bones,
+        lineage=lineage.export_lineage(lineage.path_free(command, root), *sources, hashes, root),
+    )
+    export_onnx(generator, output, metadata, calibration, mirror_average)
+    rng = np.random.default_rng(0)
+    points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
+    visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
+    diff = check_parity(generator, output, points, visible, mirror_average)
+    log.info(
+        "wrote %s (%.1f MB); torch vs onnxruntime max |diff| = %.2e mm",
+        output,
+        output.stat().st_size / 1e6,
+        diff,
+    )
+    return diff
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--checkpoint", type=Path, required=True)
@@ -208,53 +289,22 @@ def main(argv: list[str] | None = None) -> None:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-
-    generator, state = load_generator(args.checkpoint)
-    evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else None
-    train = state.get("train_config", {})
-    plausibility, table, bones = None, None, None
-    if args.plausibility:
-        _, val_sets = data.build_training_sets(
-            data.resolve_data_dir(args.data_dir), "gt", val_fraction=train.get("val_fraction", 0.1)
+    root = run_root(args.checkpoint)
+    try:
+        export_model(
+            args.checkpoint,
+            args.output,
+            model_id=args.model_id,
+            critic_checkpoint=args.critic_checkpoint if args.plausibility else None,
+            plausibility=args.plausibility,
+            mirror_average=args.mirror_average,
+            evaluation=json.loads(args.evaluation.read_text()) if args.evaluation else None,
+            data_dir=args.data_dir,
+            command=lineage.command_line(argv if argv is not None else sys.argv[1:], root, "training.export"),
+            root=root,
         )
-        critic_state = state
-        if args.critic_checkpoint is not None:
-            critic_state = checkpoint.load(args.critic_checkpoint)
-            if not critic_state["critic"]:
-                parser.error(
-                    f"--critic-checkpoint {args.critic_checkpoint}: holds no critic "
-                    "(exported without plausibility)"
-                )
-        critic = load_critic(critic_state)
-        real = data.align_to_template(val_sets["gt"].poses_camera)
-        table, bones = calibrate(critic, real), bone_range(real)
-        plausibility = Plausibility(critic, torch.from_numpy(table), torch.from_numpy(bones))
-        log.info("plausibility calibrated on %d real validation poses", len(val_sets["gt"].poses_camera))
-    command = state.get("command", "")
-    if args.plausibility and args.critic_checkpoint is not None:
-        critic_command = critic_state.get("critic_command", critic_state.get("command", ""))
-        command = checkpoint.join_commands(command, critic_command)
-    metadata = build_metadata(
-        generator.config,
-        model_id=args.model_id or args.output.stem,
-        train_command=command,
-        training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
-        evaluation=evaluation,
-        calibration=table,
-        mirror_average=args.mirror_average,
-        bones=bones,
-    )
-    export_onnx(generator, args.output, metadata, plausibility, args.mirror_average)
-    rng = np.random.default_rng(0)
-    points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
-    visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
-    diff = check_parity(generator, args.output, points, visible, args.mirror_average)
-    log.info(
-        "wrote %s (%.1f MB); torch vs onnxruntime max |diff| = %.2e mm",
-        args.output,
-        args.output.stat().st_size / 1e6,
-        diff,
-    )
+    except NoCritic as err:
+        parser.error(str(err))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ import dataclasses
 import json
 import logging
 import math
-import shlex
 import sys
 import time
 from dataclasses import asdict
@@ -20,7 +19,7 @@ from typing import Any, TextIO
 import torch
 from tqdm import tqdm
 
-from training import checkpoint, data
+from training import checkpoint, data, lineage
 from training.config import RepNetConfig, TrainConfig
 from training.trainer import Terms, Trainer, adversarial_weight, learning_rate, pick_device
 from training.validation import validate, validation_sets
@@ -38,11 +37,18 @@ class _Run:
         trainer: Trainer,
         val_sets: dict[str, data.ValidationSet],
         command: str,
+        stages: list[lineage.Record],
     ) -> None:
         self.config, self.model_config, self.trainer = config, model_config, trainer
-        self.val_sets, self.command = val_sets, command
+        self.val_sets, self.command, self.stages = val_sets, command, stages
         self.out = Path(config.out_dir)
         self.step, self.elapsed, self.best = 0, 0.0, math.inf
+        self._wall = (float(stages[-1].get("wall_time_s", 0.0)), 0.0)  # the stage's and the run's, at start
+
+    def begin(self, step: int, elapsed: float, best: float) -> None:
+        """Start at this step, wall time and best score (a fresh run: 0, 0, inf)."""
+        self.step, self.elapsed, self.best = step, elapsed, best
+        self._wall = (self._wall[0], elapsed)
 
     def out_of_time(self) -> bool:
         """max_minutes of training done (0: no limit)."""
@@ -51,6 +57,9 @@ class _Run:
     def save(self, path: Path) -> None:
         """Write the run's whole state to `path` atomically: never a half-written checkpoint."""
         tmp = path.with_suffix(".tmp")
+        stage_wall, run_wall = self._wall
+        self.stages[-1]["steps"] = self.step
+        self.stages[-1]["wall_time_s"] = round(stage_wall + self.elapsed - run_wall, 1)
         state = {
             **self.trainer.state_dict(),
             "step": self.step,
@@ -59,6 +68,7 @@ class _Run:
             "command": self.command,
             "model_config": asdict(self.model_config),
             "train_config": asdict(self.config),
+            "lineage": self.stages,
         }
         torch.save(state, tmp)
         tmp.replace(path)
@@ -116,6 +126,8 @@ def train(
     resume: str | Path | None = None,
     command: str = "",
     extend: bool = False,
+    preset: str | None = None,
+    stage: str | None = None,
 ) -> Path:
     """Run training; returns the path of the best checkpoint (by validation PA-MPJPE).
 
@@ -124,6 +136,9 @@ def train(
     count (which alone drives the schedules) and the poses the next critic step judges. Its
     configuration must be the checkpoint's but for checkpoint.RESUME_MAY_CHANGE (ConfigChanged);
     extend -- also let iterations and warm_start_steps grow: the run goes on along a longer schedule.
+
+    Every checkpoint records its lineage (training.lineage): the stages it comes from and its own,
+    named by preset and stage when a preset runs it; command is recorded free of absolute paths.
     """
     torch.manual_seed(config.seed)
     if config.threads:
@@ -131,6 +146,7 @@ def train(
     device = pick_device(config.device)
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    command = lineage.path_free(command, out.resolve().parent)
     resume_path = checkpoint.resolve_resume(resume, out)
     state = None
     if resume_path is not None:
@@ -139,6 +155,7 @@ def train(
     data_dir = data.resolve_data_dir(config.data_dir or None)
     pool, held_out = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)
     val_sets = validation_sets(config, held_out)
+    hashes = lineage.data_hashes(data_dir, data.training_files(config.inputs))
     log.info(
         "training on %s: %d 3D poses, %d 2D poses, device %s",
         config.inputs,
@@ -147,12 +164,15 @@ def train(
         device,
     )
     trainer = Trainer(config, model_config, pool, device, torch.Generator().manual_seed(config.seed))
-    run = _Run(config, model_config, trainer, val_sets, command)
+    init = None
     if config.init_from and state is None:
-        _initialise(trainer, config.init_from)
+        init = (Path(config.init_from), checkpoint.load(config.init_from))
+        _initialise(trainer, init[1], config.init_from)
+    stages = lineage.run_stages(out, command, hashes, (preset, stage), (resume_path, state, extend), init)
+    run = _Run(config, model_config, trainer, val_sets, command, stages)
     if state is not None:
         trainer.load_state_dict(state)
-        run.step, run.elapsed, run.best = state["step"], state["elapsed_s"], state["best"]
+        run.begin(state["step"], state["elapsed_s"], state["best"])
         _truncate_history(out / "history.jsonl", run.step)
         log.info("resumed from %s at step %d (%.1f min)", resume_path, run.step, run.elapsed / 60)
     with (out / "history.jsonl").open("a") as history:
@@ -167,10 +187,9 @@ def train(
     return out / "best.pt"
 
 
-def _initialise(trainer: Trainer, init_from: str) -> None:
+def _initialise(trainer: Trainer, state: dict[str, Any], init_from: str) -> None:
     """Take the generator (and the critic, when it has the same shape) of a checkpoint or an
-    exported model; the run still starts at step 0 with fresh optimisers."""
-    state = checkpoint.load(init_from)
+    exported model's state; the run still starts at step 0 with fresh optimisers."""
     trainer.generator.load_state_dict(state["generator"])
     own = trainer.critic.state_dict()
     same_critic = state["critic"].keys() == own.keys() and all(
@@ -196,13 +215,21 @@ def _truncate_history(path: Path, step: int) -> None:
 
 
 def _add_flags(parser: argparse.ArgumentParser, cls: type) -> None:
+    """One flag per field of a config dataclass; a flag not given is not in the parsed values."""
+    group = parser.add_argument_group(f"{cls.__name__} (one run)")
     for field in dataclasses.fields(cls):
         flag = "--" + field.name.replace("_", "-")
         kind = type(field.default)
-        if kind is bool:
-            parser.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=field.default)
-        else:
-            parser.add_argument(flag, type=kind, default=field.default)
+        parse = (lambda s: s.lower() in ("1", "true", "yes")) if kind is bool else kind
+        group.add_argument(flag, type=parse, default=argparse.SUPPRESS, help=f"default {field.default!r}")
+
+
+def _log_to(path: Path) -> None:
+    logging.basicConfig(
+        level=logging.INFO,
+        format="%(asctime)s %(message)s",
+        handlers=[logging.StreamHandler(), logging.FileHandler(path)],
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -210,8 +237,6 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    _add_flags(parser, TrainConfig)
-    _add_flags(parser, RepNetConfig)
     parser.add_argument(
         "--resume",
         default="",
@@ -224,17 +249,21 @@ def main(argv: list[str] | None = None) -> None:
         help="with --resume: also let --iterations and --warm-start-steps grow (the run goes on along a "
         "longer schedule, e.g. a finished 60,000-step run to 120,000)",
     )
+    _add_flags(parser, TrainConfig)
+    _add_flags(parser, RepNetConfig)
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     values = vars(args)
-    config = TrainConfig(**{f.name: values[f.name] for f in dataclasses.fields(TrainConfig)})
-    model_config = RepNetConfig(**{f.name: values[f.name] for f in dataclasses.fields(RepNetConfig)})
-    Path(config.out_dir).mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(
-        level=logging.INFO,
-        format="%(asctime)s %(message)s",
-        handlers=[logging.StreamHandler(), logging.FileHandler(Path(config.out_dir) / "train.log")],
+    config = TrainConfig(
+        **{f.name: values[f.name] for f in dataclasses.fields(TrainConfig) if f.name in values}
     )
-    command = "python -m training.train " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    model_config = RepNetConfig(
+        **{f.name: values[f.name] for f in dataclasses.fields(RepNetConfig) if f.name in values}
+    )
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    _log_to(out / "train.log")
+    command = lineage.command_line(argv, out.resolve().parent)
     best = train(config, model_config, resume=args.resume, command=command, extend=args.extend)
     log.info("best checkpoint: %s", best)
 

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from training import data
+from training import data, lineage
 from training.config import TrainConfig
 
 # A standing pose in the template frame (mm; x right, y down, z away from the camera).
@@ -138,6 +139,15 @@ def write_detections(folder: Path, path: Path) -> Path:
                 detections[f"{key}/{cam_id}"] = px[:, MPII_FROM_H36M]
     np.savez(path, **detections)
     return path
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """Training's cache (file hashes) in a temporary folder, not the user's ~/.cache/repnet."""
+    folder = tmp_path_factory.mktemp("repnet_cache")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(lineage.CACHE_ENV, str(folder))
+        yield folder
 
 
 @pytest.fixture(scope="session")
