@@ -19,7 +19,7 @@ from typing import Any, TextIO
 import torch
 from tqdm import tqdm
 
-from training import checkpoint, data, lineage
+from training import chain, checkpoint, data, lineage, presets
 from training.config import RepNetConfig, TrainConfig
 from training.trainer import Terms, Trainer, adversarial_weight, learning_rate, pick_device
 from training.validation import validate, validation_sets
@@ -214,6 +214,10 @@ def _truncate_history(path: Path, step: int) -> None:
     path.write_text("".join(line + "\n" for line in kept))
 
 
+# What may go with --preset: how the stages run, never what they compute.
+PRESET_FLAGS = ("out_dir", "threads", "device", "data_dir")
+
+
 def _add_flags(parser: argparse.ArgumentParser, cls: type) -> None:
     """One flag per field of a config dataclass; a flag not given is not in the parsed values."""
     group = parser.add_argument_group(f"{cls.__name__} (one run)")
@@ -222,6 +226,42 @@ def _add_flags(parser: argparse.ArgumentParser, cls: type) -> None:
         kind = type(field.default)
         parse = (lambda s: s.lower() in ("1", "true", "yes")) if kind is bool else kind
         group.add_argument(flag, type=parse, default=argparse.SUPPRESS, help=f"default {field.default!r}")
+
+
+def _list_presets() -> str:
+    return "\n\n".join(
+        "\n".join([f"{preset.name}: {preset.description}"] + [f"  {s.summary()}" for s in preset.all_stages])
+        + f"\n  export: {preset.export_from} with {preset.critic.name}/last.pt's critic"
+        f"{', mirror-averaged' if preset.mirror_average else ''} -> <out-dir>/{preset.name}.onnx"
+        for preset in presets.PRESETS.values()
+    )
+
+
+def _run_preset(parser: argparse.ArgumentParser, args: argparse.Namespace, argv: list[str]) -> None:
+    """--preset NAME [--stage NAME]: the preset's chain (training.chain) into --out-dir."""
+    values = vars(args)
+    fields = {f.name for cls in (TrainConfig, RepNetConfig) for f in dataclasses.fields(cls)}
+    extra = sorted((fields & set(values)) - set(PRESET_FLAGS))
+    given = [f"--{name.replace('_', '-')}" for name in extra] + ["--resume"] * bool(args.resume)
+    if given or args.extend:
+        allowed = ", ".join("--" + name.replace("_", "-") for name in PRESET_FLAGS)
+        parser.error(f"--preset sets every training flag; only {allowed} go with it, got {' '.join(given)}")
+    try:
+        preset = presets.get(args.preset)
+        if args.stage:
+            preset.stage(args.stage)
+    except KeyError as err:
+        parser.error(str(err.args[0]))
+    out_dir = Path(values.get("out_dir") or chain.default_out_dir(preset))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _log_to(out_dir / "train.log")
+    runtime = chain.Runtime(
+        values.get("threads", 0), values.get("device", "auto"), values.get("data_dir", "")
+    )
+    exported = chain.run_preset(
+        train, preset, out_dir, runtime, lineage.command_line(argv, out_dir), args.stage or None
+    )
+    log.info("%s", f"exported {exported}" if exported else f"stage {args.stage} done")
 
 
 def _log_to(path: Path) -> None:
@@ -233,10 +273,13 @@ def _log_to(path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.train: one run from flags."""
+    """python -m training.train: a preset's whole chain (--preset), or one run from flags."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    parser.add_argument("--preset", help="run this preset's stages and export (--list-presets)")
+    parser.add_argument("--stage", help="with --preset: only this stage (the stages it starts from done)")
+    parser.add_argument("--list-presets", action="store_true", help="list the presets and their stages")
     parser.add_argument(
         "--resume",
         default="",
@@ -253,6 +296,14 @@ def main(argv: list[str] | None = None) -> None:
     _add_flags(parser, RepNetConfig)
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    if args.list_presets:
+        print(_list_presets())
+        return
+    if args.preset:
+        _run_preset(parser, args, argv)
+        return
+    if args.stage:
+        parser.error("--stage goes with --preset")
     values = vars(args)
     config = TrainConfig(
         **{f.name: values[f.name] for f in dataclasses.fields(TrainConfig) if f.name in values}
