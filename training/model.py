@@ -90,6 +90,8 @@ class KCS(nn.Module):
     """Kinematic chain space layer: Psi = B^T B (Wandt & Rosenhahn 2019, Eq. 7) of the bone
     vectors B = X C (Eq. 5-6), C the bone matrix (skeleton.bone_matrix)."""
 
+    bones: torch.Tensor  # buffer: (J, B) C
+
     def __init__(self) -> None:
         super().__init__()
         self.register_buffer("bones", torch.from_numpy(skeleton.bone_matrix()))
@@ -135,6 +137,8 @@ class Plausibility(nn.Module):
     can score higher than any real pose; no human has such a bone, whatever the critic says.
     """
 
+    table: torch.Tensor  # buffer: (1, levels)
+
     def __init__(self, critic: Critic, table: torch.Tensor, bone_range: torch.Tensor | None = None) -> None:
         super().__init__()
         self.critic = critic
@@ -164,6 +168,10 @@ class LiftingGraph(nn.Module):
     swapped), mirror that answer back and average the two (test-time flip augmentation): the
     graph then answers a mirrored input with exactly the mirrored pose and camera.
     """
+
+    flip_points: torch.Tensor  # buffers: (2,), (3,) and (2, 3) signs of a mirror image
+    flip_pose: torch.Tensor
+    flip_camera: torch.Tensor
 
     def __init__(
         self, generator: RepNet, plausibility: Plausibility | None = None, mirror_average: bool = False

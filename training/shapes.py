@@ -8,10 +8,10 @@ import torch
 def check_shape(tensor: torch.Tensor, expected: tuple[int | None, ...], name: str) -> None:
     """Assert that `tensor` has the shape `expected`, None matching any size.
 
-    Skipped while torch traces a graph for ONNX export: there a size is a traced value, and a
-    Python comparison of it would be frozen into the graph as a constant.
+    Skipped while torch exports a graph to ONNX: there a size is a traced value, and a Python
+    comparison of it would be frozen into the graph as a constant.
     """
-    if torch.jit.is_tracing():
+    if torch.onnx.is_in_onnx_export():
         return
     actual = tuple(tensor.shape)
     matches = len(actual) == len(expected) and all(
