@@ -41,7 +41,9 @@ class TrainFunction(Protocol):
         extend: bool = False,
         preset: str | None = None,
         stage: str | None = None,
-    ) -> Path: ...
+    ) -> Path:
+        """Train one run (a stage) and return its best checkpoint."""
+        ...
 
 
 class StageNotReady(RuntimeError):

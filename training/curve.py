@@ -104,6 +104,7 @@ def plot_runs(
 
 
 def main(argv: list[str] | None = None) -> None:
+    """python -m training.curve: tables and figures of runs' validation histories."""
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument(
         "--history",

@@ -284,6 +284,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The evaluation's command line, checked (parser.error on a bad value)."""
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--model", type=Path, required=True, help="ONNX with the repnet contract")
     parser.add_argument("--inputs", default="gt", help="'gt' (projected ground truth) or a detections .npz")
@@ -309,6 +310,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """python -m training.evaluate: evaluate a model and write its report; returns the results."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     result = evaluate(args)

@@ -259,6 +259,7 @@ def export_model(
 
 
 def main(argv: list[str] | None = None) -> None:
+    """python -m training.export: a checkpoint (or an exported model) to an ONNX model."""
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--output", type=Path, required=True)

@@ -32,12 +32,14 @@ class ResidualBlock(nn.Module):
     """Two fully connected layers with leaky ReLU and an identity skip (Fig. 2)."""
 
     def __init__(self, width: int, slope: float) -> None:
+        """Two width x width layers; slope: of the leaky ReLU."""
         super().__init__()
         self.fc1 = nn.Linear(width, width)
         self.fc2 = nn.Linear(width, width)
         self.act = nn.LeakyReLU(slope)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, width) -> (N, width)."""
         return x + self.act(self.fc2(self.act(self.fc1(x))))
 
 
@@ -52,6 +54,7 @@ class RepNet(nn.Module):
     """Generator: normalised 2D pose -> 3D pose (metres, pelvis at origin) and camera K."""
 
     def __init__(self, config: RepNetConfig) -> None:
+        """The pose and camera branches (and a shared trunk) of config's shape."""
         super().__init__()
         self.config = config
         j = config.num_joints
@@ -93,6 +96,7 @@ class KCS(nn.Module):
     bones: torch.Tensor  # buffer: (J, B) C
 
     def __init__(self) -> None:
+        """The skeleton's bone matrix as a buffer."""
         super().__init__()
         self.register_buffer("bones", torch.from_numpy(skeleton.bone_matrix()))
 
@@ -106,6 +110,7 @@ class Critic(nn.Module):
     """WGAN critic: a fully connected pose path and a KCS path merged before the output."""
 
     def __init__(self, config: RepNetConfig) -> None:
+        """Paths of config's critic_width and kcs_width."""
         super().__init__()
         j, w, kcs, slope = config.num_joints, config.critic_width, config.kcs_width, config.leaky_slope
         act = nn.LeakyReLU(slope)
@@ -140,6 +145,7 @@ class Plausibility(nn.Module):
     table: torch.Tensor  # buffer: (1, levels)
 
     def __init__(self, critic: Critic, table: torch.Tensor, bone_range: torch.Tensor | None = None) -> None:
+        """The critic, its calibration table and the bone range as buffers."""
         super().__init__()
         self.critic = critic
         self.register_buffer("table", table.reshape(1, -1).to(torch.float32))
@@ -176,6 +182,7 @@ class LiftingGraph(nn.Module):
     def __init__(
         self, generator: RepNet, plausibility: Plausibility | None = None, mirror_average: bool = False
     ) -> None:
+        """The graph around a generator, with a calibrated critic's plausibility when given."""
         super().__init__()
         self.generator = generator
         self.plausibility = plausibility
@@ -200,6 +207,7 @@ class LiftingGraph(nn.Module):
         return (pose[:n] + pose_back) / 2, (camera[:n] + camera_back) / 2
 
     def forward(self, keypoints_2d: torch.Tensor, visibility: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """(N, J, 2) px, (N, J) visibility -> pose_3d (N, J, 3) mm, camera (N, 2, 3) [, plausibility (N,)]."""
         visible = (visibility > 0.5).to(keypoints_2d.dtype)
         pose, camera = self.lift(normalize_keypoints(keypoints_2d, visible), visible)
         if self.plausibility is None:

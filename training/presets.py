@@ -23,6 +23,7 @@ class StageRef:
     checkpoint: Literal["best", "last"]
 
     def __str__(self) -> str:
+        """The checkpoint's path in a preset's out-dir: "stretch2/best.pt"."""
         return f"{self.stage}/{self.checkpoint}.pt"
 
 
@@ -45,6 +46,7 @@ class Stage:
     extends: str | None = None
 
     def __post_init__(self) -> None:
+        """Refuse a stage that starts two ways or stops on wall time."""
         if self.init_from is not None and self.extends is not None:
             raise ValueError(f"stage {self.name}: init_from or extends, not both")
         if self.train.max_minutes:
@@ -87,6 +89,7 @@ class Preset:
     mirror_average: bool
 
     def __post_init__(self) -> None:
+        """Refuse a preset whose stages start from stages that do not run before them."""
         seen: set[str] = set()
         for stage in self.all_stages:
             if stage.name in seen or stage.name in ("", "export"):

@@ -82,6 +82,7 @@ class Trainer:
         device: torch.device,
         gen: torch.Generator,
     ) -> None:
+        """Build the networks and optimisers on `device`, and choose each phase's step method."""
         self.config, self.pool, self.device, self.gen = config, pool, device, gen
         self.real_pool = torch.from_numpy(pool.poses_aligned / MM_PER_UNIT).to(device)  # (M, J, 3) metres
         world = pool.poses_world if pool.poses_world is not None else pool.poses_aligned

@@ -76,6 +76,7 @@ def score(
 
 
 def main(argv: list[str] | None = None) -> None:
+    """python -m training.validate: print (and write) a checkpoint's validation figures."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
