@@ -18,7 +18,7 @@ class RepNetConfig:
     kcs_width: int = 1000  # units of the layers after the KCS layer (paper figure: 100)
     leaky_slope: float = 0.01
     # Feed the visibility mask to the generator beside the normalised coordinates, so a
-    # missing joint is not mistaken for a joint at the centroid.
+    # hidden joint is not mistaken for a joint at the centroid.
     visibility_input: bool = True
     # The authors' code: one trunk (Dense width and a residual block) feeds both branches, the
     # pose branch (num_blocks residual blocks, Dense width, then 3J) and the camera branch

@@ -17,7 +17,7 @@ MM_PER_UNIT = 1000.0
 def normalize_keypoints(points: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
     """Centre (N, J, 2) pixel points on their visible joints and divide by their std.
 
-    visible -- (N, J) in {0, 1}. Missing joints come out as exactly 0, whatever their input
+    visible -- (N, J) in {0, 1}. Hidden joints come out as exactly 0, whatever their input
     values (NaN included), so they cannot influence anything downstream.
     """
     mask = visible.unsqueeze(-1) > 0.5  # (N, J, 1)

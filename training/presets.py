@@ -94,10 +94,10 @@ class Preset:
         for stage in self.all_stages:
             if stage.name in seen or stage.name in ("", "export"):
                 raise ValueError(f"preset {self.name}: stage name {stage.name!r} twice or reserved")
-            missing = [parent for parent in stage.parents() if parent not in seen]
-            if missing:
+            unknown = [parent for parent in stage.parents() if parent not in seen]
+            if unknown:
                 raise ValueError(
-                    f"preset {self.name}: stage {stage.name} starts from {missing}, not before it"
+                    f"preset {self.name}: stage {stage.name} starts from {unknown}, not before it"
                 )
             seen.add(stage.name)
         if self.export_from.stage not in {stage.name for stage in self.stages}:
