@@ -1,6 +1,9 @@
 """Train RepNet on Human3.6M: the training loop, its checkpoints and resume, and the command line.
 
-python -m training.train --out-dir runs/x --warm-start-steps 20000 ...   one run, flags as in TrainConfig
+A shipped model's whole chain, its presets, or one run from flags (as in TrainConfig):
+python -m training.train --preset repnet-h36m-v6 --threads 2
+python -m training.train --list-presets
+python -m training.train --out-dir runs/x --warm-start-steps 20000 ...
 """
 
 from __future__ import annotations
