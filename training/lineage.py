@@ -209,8 +209,9 @@ def run_stages(
     init: tuple[Path, dict[str, Any]] | None,
 ) -> list[Record]:
     """The run's lineage: a fresh run appends a new stage to its init_from's stages; a run resumed
-    from its own out_dir/last.pt continues its stage (one more entry in "resumed"); a run resumed
-    from another run's checkpoint, or extended, appends a new stage to that checkpoint's."""
+    from its own out_dir/last.pt continues its stage (one more entry in "resumed": the step, the
+    checkpoint's sha256 and the command); a run resumed from another run's checkpoint, or
+    extended, appends a new stage to that checkpoint's."""
     root = out.resolve().parent
     resume_path, state, extend = resumed
     if state is None or resume_path is None:
@@ -220,7 +221,11 @@ def run_stages(
         return stages_of(init[1], "generator") + [new_stage(*origin, command, origin_parent, hashes, 0)]
     if resume_path.resolve().parent == out.resolve() and not extend:
         stages = stages_of(state, "generator") or [new_stage(*origin, "", None, hashes, 0)]
-        entry: dict[str, Any] = {"step": state["step"], "command": command}
+        entry: dict[str, Any] = {
+            "step": state["step"],
+            "sha256": file_sha256(resume_path),
+            "command": command,
+        }
         if stages[-1].get("data") != hashes:
             entry["data"] = hashes  # the data changed under a running stage: say so
         stages[-1].setdefault("resumed", []).append(entry)

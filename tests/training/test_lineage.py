@@ -82,9 +82,10 @@ def test_a_run_records_its_stage_and_a_resume_an_extension_and_an_init_from_add_
     )
     assert (stage["first_step"], stage["steps"]) == (0, 2)
     # Resumed in its own folder: the same stage, one resume more.
+    stopped = hashlib.sha256((tmp_path / "first" / "last.pt").read_bytes()).hexdigest()
     train.train(first, TINY, resume="auto", command="again")
     (stage,) = _lineage(tmp_path / "first" / "last.pt")
-    assert stage["resumed"] == [{"step": 2, "command": "again"}] and stage["steps"] == 4
+    assert stage["resumed"] == [{"step": 2, "sha256": stopped, "command": "again"}] and stage["steps"] == 4
     # Extended from another folder: a stage of its own, whose parent is that checkpoint.
     longer = dataclasses.replace(first, out_dir=str(tmp_path / "longer"), iterations=6)
     train.train(longer, TINY, resume=tmp_path / "first" / "last.pt", extend=True, preset="p", stage="longer")
