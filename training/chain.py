@@ -139,6 +139,53 @@ def run_stage(
     (stage_dir / DONE).write_text(json.dumps(record, indent=1) + "\n")
 
 
+def seed_stage(preset: Preset, stage: Stage, out_dir: Path, runtime: Runtime, artefact: Path) -> None:
+    """Mark `stage` done with the weights of `artefact` (a checkpoint, or an exported .onnx such as a
+    shipped model): the chain then goes on from it instead of training the stages before it. Only a
+    stage that later stages start from with init_from (fresh optimisers) can be seeded: an artefact
+    holds no optimiser state for a stage that extends it. Its done.json says where it came from."""
+    if is_done(out_dir, stage, runtime):
+        log.info("stage %s: done (%s), not seeded again", stage.name, out_dir / stage.name / DONE)
+        return
+    if any(other.extends == stage.name for other in preset.all_stages):
+        raise ValueError(f"stage {stage.name} is extended by a later stage: it cannot be seeded from a file")
+    state = checkpoint.load(artefact)
+    model = dataclasses.asdict(stage.model)
+    if {**model, **state["model_config"]} != model:
+        raise ValueError(
+            f"{artefact}: its model ({state['model_config']}) is not stage {stage.name}'s ({model})"
+        )
+    stage_dir = out_dir / stage.name
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    seeded = {"path": artefact.name, "sha256": lineage.file_sha256(artefact)}
+    record = {"preset": preset.name, "stage": stage.name, "seeded_from": seeded, **lineage.environment()}
+    seed = {
+        "generator": state["generator"],
+        "critic": state["critic"],
+        "step": stage.stop,
+        "elapsed_s": 0.0,
+        "best": float("nan"),
+        "command": state.get("command", ""),
+        "train_config": dataclasses.asdict(stage_config(stage, out_dir, runtime)),
+        "model_config": model,
+        "lineage": lineage.stages_of(state, "generator") + [record],
+    }
+    for name in ("last.pt", "best.pt"):
+        torch.save(seed, stage_dir / name)
+    done = {
+        "preset": preset.name,
+        "stage": stage.name,
+        "step": stage.stop,
+        "seeded_from": seeded,
+        "last_sha256": lineage.file_sha256(stage_dir / "last.pt"),
+        "best_sha256": lineage.file_sha256(stage_dir / "best.pt"),
+        "train_config": seed["train_config"],
+        "model_config": model,
+    }
+    (stage_dir / DONE).write_text(json.dumps(done, indent=1) + "\n")
+    log.info("stage %s: seeded from %s (sha256 %s)", stage.name, artefact, seeded["sha256"])
+
+
 def export_preset(preset: Preset, out_dir: Path, runtime: Runtime, command: str) -> Path:
     """OUT/<preset>.onnx: export_from's generator, the critic stage's last.pt as its plausibility
     critic, model_id the preset's name; kept when it is there (written under another name first)."""
@@ -168,13 +215,35 @@ def run_preset(
     runtime: Runtime,
     command: str,
     only: str | None = None,
+    seeds: dict[str, Path] | None = None,
 ) -> Path | None:
     """Every stage of the preset in order, trained by `train`, then its export; returns the
-    exported model. only -- that one stage (its parents must be done), no export."""
+    exported model. only -- that one stage (its parents must be done), no export; seeds -- stages
+    taken as done from files (seed_stage), e.g. {"stretch5": the shipped v5 .onnx}."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    for name, artefact in (seeds or {}).items():
+        seed_stage(preset, preset.stage(name), out_dir, runtime, artefact)
     if only is not None:
         run_stage(train, preset, preset.stage(only), out_dir, runtime, command)
         return None
+    needed = needed_stages(preset, out_dir, runtime)
     for stage in preset.all_stages:
-        run_stage(train, preset, stage, out_dir, runtime, command)
+        if stage.name in needed:
+            run_stage(train, preset, stage, out_dir, runtime, command)
     return export_preset(preset, out_dir, runtime, command)
+
+
+def needed_stages(preset: Preset, out_dir: Path, runtime: Runtime) -> set[str]:
+    """The stages the export needs: its generator's and critic's stages and, back from them, the
+    stages each starts from, stopping at stages already done (a seeded stage needs nothing before it)."""
+    needed: set[str] = set()
+    waiting = [preset.export_from.stage, preset.critic.name]
+    while waiting:
+        name = waiting.pop()
+        if name in needed:
+            continue
+        needed.add(name)
+        stage = preset.stage(name)
+        if not is_done(out_dir, stage, runtime):
+            waiting.extend(stage.parents())
+    return needed

@@ -261,8 +261,18 @@ def _run_preset(parser: argparse.ArgumentParser, args: argparse.Namespace, argv:
     runtime = chain.Runtime(
         values.get("threads", 0), values.get("device", "auto"), values.get("data_dir", "")
     )
+    seeds: dict[str, Path] = {}
+    for item in args.seed_stages:
+        name, _, path = item.partition("=")
+        if not path or not Path(path).is_file():
+            parser.error(f"--seed-stage expects STAGE=FILE with an existing file, got {item!r}")
+        try:
+            preset.stage(name)
+        except KeyError as err:
+            parser.error(str(err.args[0]))
+        seeds[name] = Path(path)
     exported = chain.run_preset(
-        train, preset, out_dir, runtime, lineage.command_line(argv, out_dir), args.stage or None
+        train, preset, out_dir, runtime, lineage.command_line(argv, out_dir), args.stage or None, seeds
     )
     log.info("%s", f"exported {exported}" if exported else f"stage {args.stage} done")
 
@@ -283,6 +293,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--preset", help="run this preset's stages and export (--list-presets)")
     parser.add_argument("--stage", help="with --preset: only this stage (the stages it starts from done)")
     parser.add_argument("--list-presets", action="store_true", help="list the presets and their stages")
+    parser.add_argument(
+        "--seed-stage",
+        dest="seed_stages",
+        action="append",
+        default=[],
+        metavar="STAGE=FILE",
+        help="with --preset: take STAGE as done with the weights of FILE (a checkpoint or an exported "
+        ".onnx, e.g. a shipped model from git history) and go on from there; repeatable",
+    )
     parser.add_argument(
         "--resume",
         default="",

@@ -135,3 +135,25 @@ def test_list_presets_shows_each_stage_and_the_export(capsys: pytest.CaptureFixt
     assert "stretch5: 45,000-step schedule stopped at step 40,300" in out
     assert "stretch2: 120,000 steps, lr 0.001 cosine, goes on from stretch1/last.pt" in out
     assert "export: stretch7/last.pt with critic/last.pt's critic, mirror-averaged" in out
+
+
+def test_a_chain_goes_on_from_a_seeded_stage_such_as_a_shipped_model(
+    synthetic_h36m: Path, tmp_path: Path
+) -> None:
+    whole, seeded = tmp_path / "whole", tmp_path / "seeded"
+    _run(whole, synthetic_h36m)
+    shipped = whole / "tiny.onnx"
+    with pytest.raises(ValueError, match="warm is extended by a later stage"):
+        _run(seeded, synthetic_h36m, "--seed-stage", f"warm={shipped}")
+    _run(seeded, synthetic_h36m, "--seed-stage", f"longer={shipped}")
+    assert not (seeded / "warm").exists()  # nothing before the seed was trained
+    done = json.loads((seeded / "longer" / chain.DONE).read_text())
+    assert done["seeded_from"]["path"] == "tiny.onnx" and done["step"] == presets.get("tiny").stage("longer").stop
+    # "turned" started from the seed's generator: its first weights are the shipped file's.
+    seed_weights = checkpoint.load(shipped)["generator"]
+    turned_init = checkpoint.load(seeded / "longer" / "best.pt")["generator"]
+    assert all(torch.equal(turned_init[k], v) for k, v in seed_weights.items())
+    lineage = json.loads(Lifter.load(seeded / "tiny.onnx").info.metadata["lineage"])
+    stages = [s.get("stage") for s in lineage["generator"]]
+    assert stages[-2:] == ["longer", "turned"] and lineage["generator"][-2]["seeded_from"]["path"] == "tiny.onnx"
+    assert lineage["generator"][-1]["parent"]["path"] == "longer/best.pt"
