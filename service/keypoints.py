@@ -10,9 +10,16 @@ import numpy as np
 import numpy.typing as npt
 
 from service.errors import InvalidKeypoints, Violation, echo
-from service.formats import FORMATS, MODEL_JOINTS, KeypointFormat, to_model_joints
-from service.geometry import BoolArray, FloatArray
-from service.lookalike import FORMAT_NAMES, lookalike_of, nose_height
+from service.formats import (
+    FORMAT_NAMES,
+    FORMATS,
+    MODEL_JOINTS,
+    KeypointFormat,
+    lookalike_of,
+    nose_height,
+    to_model_joints,
+)
+from service.geometry import BoolArray, FloatArray, visible_stats
 
 DEFAULT_FORMAT = "h36m17"
 # Below this spread (px) the visible joints count as one point: the input cannot be normalised.
@@ -49,8 +56,8 @@ class ModelInput:
     visible: BoolArray  # (N, 17)
     derived: BoolArray  # (N, 17) the joint is the midpoint of two detector joints
     imputed: BoolArray  # (N, 17) no visible source: the model fills the joint in
-    format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into lookalike.FORMAT_NAMES
-    nose_height: npt.NDArray[np.float32]  # (N,) lookalike.nose_height of its 17 input joints, or NaN
+    format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into formats.FORMAT_NAMES
+    nose_height: npt.NDArray[np.float32]  # (N,) formats.nose_height of its 17 input joints, or NaN
     intrinsics: FloatArray  # (N, 4) fx, fy, cx, cy px of the pose's camera; NaN where not given
 
     def __len__(self) -> int:
@@ -161,9 +168,7 @@ def _model_violations(
     """Rules on the converted (n, 17) model joints: enough of them, and not all at one point."""
     found: list[Violation] = []
     count = visible.sum(axis=1)  # (n,)
-    w = visible[..., None]
-    mean = (points * w).sum(axis=1) / np.maximum(count, 1)[:, None]  # (n, 2)
-    spread = np.sqrt((((points - mean[:, None]) * w) ** 2).sum(axis=(1, 2)) / np.maximum(2 * count, 1))
+    mean, spread = visible_stats(points, visible)  # (n, 2), (n,) px
     for p in range(len(index)):
         field = f"{pose_field(prefix, index[p])}.keypoints"
         if count[p] < limits.min_visible_joints:
@@ -235,7 +240,7 @@ def prepare_poses(
             violations.extend(found)
             continue
         converted = to_model_joints(fmt, points, visible)
-        if found := _model_violations(index, converted[0].astype(np.float64), converted[1], limits, prefix):
+        if found := _model_violations(index, converted[0], converted[1], limits, prefix):
             violations.extend(found)
             continue
         # The geometry a format mix-up shows, kept for the reply's warnings (service.lookalike).

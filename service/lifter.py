@@ -182,8 +182,7 @@ class Lifter:
         if not ((extent >= low) & (extent <= high)).all():
             found = ", ".join(f"{e:.0f}" for e in extent)
             raise ModelLoadError(f"{where}: pose_3d spans {found} mm, a person spans {low:.0f} to {high:.0f}")
-        pairs = zip(keypoints_2d, visibility, strict=True)
-        spread = np.array([points[seen].std(axis=0).mean() for points, seen in pairs])  # (N,) px
+        spread = geometry.visible_spread(keypoints_2d, visibility)  # (N,) px
         error = prediction.reprojection_error_px
         if not (error <= MAX_REPROJECTION_SPREAD * spread).all():
             found = ", ".join(f"{e:.1f}" for e in error)

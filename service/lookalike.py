@@ -3,20 +3,18 @@ back), told apart by their geometry, their reprojection error and the model's pl
 
 from __future__ import annotations
 
-from functools import cache
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from service.formats import COCO17, FORMATS, H36M17
+from service.formats import COCO17, FORMAT_NAMES, H36M17, lookalike_of
 from service.geometry import visible_spread
 
 if TYPE_CHECKING:
     from service.keypoints import ModelInput
     from service.lifter import Prediction
 
-FORMAT_NAMES: tuple[str, ...] = tuple(FORMATS)  # ModelInput.format_index points into this
 # The mix-up score of a pose is its reprojection error as a fraction of its spread (the standard
 # deviation of its visible coordinates) plus GEOMETRY_WEIGHT times the geometric evidence (in
 # [-1, 1]) that it is in the other format; a warning is given above THRESHOLD. Chosen on
@@ -33,41 +31,11 @@ THRESHOLD = 0.5
 PLAUSIBILITY_FLOOR = 0.01
 PLAUSIBILITY_WEIGHT = 0.05
 
-# COCO's nose, shoulders and hips; Human3.6M has its pelvis, knee, ankle, shoulder and elbow there.
-_NOSE = COCO17.joint_names.index("nose")
-_SHOULDERS = [COCO17.joint_names.index(j) for j in ("left_shoulder", "right_shoulder")]
-_HIPS = [COCO17.joint_names.index(j) for j in ("left_hip", "right_hip")]
-
-
 # Why the geometry points to the other format, for each given format.
 _GEOMETRY_NOTE = {
     H36M17.name: "joint 0 sits above the shoulders (5, 6) like COCO's nose, not between the hips",
     COCO17.name: "joint 0 is not above the shoulders (5, 6) as COCO's nose would be",
 }
-
-
-@cache
-def lookalike_of(name: str) -> str | None:
-    """The other format a pose in `name` is mistaken for: the one with as many joints, if any."""
-    count = len(FORMATS[name].joint_names)
-    others = [f for f in FORMATS if f != name and len(FORMATS[f].joint_names) == count]
-    return others[0] if len(others) == 1 else None
-
-
-def nose_height(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.float32]:
-    """How far joint 0 of (n, 17, 2) points lies beyond the shoulders (5, 6), in torso lengths
-    (from the hips 11, 12) along the torso: (n,), NaN where a joint is missing or the torso has no
-    length. Read as coco17, joint 0 is the nose, above the shoulders (typically +0.3); read as
-    h36m17, those joints are the pelvis, left knee and ankle, left shoulder and elbow, and joint 0
-    lies below "the shoulders" (typically -0.6). It uses the body's own axis, not the image's."""
-    # Missing joints may hold NaN or huge values: their results are replaced by NaN, never read.
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        shoulders = points[:, _SHOULDERS].mean(axis=1)  # (n, 2)
-        axis = shoulders - points[:, _HIPS].mean(axis=1)  # (n, 2)
-        length = (axis**2).sum(axis=1)  # (n,)
-        height = ((points[:, _NOSE] - shoulders) * axis).sum(axis=1) / length
-    ok = visible[:, [_NOSE, *_SHOULDERS, *_HIPS]].all(axis=1) & (length > 0)
-    return np.where(ok, height, np.nan).astype(np.float32)
 
 
 # Per format in FORMAT_NAMES: it has a lookalike, and the sign that turns nose_height into evidence

@@ -8,16 +8,14 @@ import numpy as np
 import pytest
 
 from service.engine import result_columns
-from service.formats import FORMATS, from_model_joints
+from service.formats import FORMATS, from_model_joints, lookalike_of, nose_height
 from service.keypoints import Limits, PoseInput, prepare_poses
 from service.lifter import Lifter
 from service.lookalike import (
     PLAUSIBILITY_FLOOR,
     PLAUSIBILITY_WEIGHT,
     format_warnings,
-    lookalike_of,
     mixup_scores,
-    nose_height,
 )
 from tests.conftest import POSE_3D, project
 
