@@ -218,7 +218,7 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
         plausibility=engine.lifter.has_plausibility,
         plausibility_calibration=info.plausibility_calibration,
         evaluation=info.evaluation,
-        metadata=info.metadata,
+        metadata=info.public_metadata,
     )
 
 

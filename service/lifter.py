@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,24 @@ def non_finite_rows(*arrays: np.ndarray) -> np.ndarray:
     return ~np.logical_and.reduce(finite)
 
 
+# An absolute path of the machine that built the model (POSIX, two or more parts), e.g. in the
+# metadata's train_command: /root/.cache/repnet/runs/s5_r2_limbs/last.pt.
+_BUILD_PATH = re.compile(r"(?<![\w.~:/-])/(?:[^\s/;,:'\"=]+/)+[^\s/;,:'\"=]*")
+
+
+def without_build_paths(text: str) -> str:
+    """`text` with each absolute path cut to what says something off the build machine: from its
+    last `runs` folder on (runs/s5_r2_limbs/last.pt), else its last part (last.pt)."""
+
+    def cut(match: re.Match[str]) -> str:
+        parts = [p for p in match.group(0).split("/") if p]
+        if "runs" in parts:
+            return "/".join(parts[len(parts) - 1 - parts[::-1].index("runs") :])
+        return parts[-1] if parts else match.group(0)
+
+    return _BUILD_PATH.sub(cut, text)
+
+
 @dataclass(frozen=True)
 class ModelInfo:
     """What the ONNX metadata says about the model."""
@@ -49,10 +68,15 @@ class ModelInfo:
     metadata: dict[str, str]  # every custom metadata entry, verbatim
 
     @property
+    def public_metadata(self) -> dict[str, str]:
+        """Every metadata entry as GET /v1/model shows it: build paths cut (without_build_paths)."""
+        return {key: without_build_paths(value) for key, value in self.metadata.items()}
+
+    @property
     def evaluation(self) -> dict[str, Any]:
-        """The evaluation figures embedded at export (empty for an untrained model)."""
+        """The evaluation figures embedded at export (empty for an untrained model), build paths cut."""
         try:
-            value = json.loads(self.metadata.get("evaluation", "{}") or "{}")
+            value = json.loads(without_build_paths(self.metadata.get("evaluation", "{}") or "{}"))
         except json.JSONDecodeError:
             return {}
         return value if isinstance(value, dict) else {}

@@ -310,4 +310,7 @@ class ModelDescription(BaseModel):
         None, description="How the plausibility was calibrated (ONNX metadata `plausibility_calibration`)."
     )
     evaluation: dict[str, Any] = Field(description="Evaluation figures embedded in the model.")
-    metadata: dict[str, str] = Field(description="Every ONNX metadata entry, verbatim.")
+    metadata: dict[str, str] = Field(
+        description="Every ONNX metadata entry, with paths of the machine that built the model cut "
+        "to their runs/ folder or file name (runs/s5_r2_limbs/last.pt)."
+    )

@@ -9,7 +9,7 @@ import pytest
 
 from service.config import BUNDLED_MODEL
 from service.errors import InvalidKeypoints, ModelLoadError
-from service.lifter import Lifter
+from service.lifter import Lifter, without_build_paths
 from tests.conftest import POSE_2D
 
 
@@ -98,3 +98,23 @@ def test_load_sets_whether_onnxruntime_threads_spin(spinning: bool) -> None:
     lifter = Lifter.load(BUNDLED_MODEL, intra_op_threads=1, spinning=spinning)
     entry = lifter.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning")
     assert entry == ("1" if spinning else "0")
+
+
+def test_build_paths_are_cut_to_what_means_something_elsewhere() -> None:
+    command = (
+        "generator: python -m training.train --out-dir /root/.cache/repnet/runs/s5_r2_limbs "
+        "--init-from=/root/.cache/repnet/runs/s5_mask25/last.pt --data /data/h36m/poses.npz; see "
+        "https://example.org/a/b and runs/x/last.pt"
+    )
+    assert without_build_paths(command) == (
+        "generator: python -m training.train --out-dir runs/s5_r2_limbs --init-from=runs/s5_mask25/last.pt "
+        "--data poses.npz; see https://example.org/a/b and runs/x/last.pt"
+    )
+
+
+def test_public_metadata_shows_no_path_of_the_build_machine(lifter: Lifter) -> None:
+    public = lifter.info.public_metadata
+    assert public.keys() == lifter.info.metadata.keys()
+    assert not any("/root/" in value or "/.cache/" in value for value in public.values())
+    if "/root/.cache/repnet/runs/" in lifter.info.metadata.get("train_command", ""):  # the bundled v6
+        assert "--out-dir runs/s5_r2_limbs" in public["train_command"]
