@@ -24,7 +24,8 @@ if __package__ in (None, ""):  # `python bench/format_accuracy.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.stats import report
-from service.config import BUNDLED_MODEL
+from service.app import load_lifter
+from service.config import BUNDLED_MODEL, Settings
 from service.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
 from service.lifter import Lifter
 from training import data, metrics
@@ -75,7 +76,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     data_dir = data.resolve_data_dir(args.data_dir)
     poses = select_sequences(data.load_poses(data_dir, "test"), list(data.TEST_SUBJECTS), [])
     test = build_test_set(poses, data.load_cameras(data_dir), None, args.frame_step)
-    lifter = Lifter.load(args.model, args.threads)
+    lifter = load_lifter(Settings(model_path=args.model, intra_op_threads=args.threads))
     log.info(
         "%d poses from %d camera sequences, model %s", len(test.gt), test.sequences, lifter.info.model_id
     )

@@ -9,16 +9,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.stats import latency_summary, sample_poses
-from service.__main__ import load_lifter
+from service.app import limits_of, load_lifter
 from service.config import Settings
+from service.keypoints import ModelInput, PoseInput, prepare_poses
 from service.lifter import OUTPUTS
+from service.replies import build_replies
 
 BATCHES: tuple[int, ...] = (1, 8, 64, 256, 1024)
 
 
 @dataclass(frozen=True)
 class RoofRow:
-    what: str  # "session.run" (the model alone) or "Lifter.lift" (plus the service's geometry)
+    # "session.run" (the model alone) or "Lifter.lift" (Lifter.lift and build_replies: plus the
+    # service's masking, checks and camera geometry, as a batch of the service costs them)
+    what: str
     batch: int
     calls: int
     seconds: float
@@ -66,9 +70,11 @@ def measure_roof(
         calls, seconds, laps = _time_calls(run, duration)
         rows.append(RoofRow("session.run", batch, calls, seconds, latency_summary(laps)))
         if with_lifter:
+            poses = [PoseInput(p, np.ones(len(p), bool)) for p in points]
+            inputs = prepare_poses(poses, limits_of(settings)).check()
 
-            def lift(points: np.ndarray = points, visible: np.ndarray = visible) -> None:
-                lifter.lift(points, visible)
+            def lift(inputs: ModelInput = inputs) -> None:
+                build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible))
 
             calls, seconds, laps = _time_calls(lift, duration)
             rows.append(RoofRow("Lifter.lift", batch, calls, seconds, latency_summary(laps)))

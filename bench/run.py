@@ -32,7 +32,7 @@ from bench.http_load import measure_http
 from bench.roof import BATCHES, RoofRow, measure_roof, roof_table
 from bench.server import ServiceProcess, rss_bytes
 from bench.stats import Result, fmt, machine, results_table, write_json
-from service.__main__ import parse_settings
+from service.app import parse_settings
 
 log = logging.getLogger("bench")
 

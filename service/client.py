@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import httpx
@@ -34,6 +34,8 @@ class LiftClientError(Exception):
         self.details = tuple(details)
 
 
+# The per-pose shapes of the float matrices of a reply (-1: one row per model joint); the reply's
+# fields are declared in service/replies.py, and tests/service/test_replies.py checks these against it.
 _SHAPES = {"pose_3d": (-1, 3), "pose_3d_camera": (-1, 3), "camera": (2, 3), "rotation": (3, 3),
            "reprojection": (-1, 2)}  # fmt: skip
 
@@ -56,6 +58,11 @@ class LiftResult:
     model_id: str
     plausibility: float | None = None  # in [0, 1]; None when the model has no plausibility output
     warnings: tuple[str, ...] = ()  # why the answer may be wrong, e.g. the format looks mistaken
+
+    @classmethod
+    def pose_fields(cls) -> tuple[str, ...]:
+        """The names of the reply's fields a LiftResult carries, in reply order (not joints, model_id)."""
+        return tuple(f.name for f in fields(cls) if f.name not in ("joints", "model_id"))
 
     @classmethod
     def from_fields(cls, get: Callable[[str], Any], joints: Sequence[str], model_id: str) -> LiftResult:

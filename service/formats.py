@@ -178,10 +178,11 @@ def to_model_joints(
     first, second, has_source, midpoint = _gather(fmt)
     src_visible = visible.astype(bool)
     out_visible = src_visible[:, first] & src_visible[:, second] & has_source  # (N, 17)
-    pairs = points[:, first].astype(np.float64) + points[:, second]  # (N, 17, 2); a single source: 2 p
-    # Missing joints may hold NaN or inf: their sums are replaced by 0, never read.
+    # Missing joints may hold NaN or inf: their sums are replaced by 0, never read. The sum is taken
+    # in the wire's precision (float32 from gRPC stays float32) and cast to float32 once.
     with np.errstate(invalid="ignore", over="ignore"):
-        out = np.where(out_visible[..., None], pairs / 2, 0.0).astype(np.float32)  # (N, 17, 2)
+        pairs = points[:, first] + points[:, second]  # (N, 17, 2); a single source: 2 p
+        out = np.where(out_visible[..., None], pairs / 2, 0.0).astype(np.float32, copy=False)  # (N, 17, 2)
     derived = np.broadcast_to(midpoint, out_visible.shape).copy()
     return out, out_visible, derived, ~out_visible
 

@@ -3,17 +3,12 @@ back), told apart by their geometry, their reprojection error and the model's pl
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import numpy.typing as npt
 
 from service.formats import COCO17, FORMAT_NAMES, H36M17, lookalike_of
-from service.geometry import visible_spread
-
-if TYPE_CHECKING:
-    from service.keypoints import ModelInput
-    from service.lifter import Prediction
+from service.geometry import FloatArray, visible_spread
+from service.keypoints import ModelInput
 
 # The mix-up score of a pose is its reprojection error as a fraction of its spread (the standard
 # deviation of its visible coordinates) plus GEOMETRY_WEIGHT times the geometric evidence (in
@@ -51,29 +46,35 @@ def geometric_evidence(inputs: ModelInput) -> npt.NDArray[np.float64]:
     return height * _TOWARD_LOOKALIKE[inputs.format_index]
 
 
-def relative_error(inputs: ModelInput, prediction: Prediction) -> npt.NDArray[np.float64]:
-    """(N,) reprojection error as a fraction of the pose's spread: the same for any image size."""
+def relative_error(inputs: ModelInput, error_px: FloatArray) -> npt.NDArray[np.float64]:
+    """(N,) reprojection error (N,) px as a fraction of the pose's spread: the same for any image size."""
     spread = visible_spread(inputs.keypoints_2d, inputs.visible)  # (N,) px
-    return prediction.reprojection_error_px.astype(np.float64) / np.maximum(spread, 1e-9)
+    return error_px.astype(np.float64) / np.maximum(spread, 1e-9)
 
 
 def mixup_scores(
-    inputs: ModelInput, prediction: Prediction, relative: npt.NDArray[np.float64] | None = None
+    inputs: ModelInput,
+    error_px: FloatArray,
+    plausibility: FloatArray | None,
+    relative: npt.NDArray[np.float64] | None = None,
 ) -> npt.NDArray[np.float64]:
-    """(N,) the mix-up score of each pose (NaN for a format without a lookalike); `relative`:
-    relative_error, when the caller has it."""
-    relative = relative_error(inputs, prediction) if relative is None else relative
+    """(N,) the mix-up score of each pose (NaN for a format without a lookalike) from its reprojection
+    error (N,) px and the model's plausibility (N,) if it has one; `relative`: relative_error, when
+    the caller has it."""
+    relative = relative_error(inputs, error_px) if relative is None else relative
     scores = relative + GEOMETRY_WEIGHT * geometric_evidence(inputs)
-    if prediction.plausibility is not None:
-        scores = scores + PLAUSIBILITY_WEIGHT * (prediction.plausibility < PLAUSIBILITY_FLOOR)
+    if plausibility is not None:
+        scores = scores + PLAUSIBILITY_WEIGHT * (plausibility < PLAUSIBILITY_FLOOR)
     return np.where(_HAS_LOOKALIKE[inputs.format_index], scores, np.nan)
 
 
-def format_warnings(inputs: ModelInput, prediction: Prediction) -> list[list[str]]:
+def format_warnings(
+    inputs: ModelInput, error_px: FloatArray, plausibility: FloatArray | None
+) -> list[list[str]]:
     """Per pose, the warnings of its reply: today at most one, that the format looks wrong."""
-    relative = relative_error(inputs, prediction)
+    relative = relative_error(inputs, error_px)
     out: list[list[str]] = [[] for _ in range(len(inputs))]
-    flagged = np.flatnonzero(mixup_scores(inputs, prediction, relative) > THRESHOLD)  # NaN: False
+    flagged = np.flatnonzero(mixup_scores(inputs, error_px, plausibility, relative) > THRESHOLD)  # NaN: False
     if not len(flagged):
         return out
     evidence = geometric_evidence(inputs)

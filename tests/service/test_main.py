@@ -18,8 +18,8 @@ import pytest
 from grpc_health.v1 import health_pb2
 from pydantic import ValidationError
 
-from service.__main__ import build_service, main, parse_settings
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.app import build_service, main, parse_settings
 from service.config import BUNDLED_MODEL, Settings
 from service.lifter import Lifter
 from tests.conftest import POSE_2D, GatedLifter
