@@ -103,12 +103,14 @@ def build_replies(inputs: ModelInput, prediction: Prediction) -> Replies:
     finite (a finite but absurd model output) fails like one the model failed on."""
     camera, pose_3d = prediction.camera, prediction.pose_3d
     points, visible = inputs.keypoints_2d, inputs.visible
-    rotation = geometry.camera_rotation(camera)  # (N, 3, 3)
-    reprojection = geometry.reproject(camera, pose_3d, points, visible)  # (N, J, 2) px
-    error = geometry.reprojection_error(reprojection, points, visible)  # (N,) px
+    with np.errstate(over="ignore", invalid="ignore"):  # what is not finite fails its pose below
+        rotation = geometry.camera_rotation(camera)  # (N, 3, 3)
+        reprojection = geometry.reproject(camera, pose_3d, points, visible)  # (N, J, 2) px
+        error = geometry.reprojection_error(reprojection, points, visible)  # (N,) px
+        pose_3d_camera = geometry.rotate_to_camera(pose_3d, camera_orientation(inputs, rotation))
     columns = {
         "pose_3d": pose_3d,
-        "pose_3d_camera": geometry.rotate_to_camera(pose_3d, camera_orientation(inputs, rotation)),
+        "pose_3d_camera": pose_3d_camera,
         "camera": camera,
         "scale": geometry.camera_scale(camera),
         "rotation": rotation,
