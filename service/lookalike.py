@@ -1,5 +1,6 @@
-"""Format mix-ups: poses sent under the wrong 17-joint label (coco17 as h36m17, the default, or
-back), told apart by their geometry, their reprojection error and the model's plausibility."""
+"""Format mix-ups: a pose under the wrong 17-joint label, told by its geometry, reprojection and plausibility.
+
+coco17 keypoints sent as h36m17 (the default) or back give the reply's format warning."""
 
 from __future__ import annotations
 

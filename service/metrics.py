@@ -101,7 +101,7 @@ class Metrics:
         )
         self.inference_seconds = Histogram(
             "repnet_inference_seconds",
-            "Time of one onnxruntime run (a whole batch), derived geometry included.",
+            "Time of one model run (a whole batch): onnxruntime, masking and the non-finite check.",
             buckets=LATENCY_BUCKETS,
             registry=registry,
         )
