@@ -34,12 +34,14 @@ class ConstantLifter(Lifter):
         self.answer = lifter.lift(pose, np.ones(pose.shape[:2], bool))
 
     def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
+        """The stored prediction, once per pose."""
         n = keypoints_2d.shape[0]
         values = {f.name: getattr(self.answer, f.name) for f in fields(Prediction)}
         return Prediction(**{k: None if v is None else np.repeat(v, n, axis=0) for k, v in values.items()})
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Serve like `python -m service`, with the model taken out."""
     settings = parse_settings(argv)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     return serve(build_service(settings, ConstantLifter(load_lifter(settings))))

@@ -57,6 +57,7 @@ def table(results: dict[str, list[list[RoofRow]]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Measure the given models in turn and print the table (and write JSON with --out)."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

@@ -53,6 +53,7 @@ def lift_all(lifter: Lifter, points: np.ndarray, visible: np.ndarray) -> tuple[n
 
 
 def score_format(fmt: KeypointFormat, lifter: Lifter, points: np.ndarray, gt: np.ndarray) -> dict[str, Any]:
+    """MPJPE and P-MPJPE of the test poses sent in `fmt` (through its mapping) against the ground truth."""
     model_points, visible, imputed = format_inputs(fmt, points)
     pose, camera = lift_all(lifter, model_points, visible)
     p1 = metrics.joint_errors(metrics.to_camera_frame(pose, camera), gt)  # (M, 17)
@@ -72,6 +73,7 @@ def score_format(fmt: KeypointFormat, lifter: Lifter, points: np.ndarray, gt: np
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Score every format on the Human3.6M test subjects."""
     started = time.perf_counter()
     data_dir = data.resolve_data_dir(args.data_dir)
     poses = select_sequences(data.load_poses(data_dir, "test"), list(data.TEST_SUBJECTS), [])
@@ -101,6 +103,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def markdown(result: dict[str, Any]) -> str:
+    """The result as the markdown table of docs/BENCHMARKS.md."""
     lines = [
         f"`{result['command']}`: {result['dataset']}, every {result['frame_step']}th frame "
         f"({result['poses']:,} poses), model `{result['model_id']}`.",
@@ -120,6 +123,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of `python -m bench.format_accuracy`."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.format_accuracy",
         description=__doc__,
@@ -139,6 +143,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run, print the markdown and write the JSON; the exit status."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     result = run(args)

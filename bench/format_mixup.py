@@ -73,6 +73,7 @@ def rates(runs: list[dict[str, Any]], key: str) -> float:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Send every 17-joint format's poses under every 17-joint label and count the warnings."""
     started = time.perf_counter()
     data_dir = data.resolve_data_dir(args.data_dir)
     split = "test" if set(args.subjects) <= set(data.TEST_SUBJECTS) else "train"
@@ -137,6 +138,7 @@ def frames(step: int) -> str:
 
 
 def markdown(result: dict[str, Any]) -> str:
+    """The result as the markdown tables of docs/BENCHMARKS.md."""
     s = result["summary"]
     lines = [
         f"`{result['command']}`: {result['dataset']}, {frames(result['frame_step'])} "
@@ -164,6 +166,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of `python -m bench.format_mixup`."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.format_mixup",
         description=__doc__,
@@ -193,6 +196,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run, print the markdown and write the JSON; the exit status."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     result = run(args)

@@ -73,6 +73,7 @@ def _load(model: Path) -> Lifter:
 
 
 def compare(float_model: Path, int8_model: Path, duration: float) -> dict[str, Any]:
+    """The roof of the float32 and the int8 model, and how far their outputs move apart."""
     rows = {}
     for name, path in (("float32", float_model), ("int8", int8_model)):
         roof = measure_roof(Settings(model_path=path), duration=duration, with_lifter=False)
@@ -87,6 +88,7 @@ def compare(float_model: Path, int8_model: Path, duration: float) -> dict[str, A
 
 
 def markdown(result: dict[str, Any]) -> str:
+    """The comparison as markdown."""
     roof = result["roof"]
     lines = [
         "| batch | float32 frames/s | int8 frames/s | speed-up | float32 ms | int8 ms |",
@@ -109,6 +111,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Quantize the model, compare it with the original, print and write the result."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.quantize",
         description=__doc__,

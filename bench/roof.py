@@ -20,6 +20,8 @@ BATCHES: tuple[int, ...] = (1, 8, 64, 256, 1024)
 
 @dataclass(frozen=True)
 class RoofRow:
+    """One roof measurement: calls of one kind at one batch size."""
+
     # "session.run" (the model alone) or "Lifter.lift" (Lifter.lift and build_replies: plus the
     # service's masking, checks and camera geometry, as a batch of the service costs them)
     what: str
@@ -30,10 +32,12 @@ class RoofRow:
 
     @property
     def frames_per_s(self) -> float:
+        """Poses per second."""
         return self.batch * self.calls / self.seconds
 
     @property
     def ms_per_call(self) -> float:
+        """Mean milliseconds per call."""
         return 1e3 * self.seconds / self.calls
 
 
@@ -82,6 +86,7 @@ def measure_roof(
 
 
 def roof_table(rows: list[RoofRow]) -> str:
+    """Roof rows as a markdown table."""
     lines = [
         "| roof | batch | frames/s | ms per call | p99 ms |",
         "|---|---:|---:|---:|---:|",

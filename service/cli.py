@@ -231,6 +231,7 @@ def run_formats(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The `repnet` argument parser with its subcommands."""
     parser = argparse.ArgumentParser(prog="repnet", description="RepNet 2D-to-3D pose lifting.")
     sub = parser.add_subparsers(dest="command", required=True)
     serve = sub.add_parser("serve", help="run the HTTP and gRPC server (python -m service; see --help)",
@@ -267,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the `repnet` command; the exit status (EXIT_*)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["serve"]:  # every flag, --help included, belongs to the server's own parser
         from service.app import main as serve

@@ -198,6 +198,7 @@ class LiftClient(_HttpBase):
         self.close()
 
     def close(self) -> None:
+        """Close the HTTP connections."""
         self._http.close()
 
     def _send(self, method: str, path: str, body: dict[str, Any] | None = None) -> httpx.Response:
@@ -265,6 +266,7 @@ class AsyncLiftClient(_HttpBase):
         await self.aclose()
 
     async def aclose(self) -> None:
+        """Close the HTTP connections."""
         await self._http.aclose()
 
     async def _send(self, method: str, path: str, body: dict[str, Any] | None = None) -> httpx.Response:

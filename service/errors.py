@@ -51,6 +51,7 @@ class Violation:
 
     @property
     def message(self) -> str:
+        """Field, joint name and reason in one line (the gRPC status message)."""
         where = f"{self.field} ({self.joint_name})" if self.joint_name else self.field
         return f"{where}: {self.reason}"
 

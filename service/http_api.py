@@ -118,6 +118,7 @@ class LiftJSONResponse(JSONResponse):
     A non-finite number, which the model should never produce, is written as null."""
 
     def render(self, content: Any) -> bytes:
+        """`content` as JSON bytes."""
         return pydantic_core.to_json(content, inf_nan_mode="null")
 
 
@@ -133,6 +134,7 @@ def reply_of(info: ModelInfo, inputs: ModelInput, prediction: Prediction) -> Lif
 
 
 def error_item(v: Violation) -> dict[str, Any]:
+    """One violation as an item of a 4xx body's `detail`."""
     return {
         "field": v.field,
         "reason": v.reason,
@@ -197,6 +199,7 @@ def content_type_violation(content_type: str | None, violations: Sequence[Violat
 
 
 def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
+    """What GET /v1/model says: the model, its joints and formats, the limits, its public metadata."""
     formats = [
         FormatInfo(
             name=f.name,
@@ -229,35 +232,26 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
     )
 
 
-def create_app(
-    engine: Engine, metrics: Metrics, limits: Limits, *, max_body_bytes: int, ui: bool, max_in_flight: int
-) -> FastAPI:
-    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
-    `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
-    requests in progress, the next is answered 503 at once."""
-    info = engine.lifter.info
-    app = FastAPI(
-        title="RepNet pose lifting",
-        version="1.0.0",
-        description="Lifts 2D human keypoints to a 3D pose and a weak-perspective camera "
-        "(RepNet, Wandt & Rosenhahn, CVPR 2019).\n\n" + FRAME_DOC,
-    )
-    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
-    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
-    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)  # added last: outermost
+def error_response(err: Exception) -> JSONResponse:
+    """The answer to a core error: 422 with the violations, 503 to retry, 500 for the model's fault."""
+    if isinstance(err, InvalidKeypoints):
+        return JSONResponse(error_body(err.violations), status_code=422)
+    if isinstance(err, Overloaded | ModelNotReady):
+        return JSONResponse({"detail": str(err)}, status_code=503, headers={"Retry-After": "1"})
+    if isinstance(err, ModelOutputError):  # counted by the handler; one line, no traceback
+        log.error("POST /lift: %s", err)
+        return JSONResponse({"detail": str(err)}, status_code=500)
+    raise err  # any other LiftError is a server fault: the 500 handler logs it
+
+
+def add_error_handlers(app: FastAPI, metrics: Metrics) -> None:
+    """The one error path of the API: core errors, pydantic's and FastAPI's 400 as JSON error bodies."""
 
     @app.exception_handler(LiftError)
     async def handle_lift_error(request: Request, err: Exception) -> JSONResponse:
         setattr(request.state, OUTCOME_KEY, outcome_of(err))
         metrics.count_error("http", err)
-        if isinstance(err, InvalidKeypoints):
-            return JSONResponse(error_body(err.violations), status_code=422)
-        if isinstance(err, Overloaded | ModelNotReady):
-            return JSONResponse({"detail": str(err)}, status_code=503, headers={"Retry-After": "1"})
-        if isinstance(err, ModelOutputError):  # counted above; one line, no traceback
-            log.error("POST /lift: %s", err)
-            return JSONResponse({"detail": str(err)}, status_code=500)
-        raise err  # any other LiftError is a server fault: the 500 handler logs it
+        return error_response(err)
 
     @app.exception_handler(RequestValidationError)
     async def handle_validation_error(request: Request, err: Exception) -> JSONResponse:
@@ -282,6 +276,26 @@ def create_app(
         setattr(request.state, OUTCOME_KEY, INVALID)
         metrics.reject("http", [violation])
         return JSONResponse(error_body([violation]), status_code=400)
+
+
+def create_app(
+    engine: Engine, metrics: Metrics, limits: Limits, *, max_body_bytes: int, ui: bool, max_in_flight: int
+) -> FastAPI:
+    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
+    `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
+    requests in progress, the next is answered 503 at once."""
+    info = engine.lifter.info
+    app = FastAPI(
+        title="RepNet pose lifting",
+        version="1.0.0",
+        description="Lifts 2D human keypoints to a 3D pose and a weak-perspective camera "
+        "(RepNet, Wandt & Rosenhahn, CVPR 2019).\n\n" + FRAME_DOC,
+    )
+    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
+    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
+    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)  # added last: outermost
+
+    add_error_handlers(app, metrics)
 
     @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
     async def lift(request: LiftRequest, http: Request) -> Response:

@@ -37,8 +37,10 @@ MAX_REPROJECTION_SPREAD = 0.25
 def non_finite_rows(*arrays: np.ndarray) -> BoolArray:
     """(N,) True for each pose with a NaN or infinity in any of the (N, ...) arrays."""
     n = arrays[0].shape[0]
-    finite = [np.isfinite(a.reshape(n, -1)).all(axis=1) for a in arrays]
-    return ~np.logical_and.reduce(finite)
+    finite = np.ones(n, bool)
+    for a in arrays:
+        finite &= np.isfinite(a.reshape(n, -1)).all(axis=1)
+    return ~finite
 
 
 # An absolute path of the machine that built the model (POSIX, two or more parts), e.g. in the
@@ -225,6 +227,7 @@ class Lifter:
 
     @property
     def num_joints(self) -> int:
+        """J, the number of model joints."""
         return len(self.info.joint_names)
 
     def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:

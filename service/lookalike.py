@@ -44,7 +44,7 @@ def geometric_evidence(inputs: ModelInput) -> npt.NDArray[np.float64]:
     """(N,) the evidence in [-1, 1] from nose_height that each pose is in its format's lookalike
     (0 where it cannot be read)."""
     height = np.clip(np.nan_to_num(inputs.nose_height.astype(np.float64), nan=0.0), -1.0, 1.0)
-    return height * _TOWARD_LOOKALIKE[inputs.format_index]
+    return np.asarray(height * _TOWARD_LOOKALIKE[inputs.format_index], np.float64)
 
 
 def relative_error(inputs: ModelInput, error_px: FloatArray) -> npt.NDArray[np.float64]:

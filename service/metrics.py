@@ -129,6 +129,7 @@ class Metrics:
         )
 
     def set_model(self, model_id: str, skeleton: str) -> None:
+        """Label repnet_model_info with the loaded model."""
         self.model_info.clear()
         self.model_info.labels(model_id=model_id, skeleton=skeleton).set(1)
 

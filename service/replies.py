@@ -133,6 +133,6 @@ def camera_orientation(inputs: ModelInput, rotation: FloatArray) -> FloatArray:
         return rotation
     k = inputs.intrinsics[given]
     ray = geometry.ray_rotation(inputs.keypoints_2d[given], inputs.visible[given], k[:, :2], k[:, 2:])
-    turned = rotation.copy()
+    turned: FloatArray = rotation.copy()
     turned[given] = ray @ rotation[given]
     return turned

@@ -180,6 +180,62 @@ async def _finish(group: Group) -> Answers:
     return Answers(group.answers(replies), replies)
 
 
+class _Reader:
+    """Reads a stream's frames into its StreamState while the window has room, and wakes the loop
+    that answers them: when a frame arrives, a run finishes or the frames end."""
+
+    def __init__(self, frames: AsyncIterator[Frame], state: StreamState) -> None:
+        self.state = state
+        self.wake = asyncio.Event()  # something may be actionable
+        self.ended = False  # no frame will come any more
+        self.unreadable: Exception | None = None  # why the frames ended, if they failed
+        self._room = asyncio.Event()  # a group was answered: the window may have room again
+        self._loop = asyncio.get_running_loop()
+        self._task = asyncio.create_task(self._read(frames))
+
+    async def _read(self, frames: AsyncIterator[Frame]) -> None:
+        try:
+            async for frame in frames:
+                self.state.add(frame)
+                self.wake.set()
+                while not self.state.has_room():
+                    self._room.clear()
+                    await self._room.wait()
+        except Exception as err:  # what cannot be read ends the stream once the rest is answered
+            self.unreadable = err
+        finally:  # the client half-closed, cancelled or the call failed: nothing more to read
+            self.ended = True
+            self.wake.set()
+
+    def watch(self, group: Group) -> None:
+        """Wake the loop when the group's runs finish (on the engine's thread)."""
+        for future in group.futures:
+            future.add_done_callback(self._on_done)
+
+    def _on_done(self, _: object) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: the server has stopped
+            self._loop.call_soon_threadsafe(self.wake.set)
+
+    def answered(self, group: Group) -> None:
+        """The oldest group's answers were sent: its frames make room in the window."""
+        self.state.answered(group)
+        self._room.set()
+
+    async def next_event(self, idle_timeout_s: float) -> None:
+        """Wait until something may be actionable; StreamIdle when nothing is in progress and no
+        frame comes for `idle_timeout_s`."""
+        if self.state.can_take() or self.state.answerable() is not None:
+            return
+        if self.state.held or self.ended:
+            await self.wake.wait()
+        elif not await _wait(self.wake, idle_timeout_s):
+            raise StreamIdle(f"no frame for {idle_timeout_s:g} s")
+
+    def close(self) -> None:
+        """Stop reading."""
+        self._task.cancel()
+
+
 async def answer_stream(
     frames: AsyncIterator[Frame],
     engine: Engine,
@@ -194,56 +250,25 @@ async def answer_stream(
     Raises StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s`, and
     UnreadableFrame (after answering the frames before it) when `frames` fails.
     """
-    state = StreamState(window, engine.max_batch)
-    loop = asyncio.get_running_loop()
-    wake = asyncio.Event()  # something may be actionable: frames, a finished run, the end
-    room = asyncio.Event()  # a group was answered: the window has room again
-    ended = False
-    unreadable: Exception | None = None
-
-    async def read() -> None:
-        nonlocal ended, unreadable
-        try:
-            async for frame in frames:
-                state.add(frame)
-                wake.set()
-                while not state.has_room():
-                    room.clear()
-                    await room.wait()
-        except Exception as err:  # what cannot be read ends the stream once the rest is answered
-            unreadable = err
-        finally:  # the client half-closed, cancelled or the call failed: nothing more to read
-            ended = True
-            wake.set()
-
-    def on_done(_: object) -> None:  # called on the engine's thread
-        with contextlib.suppress(RuntimeError):  # the loop closed: the server has stopped
-            loop.call_soon_threadsafe(wake.set)
-
-    reader = asyncio.create_task(read())
+    reader = _Reader(frames, StreamState(window, engine.max_batch))
+    state = reader.state
     try:
         while True:
-            wake.clear()
+            reader.wake.clear()
             if state.can_take():
                 for taken in state.take():
                     await _start(taken, engine, limits, transport)
-                    for future in taken.futures:
-                        future.add_done_callback(on_done)
+                    reader.watch(taken)
             while (group := state.answerable()) is not None:
                 yield await _finish(group)
-                state.answered(group)
-                room.set()
-            if ended and not state.held:
-                if unreadable is not None:
-                    raise UnreadableFrame(str(unreadable)) from unreadable
+                reader.answered(group)
+            if reader.ended and not state.held:
+                if reader.unreadable is not None:
+                    raise UnreadableFrame(str(reader.unreadable)) from reader.unreadable
                 return
-            if not state.can_take() and state.answerable() is None:
-                if state.held or ended:
-                    await wake.wait()
-                elif not await _wait(wake, idle_timeout_s):
-                    raise StreamIdle(f"no frame for {idle_timeout_s:g} s")
+            await reader.next_event(idle_timeout_s)
     finally:
-        reader.cancel()
+        reader.close()
 
 
 async def _wait(event: asyncio.Event, timeout_s: float) -> bool:

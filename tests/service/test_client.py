@@ -141,7 +141,10 @@ def test_503_gives_up_after_the_last_retry() -> None:
 
 
 def test_keypoints_of_the_wrong_rank_are_refused_before_sending() -> None:
-    with LiftClient("http://test", transport=_scripted([], [])) as client, pytest.raises(ValueError):
+    with (
+        LiftClient("http://test", transport=_scripted([], [])) as client,
+        pytest.raises(ValueError, match=r"expected keypoints of shape \(N, J, 2\), got \(17, 2\)"),
+    ):
         client.lift_batch(POSE_2D)  # (17, 2) is one pose, not a batch
 
 
