@@ -217,13 +217,14 @@ class PoseLifterServicer:
             frames(),
             self.engine,
             self.limits,
+            self._results,
             window=self.stream_window,
             idle_timeout_s=self.stream_idle_timeout_s,
             transport=TRANSPORT,
         )
         try:
-            async for answered in answers:
-                for result, answer in await offload(len(answered.items), self._results, answered):
+            async for results in answers:
+                for result, answer in results:
                     yield result
                     held -= 1
                     gauge.dec()

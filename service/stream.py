@@ -6,9 +6,10 @@ import asyncio
 import contextlib
 import logging
 from collections import deque
-from collections.abc import AsyncGenerator, AsyncIterator
+from collections.abc import AsyncGenerator, AsyncIterator, Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 from service.engine import Engine, offload
 from service.errors import InvalidKeypoints, LiftError, ModelOutputError
@@ -21,7 +22,8 @@ log = logging.getLogger(__name__)
 # A group that finds the batch queue full waits this long for room before its frames get an error:
 # the window already bounds what a stream holds, so a busy moment slows it down instead.
 QUEUE_WAIT_S = 5.0
-POSE_FIELD = "pose"  # what a frame's violations are named within: pose.keypoints[4]
+POSE_FIELD = "pose"
+R = TypeVar("R")  # what a frame's violations are named within: pose.keypoints[4]
 
 
 class StreamIdle(Exception):
@@ -161,23 +163,35 @@ async def _start(group: Group, engine: Engine, limits: Limits, transport: str) -
             group.failure = err
 
 
-async def _finish(group: Group) -> Answers:
-    """The answers of a group whose runs have finished; a failed run fails its frames, not the stream."""
-    replies = None
-    if group.futures and group.prepared is not None:
-        first = group.frames[0].frame_id
+async def _finish(group: Group, encode: Callable[[Answers], R]) -> R:
+    """The encoded answers of a group whose runs have finished (off the event loop when many): a
+    failed run fails its frames, not the stream."""
+    prediction = None
+    if group.futures:
         try:
             prediction = Prediction.join([f.result() for f in group.futures])
-            replies = await offload(len(prediction), build_replies, group.prepared.inputs, prediction)
         except Exception:  # one run's fault must not end the stream
-            log.exception("stream frames %d..: lifting failed", first)
+            log.exception("stream frames %d..: lifting failed", group.frames[0].frame_id)
+            group.failure = LiftError("internal error while lifting this frame")
+    return await offload(len(group.frames), _answer, group, prediction, encode)
+
+
+def _answer(group: Group, prediction: Prediction | None, encode: Callable[[Answers], R]) -> R:
+    """Build the replies of a group's valid poses and encode its answers, in one go."""
+    replies = None
+    if prediction is not None and group.prepared is not None:
+        first = group.frames[0].frame_id
+        try:
+            replies = build_replies(group.prepared.inputs, prediction)
+        except Exception:  # one group's fault must not end the stream
+            log.exception("stream frames %d..: building the replies failed", first)
             group.failure = LiftError("internal error while lifting this frame")
         else:
             if replies.failed.any():  # counted as each frame is answered; one line, no traceback
                 log.error(
                     "stream frames %d..: %s", first, ModelOutputError(replies.failed.nonzero()[0].tolist())
                 )
-    return Answers(group.answers(replies), replies)
+    return encode(Answers(group.answers(replies), replies))
 
 
 class _Reader:
@@ -240,12 +254,14 @@ async def answer_stream(
     frames: AsyncIterator[Frame],
     engine: Engine,
     limits: Limits,
+    encode: Callable[[Answers], R],
     *,
     window: int,
     idle_timeout_s: float,
     transport: str,
-) -> AsyncGenerator[Answers, None]:
-    """Read `frames` and yield their answers group by group, in frame order (see StreamState).
+) -> AsyncGenerator[R, None]:
+    """Read `frames` and yield their answers group by group, in frame order (see StreamState), as
+    encode(answers) gives them: the transport's results, built off the event loop with the replies.
 
     Raises StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s`, and
     UnreadableFrame (after answering the frames before it) when `frames` fails.
@@ -260,7 +276,7 @@ async def answer_stream(
                     await _start(taken, engine, limits, transport)
                     reader.watch(taken)
             while (group := state.answerable()) is not None:
-                yield await _finish(group)
+                yield await _finish(group, encode)
                 reader.answered(group)
             if reader.ended and not state.held:
                 if reader.unreadable is not None:

@@ -18,6 +18,7 @@ MUST_NOT_IMPORT = {
     "replies": {"engine", "grpc", "fastapi"},
     "stream": {"grpc", "grpc_api", "fastapi"},
     "formats": {"keypoints", "lookalike", "replies"},
+    "cli": {"http_api", "grpc_api", "http_middleware"},  # --local lifts with the core, not an adapter
 }
 
 

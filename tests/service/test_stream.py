@@ -37,6 +37,11 @@ def frame(i: int, error: LiftError | None = None) -> Frame:
     return Frame(i, time.perf_counter(), None if error else pose(i), error)
 
 
+def same(answers: Answers) -> Answers:
+    """The encoding a transport would give the answers: here none."""
+    return answers
+
+
 def outcomes(answers: list[Answer]) -> list[int | str]:
     """Each answer's row, or its error's class name."""
     return [a.outcome if isinstance(a.outcome, int) else type(a.outcome).__name__ for a in answers]
@@ -137,7 +142,7 @@ def test_a_stream_is_answered_in_order_and_fills_batches(
         pulled: list[int] = []
         more = asyncio.Event()
         stream = answer_stream(
-            source(frames, pulled, more), engine, limits, window=16, idle_timeout_s=30, transport="test"
+            source(frames, pulled, more), engine, limits, same, window=16, idle_timeout_s=30, transport="test"
         )
         gated.gate.clear()
         answered = asyncio.create_task(collect(stream))
@@ -162,7 +167,7 @@ def test_the_reader_stops_reading_when_the_window_is_full(
     async def scenario() -> tuple[list[int], list[Answer]]:
         pulled: list[int] = []
         stream = answer_stream(
-            source(frames, pulled), engine, limits, window=3, idle_timeout_s=30, transport="t"
+            source(frames, pulled), engine, limits, same, window=3, idle_timeout_s=30, transport="t"
         )
         gated.gate.clear()
         answered = asyncio.create_task(collect(stream))
@@ -184,7 +189,9 @@ def test_an_unreadable_frame_ends_the_stream_after_the_frames_before_it(
 
     async def scenario() -> None:
         failing = source([frame(0), frame(1)], [], fail=ValueError("bytes that are no frame"))
-        async for group in answer_stream(failing, engine, limits, window=8, idle_timeout_s=30, transport="t"):
+        async for group in answer_stream(
+            failing, engine, limits, same, window=8, idle_timeout_s=30, transport="t"
+        ):
             got.extend(group.items)
 
     with pytest.raises(UnreadableFrame) as raised:
@@ -199,7 +206,9 @@ def test_a_stream_without_frames_is_closed_as_idle(engine: Engine, limits: Limit
         yield frame(0)
 
     async def scenario() -> None:
-        async for _ in answer_stream(silent(), engine, limits, window=8, idle_timeout_s=0.1, transport="t"):
+        async for _ in answer_stream(
+            silent(), engine, limits, same, window=8, idle_timeout_s=0.1, transport="t"
+        ):
             pass
 
     start = time.monotonic()
@@ -214,8 +223,9 @@ def test_frames_the_engine_refuses_get_its_error_and_the_stream_goes_on(
     engine.close(timeout=10)
 
     async def scenario() -> list[Answer]:
-        stream = answer_stream(source([frame(0), frame(1)], []), engine, limits, window=8, idle_timeout_s=30,
-                               transport="t")  # fmt: skip
-        return await collect(stream)
+        frames = source([frame(0), frame(1)], [])
+        return await collect(
+            answer_stream(frames, engine, limits, same, window=8, idle_timeout_s=30, transport="t")
+        )
 
     assert outcomes(asyncio.run(scenario())) == ["ModelNotReady", "ModelNotReady"]
