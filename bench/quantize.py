@@ -51,7 +51,7 @@ def output_change(float_model: Path, int8_model: Path, n: int = 4096) -> dict[st
     """How far int8 outputs move from float32 ones on plausible poses (mm after root alignment)."""
     points = sample_poses(n, seed=7)
     visible = np.ones(points.shape[:2], np.float32)
-    a, b = (_load(m).lift(points, visible) for m in (float_model, int8_model))
+    a, b = (Lifter.load(m).lift(points, visible) for m in (float_model, int8_model))  # no start-up check
     joint = np.linalg.norm(a.pose_3d - b.pose_3d, axis=-1)  # (n, 17)
     reprojection = [geometry.reproject(p.camera, p.pose_3d, points, visible) for p in (a, b)]
     return {
@@ -59,17 +59,6 @@ def output_change(float_model: Path, int8_model: Path, n: int = 4096) -> dict[st
         "pose_3d_p99_mm": float(np.percentile(joint, 99)),
         "reprojection_mean_px": float(np.abs(reprojection[0] - reprojection[1]).mean()),
     }
-
-
-def _load(model: Path) -> Lifter:
-    """The model with the service's session settings (and no start-up check: int8 may move it)."""
-    settings = Settings()
-    return Lifter.load(
-        model,
-        intra_op_threads=settings.intra_op_threads,
-        inter_op_threads=settings.inter_op_threads,
-        spinning=settings.intra_op_spinning,
-    )
 
 
 def compare(float_model: Path, int8_model: Path, duration: float) -> dict[str, Any]:

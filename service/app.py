@@ -34,12 +34,7 @@ log = logging.getLogger("service")
 
 def load_lifter(settings: Settings) -> Lifter:
     """The model from settings.model_path; ModelLoadError if it is not the h36m17 model formats expect."""
-    lifter = Lifter.load(
-        settings.model_path,
-        intra_op_threads=settings.intra_op_threads,
-        inter_op_threads=settings.inter_op_threads,
-        spinning=settings.intra_op_spinning,
-    )
+    lifter = Lifter.load(settings.model_path, settings)
     if lifter.info.joint_names != MODEL_JOINTS:
         raise ModelLoadError(
             f"{settings.model_path}: joints {list(lifter.info.joint_names)} are not the h36m17 joints "

@@ -14,6 +14,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service import geometry
+from service.config import Settings
 from service.errors import InvalidKeypoints, ModelLoadError, Violation
 from service.geometry import BoolArray, FloatArray
 
@@ -179,17 +180,20 @@ class Lifter:
         self._outputs = [*OUTPUTS, PLAUSIBILITY] if self.has_plausibility else list(OUTPUTS)
 
     @classmethod
-    def load(cls, path: Path, *, intra_op_threads: int, inter_op_threads: int, spinning: bool) -> Lifter:
-        """Open the model at `path` with the session options of Settings (intra_op_threads: 0 is one
-        per core); raise ModelLoadError saying what is wrong with it."""
+    def load(cls, path: Path, settings: Settings | None = None) -> Lifter:
+        """Open the model at `path` with the session options of `settings` (threads and spinning;
+        default Settings(): the service's defaults and REPNET_* variables); raise ModelLoadError
+        saying what is wrong with the model."""
+        settings = Settings() if settings is None else settings
         if path.is_dir():
             raise ModelLoadError(f"model path is a directory, not an ONNX file: {path}")
         if not path.is_file():
             raise ModelLoadError(f"model file not found: {path}")
         options = ort.SessionOptions()
-        options.intra_op_num_threads = intra_op_threads
-        options.inter_op_num_threads = inter_op_threads
-        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+        options.intra_op_num_threads = settings.intra_op_threads  # 0: one per core
+        options.inter_op_num_threads = settings.inter_op_threads
+        spinning = "1" if settings.intra_op_spinning else "0"
+        options.add_session_config_entry("session.intra_op.allow_spinning", spinning)
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         try:
             session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])

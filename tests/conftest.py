@@ -67,13 +67,7 @@ def expected_reprojection(
 
 def load_model(path: Path) -> Lifter:
     """The model at `path` with the service's session settings, on one thread."""
-    settings = Settings()
-    return Lifter.load(
-        path,
-        intra_op_threads=1,
-        inter_op_threads=settings.inter_op_threads,
-        spinning=settings.intra_op_spinning,
-    )
+    return Lifter.load(path, Settings(intra_op_threads=1))
 
 
 def reply_of(lifter: Lifter, points: np.ndarray) -> Replies:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from service import geometry
-from service.config import BUNDLED_MODEL
+from service.config import BUNDLED_MODEL, Settings
 from service.errors import InvalidKeypoints, ModelLoadError
 from service.lifter import Lifter, without_build_paths
 from tests.conftest import POSE_2D, load_model
@@ -96,7 +96,7 @@ def test_load_reports_a_model_with_another_contract(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("spinning", [True, False])
 def test_load_sets_whether_onnxruntime_threads_spin(spinning: bool) -> None:
-    lifter = Lifter.load(BUNDLED_MODEL, intra_op_threads=1, inter_op_threads=1, spinning=spinning)
+    lifter = Lifter.load(BUNDLED_MODEL, Settings(intra_op_threads=1, intra_op_spinning=spinning))
     entry = lifter.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning")
     assert entry == ("1" if spinning else "0")
 
