@@ -3,8 +3,8 @@
     python -m bench.ceiling [service flags]   (the same flags as `python -m service`)
 
 Everything a request goes through runs as in the service (validation, format conversion, the
-batcher, result building, metrics) except onnxruntime and the camera geometry: the lifter answers
-each batch with copies of one real prediction. bench.run measures it next to the service, so the
+batcher, the reply with its camera geometry, metrics) except onnxruntime: the lifter answers each
+batch with copies of one real prediction. bench.run measures it next to the service, so the
 report shows how close to the roof the Python transports could get at all on the machine.
 """
 
@@ -21,12 +21,12 @@ if __package__ in (None, ""):  # `python bench/ceiling.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.stats import sample_poses
-from service.__main__ import build_service, load_lifter, parse_settings, serve
+from service.app import build_service, load_lifter, parse_settings, serve
 from service.lifter import Lifter, Prediction
 
 
 class ConstantLifter(Lifter):
-    """Answers every batch with one real prediction repeated: no model run, no geometry."""
+    """Answers every batch with one real prediction repeated: no model run."""
 
     def __init__(self, lifter: Lifter) -> None:
         super().__init__(lifter.session, lifter.path)
@@ -34,13 +34,14 @@ class ConstantLifter(Lifter):
         self.answer = lifter.lift(pose, np.ones(pose.shape[:2], bool))
 
     def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
+        """The stored prediction, once per pose."""
         n = keypoints_2d.shape[0]
-        return Prediction(
-            **{f.name: np.repeat(getattr(self.answer, f.name), n, axis=0) for f in fields(Prediction)}
-        )
+        values = {f.name: getattr(self.answer, f.name) for f in fields(Prediction)}
+        return Prediction(**{k: None if v is None else np.repeat(v, n, axis=0) for k, v in values.items()})
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Serve like `python -m service`, with the model taken out."""
     settings = parse_settings(argv)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     return serve(build_service(settings, ConstantLifter(load_lifter(settings))))

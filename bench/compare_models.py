@@ -20,8 +20,8 @@ if __package__ in (None, ""):  # `python bench/compare_models.py`
 
 from bench.roof import RoofRow, measure_roof
 from bench.stats import write_json
+from service.app import load_lifter
 from service.config import Settings
-from service.lifter import Lifter
 
 
 def compare(
@@ -50,13 +50,14 @@ def table(results: dict[str, list[list[RoofRow]]]) -> str:
         "|---|" + "---:|" * len(columns),
     ]
     for model, rounds in results.items():
-        model_id = Lifter.load(Path(model)).info.model_id
+        model_id = load_lifter(Settings(model_path=Path(model))).info.model_id
         cells = [" / ".join(cell(rows, what, batch) for rows in rounds) for what, batch in columns]
         lines.append(f"| {model_id} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Measure the given models in turn and print the table (and write JSON with --out)."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

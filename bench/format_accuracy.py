@@ -24,7 +24,8 @@ if __package__ in (None, ""):  # `python bench/format_accuracy.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.stats import report
-from service.config import BUNDLED_MODEL
+from service.app import load_lifter
+from service.config import BUNDLED_MODEL, Settings
 from service.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
 from service.lifter import Lifter
 from training import data, metrics
@@ -52,6 +53,7 @@ def lift_all(lifter: Lifter, points: np.ndarray, visible: np.ndarray) -> tuple[n
 
 
 def score_format(fmt: KeypointFormat, lifter: Lifter, points: np.ndarray, gt: np.ndarray) -> dict[str, Any]:
+    """MPJPE and P-MPJPE of the test poses sent in `fmt` (through its mapping) against the ground truth."""
     model_points, visible, imputed = format_inputs(fmt, points)
     pose, camera = lift_all(lifter, model_points, visible)
     p1 = metrics.joint_errors(metrics.to_camera_frame(pose, camera), gt)  # (M, 17)
@@ -71,11 +73,12 @@ def score_format(fmt: KeypointFormat, lifter: Lifter, points: np.ndarray, gt: np
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Score every format on the Human3.6M test subjects."""
     started = time.perf_counter()
     data_dir = data.resolve_data_dir(args.data_dir)
     poses = select_sequences(data.load_poses(data_dir, "test"), list(data.TEST_SUBJECTS), [])
     test = build_test_set(poses, data.load_cameras(data_dir), None, args.frame_step)
-    lifter = Lifter.load(args.model, args.threads)
+    lifter = load_lifter(Settings(model_path=args.model, intra_op_threads=args.threads))
     log.info(
         "%d poses from %d camera sequences, model %s", len(test.gt), test.sequences, lifter.info.model_id
     )
@@ -100,6 +103,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def markdown(result: dict[str, Any]) -> str:
+    """The result as the markdown table of docs/BENCHMARKS.md."""
     lines = [
         f"`{result['command']}`: {result['dataset']}, every {result['frame_step']}th frame "
         f"({result['poses']:,} poses), model `{result['model_id']}`.",
@@ -119,6 +123,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of `python -m bench.format_accuracy`."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.format_accuracy",
         description=__doc__,
@@ -138,6 +143,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run, print the markdown and write the JSON; the exit status."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     result = run(args)

@@ -26,11 +26,13 @@ if __package__ in (None, ""):  # `python bench/format_mixup.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.stats import report
-from service.config import BUNDLED_MODEL
-from service.formats import FORMATS, from_model_joints
-from service.keypoints import Limits, PoseInput, prepare_poses
+from service.app import limits_of, load_lifter
+from service.config import BUNDLED_MODEL, Settings
+from service.formats import FORMATS, from_model_joints, lookalike_of
+from service.keypoints import PoseInput, prepare_poses
 from service.lifter import Lifter
-from service.lookalike import GEOMETRY_WEIGHT, THRESHOLD, format_warnings, lookalike_of, relative_error
+from service.lookalike import GEOMETRY_WEIGHT, THRESHOLD, relative_error
+from service.replies import build_replies
 from training import data
 from training.testset import DATASET_LABEL, build_test_set, select_sequences
 
@@ -48,15 +50,15 @@ def detector_poses(name: str, points: np.ndarray) -> tuple[np.ndarray, np.ndarra
 def send(lifter: Lifter, points: np.ndarray, present: np.ndarray, label: str) -> dict[str, np.ndarray]:
     """The poses through the service's input rules and the model under `label`: per pose whether a
     warning fired, its relative reprojection error and its nose height."""
-    limits = Limits(max_request_poses=BATCH)
+    limits = limits_of(Settings())
     fired, relative, height = [], [], []
     for a in range(0, len(points), BATCH):
         chunk = zip(points[a : a + BATCH], present[a : a + BATCH], strict=True)
         poses = [PoseInput(p, v, None, label) for p, v in chunk]
-        inputs = prepare_poses(poses, limits)
-        prediction = lifter.lift(inputs.keypoints_2d, inputs.visible)
-        fired.append(np.array([bool(w) for w in format_warnings(inputs, prediction)]))
-        relative.append(relative_error(inputs, prediction))
+        inputs = prepare_poses(poses, limits).check()
+        replies = build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible))
+        fired.append(np.array([bool(w) for w in replies.columns["warnings"]]))
+        relative.append(relative_error(inputs, replies.columns["reprojection_error_px"]))
         height.append(inputs.nose_height)
     return {
         "fired": np.concatenate(fired),
@@ -71,6 +73,7 @@ def rates(runs: list[dict[str, Any]], key: str) -> float:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Send every 17-joint format's poses under every 17-joint label and count the warnings."""
     started = time.perf_counter()
     data_dir = data.resolve_data_dir(args.data_dir)
     split = "test" if set(args.subjects) <= set(data.TEST_SUBJECTS) else "train"
@@ -81,7 +84,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         spread = points_2d.reshape(len(points_2d), -1).std(axis=1)  # (M,)
         jitter = np.random.default_rng(0).normal(size=points_2d.shape)
         points_2d = points_2d + jitter * (args.noise * spread)[:, None, None]
-    lifter = Lifter.load(args.model, args.threads)
+    lifter = load_lifter(Settings(model_path=args.model, intra_op_threads=args.threads))
     log.info(
         "%d poses from %d camera sequences, model %s", len(test.gt), test.sequences, lifter.info.model_id
     )
@@ -135,6 +138,7 @@ def frames(step: int) -> str:
 
 
 def markdown(result: dict[str, Any]) -> str:
+    """The result as the markdown tables of docs/BENCHMARKS.md."""
     s = result["summary"]
     lines = [
         f"`{result['command']}`: {result['dataset']}, {frames(result['frame_step'])} "
@@ -162,6 +166,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of `python -m bench.format_mixup`."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.format_mixup",
         description=__doc__,
@@ -191,6 +196,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run, print the markdown and write the JSON; the exit status."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     result = run(args)

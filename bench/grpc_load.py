@@ -28,6 +28,7 @@ def _pose(points: np.ndarray) -> lifter_pb2.Pose2D:
 
 
 def lift_requests(poses_per_request: int, distinct: int = 64) -> list[bytes]:
+    """`distinct` serialised LiftRequests of `poses_per_request` sample poses each."""
     requests = []
     for seed in range(distinct):
         poses = [_pose(p) for p in sample_poses(poses_per_request, seed=seed)]
@@ -36,6 +37,7 @@ def lift_requests(poses_per_request: int, distinct: int = 64) -> list[bytes]:
 
 
 def stream_frames(count: int = 512, seed: int = 0) -> list[bytes]:
+    """`count` serialised LiftFrames of sample poses."""
     poses = sample_poses(count, seed=seed)
     return [lifter_pb2.LiftFrame(frame_id=i, pose=_pose(p)).SerializeToString() for i, p in enumerate(poses)]
 
@@ -68,6 +70,7 @@ async def _unary(
 def measure_unary(
     target: str, server_pid: int, poses_per_request: int, concurrency: int, duration: float = 3.0
 ) -> Result:
+    """Closed-loop unary Lift calls from `concurrency` clients for `duration` seconds."""
     requests = lift_requests(poses_per_request)
     name = f"gRPC Lift, {poses_per_request} pose" + ("s" if poses_per_request > 1 else "")
     return measured(

@@ -18,6 +18,8 @@ from bench.stats import Result, Tally, measured, sample_poses
 
 @dataclass(frozen=True)
 class Reply:
+    """One HTTP answer: its status and body."""
+
     status: int
     body: bytes
 
@@ -40,10 +42,12 @@ class Connection:
 
     @classmethod
     async def open(cls, host: str, port: int) -> Connection:
+        """A keep-alive connection to host:port."""
         reader, writer = await asyncio.open_connection(host, port, limit=1 << 24)
         return cls(reader, writer)
 
     async def send(self, request: bytes) -> Reply:
+        """Send one request and read its answer (Content-Length bodies only)."""
         self.writer.write(request)
         head = await self.reader.readuntil(b"\r\n\r\n")
         lines = head.decode("latin-1").split("\r\n")
@@ -54,6 +58,7 @@ class Connection:
         return Reply(status, await self.reader.readexactly(length))
 
     def close(self) -> None:
+        """Close the connection."""
         self.writer.close()
 
 

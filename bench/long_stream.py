@@ -60,6 +60,7 @@ async def stream(
 
 
 async def run_streams(service: ServiceProcess, args: argparse.Namespace) -> dict[str, Any]:
+    """Run the streams for the configured time, sampling the server's memory as they go."""
     samples: list[dict[str, float]] = []
     done = 0
     started = time.perf_counter()
@@ -95,6 +96,7 @@ async def run_streams(service: ServiceProcess, args: argparse.Namespace) -> dict
 
 
 def summarize(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    """Memory growth after the warm-up, throughput and the answers that were wrong."""
     samples = run["samples"]
     idle = samples[0]["rss_mb"]
     warm = next(s["rss_mb"] for s in samples if s["frames"] >= args.warmup)
@@ -121,6 +123,7 @@ def summarize(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
 
 
 def markdown(result: dict[str, Any]) -> str:
+    """The result as markdown, against the growth limit."""
     rss = result["rss_mb"]
     ok = result["growth_after_warmup"] < GROWTH_LIMIT and result["bad_answers"] == 0
     return (
@@ -137,6 +140,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of `python -m bench.long_stream`."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.long_stream",
         description=__doc__,
@@ -157,6 +161,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run against a fresh service, print the markdown and write the JSON; the exit status."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     with ServiceProcess(*args.service_flag) as service:

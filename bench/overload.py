@@ -44,6 +44,7 @@ class Outcomes:
     probes: list[float | None] = field(default_factory=list)  # /readyz seconds; None: no 200 in time
 
     def record(self, status: str, seconds: float) -> None:
+        """Count one answer with its status and latency."""
         self.statuses[status] += 1
         self.seconds[status].append(seconds)
 
@@ -112,6 +113,7 @@ def probe_readiness(host: str, port: int, duration: float) -> list[float | None]
 async def overload(
     host: str, port: int, concurrency: int, duration: float, poses: int, ramp: float
 ) -> tuple[Outcomes, float]:
+    """`concurrency` closed-loop clients for `duration` seconds, with a health probe every 0.25 s."""
     requests = [lift_request(host, port, sample_poses(poses, seed=s)) for s in range(64)]
     out = Outcomes()
     with ProcessPoolExecutor(1) as prober:
@@ -128,6 +130,7 @@ async def overload(
 
 
 def summary(out: Outcomes, wall: float) -> dict[str, Any]:
+    """Counts, rates and latency quantiles of the answers and the probes."""
     answered = sum(out.statuses.values())
     probes_ok = [p for p in out.probes if p is not None]
     return {
@@ -145,6 +148,7 @@ def summary(out: Outcomes, wall: float) -> dict[str, Any]:
 
 
 def report(found: dict[str, Any]) -> str:
+    """The summary as text."""
     lines = [f"{found['requests']} answers in the window ({found['requests_per_s']:,.0f}/s)", "status mix:"]
     for status, count in found["statuses"].items():
         lat = found["latency_ms"].get(status, {})
@@ -164,6 +168,7 @@ def report(found: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Overload a fresh service and print what it answered; the exit status."""
     parser = argparse.ArgumentParser(prog="python -m bench.overload", description=__doc__.split("\n")[0])
     parser.add_argument("--concurrency", type=int, default=1024, help="closed-loop clients (default 1024)")
     parser.add_argument("--duration", type=float, default=20.0, help="seconds of load (default 20)")

@@ -73,6 +73,7 @@ class Profile:
         return profile
 
     def table(self, counter: Counter[str], title: str, top: int) -> str:
+        """The `top` entries of `counter` as a markdown table of shares."""
         lines = [f"| {title} | share of samples |", "|---|---:|"]
         for name, n in counter.most_common(top):
             lines.append(f"| `{name}` | {100 * n / max(self.samples, 1):.1f} % |")
@@ -97,6 +98,7 @@ def record(service: ServiceProcess, load: str, seconds: float, rate: int, raw: P
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Profile the service under one load with py-spy and print where the time went."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.profile",
         description=__doc__,

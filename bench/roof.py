@@ -9,16 +9,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.stats import latency_summary, sample_poses
-from service.__main__ import load_lifter
+from service.app import limits_of, load_lifter
 from service.config import Settings
+from service.keypoints import ModelInput, PoseInput, prepare_poses
 from service.lifter import OUTPUTS
+from service.replies import build_replies
 
 BATCHES: tuple[int, ...] = (1, 8, 64, 256, 1024)
 
 
 @dataclass(frozen=True)
 class RoofRow:
-    what: str  # "session.run" (the model alone) or "Lifter.lift" (plus the service's geometry)
+    """One roof measurement: calls of one kind at one batch size."""
+
+    # "session.run" (the model alone) or "Lifter.lift" (Lifter.lift and build_replies: plus the
+    # service's masking, checks and camera geometry, as a batch of the service costs them)
+    what: str
     batch: int
     calls: int
     seconds: float
@@ -26,10 +32,12 @@ class RoofRow:
 
     @property
     def frames_per_s(self) -> float:
+        """Poses per second."""
         return self.batch * self.calls / self.seconds
 
     @property
     def ms_per_call(self) -> float:
+        """Mean milliseconds per call."""
         return 1e3 * self.seconds / self.calls
 
 
@@ -66,9 +74,11 @@ def measure_roof(
         calls, seconds, laps = _time_calls(run, duration)
         rows.append(RoofRow("session.run", batch, calls, seconds, latency_summary(laps)))
         if with_lifter:
+            poses = [PoseInput(p, np.ones(len(p), bool)) for p in points]
+            inputs = prepare_poses(poses, limits_of(settings)).check()
 
-            def lift(points: np.ndarray = points, visible: np.ndarray = visible) -> None:
-                lifter.lift(points, visible)
+            def lift(inputs: ModelInput = inputs) -> None:
+                build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible))
 
             calls, seconds, laps = _time_calls(lift, duration)
             rows.append(RoofRow("Lifter.lift", batch, calls, seconds, latency_summary(laps)))
@@ -76,6 +86,7 @@ def measure_roof(
 
 
 def roof_table(rows: list[RoofRow]) -> str:
+    """Roof rows as a markdown table."""
     lines = [
         "| roof | batch | frames/s | ms per call | p99 ms |",
         "|---|---:|---:|---:|---:|",

@@ -32,7 +32,7 @@ from bench.http_load import measure_http
 from bench.roof import BATCHES, RoofRow, measure_roof, roof_table
 from bench.server import ServiceProcess, rss_bytes
 from bench.stats import Result, fmt, machine, results_table, write_json
-from service.__main__ import parse_settings
+from service.app import parse_settings
 
 log = logging.getLogger("bench")
 
@@ -136,6 +136,7 @@ class Report:
         return lines
 
     def markdown(self) -> str:
+        """The whole report as markdown."""
         rss = self.server_rss_mb
         return "\n\n".join(
             [
@@ -155,6 +156,7 @@ class Report:
 
 
 def run(args: argparse.Namespace) -> Report:
+    """The roof, the service loads, the ceiling and the roof again."""
     flags = [*(["--model-path", str(args.model)] if args.model else []), *args.service_flag]
     settings = parse_settings(flags)  # what the service will run with, REPNET_* variables included
     started = time.perf_counter()
@@ -196,6 +198,7 @@ def run(args: argparse.Namespace) -> Report:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of `python -m bench.run`."""
     parser = argparse.ArgumentParser(
         prog="python -m bench.run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -217,6 +220,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark, print the markdown and write the JSON; the exit status."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     report = run(args)

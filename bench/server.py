@@ -84,14 +84,17 @@ class ServiceProcess:
 
     @property
     def url(self) -> str:
+        """The HTTP base URL."""
         return f"http://127.0.0.1:{self.http_port}"
 
     @property
     def target(self) -> str:
+        """The gRPC host:port."""
         return f"127.0.0.1:{self.grpc_port}"
 
     @property
     def pid(self) -> int:
+        """The server process's id."""
         if self.process is None:
             raise RuntimeError("the service is not started")
         return self.process.pid
@@ -120,6 +123,7 @@ class ServiceProcess:
         return self
 
     def ready(self) -> bool:
+        """/readyz answers 200."""
         try:
             return httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200
         except httpx.TransportError:
@@ -140,6 +144,7 @@ class ServiceProcess:
             self._close_log()
 
     def kill(self) -> None:
+        """Kill the server at once."""
         if self.process is not None and self.process.poll() is None:
             self.process.kill()
             self.process.wait()

@@ -51,6 +51,7 @@ class Result:
 
     @property
     def frames_per_s(self) -> float:
+        """Frames answered per second of the window."""
         return self.frames / self.seconds if self.seconds else 0.0
 
 
@@ -65,6 +66,7 @@ class Tally:
     errors: int = 0
 
     def record(self, sent: float, done: float, ok: bool = True) -> None:
+        """Count a call sent at `sent` and answered at `done` if it was sent in the window."""
         if self.start <= sent < self.stop:
             self.latencies.append(done - sent)
             self.errors += not ok
@@ -102,6 +104,7 @@ def latency_summary(seconds: list[float] | np.ndarray) -> dict[str, float]:
 
 
 def machine() -> dict[str, Any]:
+    """CPU model, core count, Python version and platform of this machine."""
     cpu = ""
     try:
         with open("/proc/cpuinfo") as f:
@@ -117,6 +120,7 @@ def machine() -> dict[str, Any]:
 
 
 def fmt(value: float | None, digits: int = 2) -> str:
+    """`value` with thousands separators and `digits` decimals; a dash for None."""
     return "—" if value is None else f"{value:,.{digits}f}"
 
 
@@ -154,6 +158,7 @@ def report(result: Any, out: Path, render: Callable[[Any], str]) -> int:
 
 
 def write_json(path: Path, payload: Any) -> None:
+    """Write `payload` as indented JSON, creating the folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
 
     def default(value: Any) -> Any:

@@ -32,11 +32,13 @@ class CheckFailed(Exception):
 
 
 def require(condition: bool, message: str) -> None:
+    """Raise CheckFailed with `message` unless `condition` holds."""
     if not condition:
         raise CheckFailed(message)
 
 
 def check_http(http: httpx.Client) -> None:
+    """Health, readiness and a lift over HTTP."""
     require(http.get("/healthz").status_code == 200, "/healthz is not 200")
     require(http.get("/readyz").status_code == 200, "/readyz is not 200")
     reply = http.post("/lift", json={"poses": [{"keypoints": STANDING_POSE}]})
@@ -56,6 +58,7 @@ def check_http(http: httpx.Client) -> None:
 
 
 def check_grpc(address: str) -> None:
+    """Health, a unary Lift and a LiftStream over gRPC."""
     with grpc.insecure_channel(address) as channel:
         request = health_pb2.HealthCheckRequest(service="")
         health = health_pb2_grpc.HealthStub(channel).Check(request, timeout=5)
@@ -72,6 +75,7 @@ def check_grpc(address: str) -> None:
 
 
 def check_metrics(http: httpx.Client) -> None:
+    """The request counters of the calls above on /metrics."""
     text = http.get("/metrics").text
     needles = ['repnet_requests_total{method="Lift",outcome="ok",transport="http"}',
                'repnet_requests_total{method="LiftStream",outcome="ok",transport="grpc"}',
@@ -82,6 +86,7 @@ def check_metrics(http: httpx.Client) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run every check against a running server; 0 when all pass."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--http", default="http://127.0.0.1:8000", help="base URL of the HTTP API")
     parser.add_argument("--grpc", default="127.0.0.1:50051", help="host:port of the gRPC server")

@@ -23,6 +23,7 @@ def _fix_imports(path: Path) -> None:
 
 
 def main() -> int:
+    """Generate the stubs of proto/repnet/v1/lifter.proto into service/_proto; protoc's exit status."""
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     include = Path(protoc.__file__).resolve().parent / "_proto"  # google/protobuf/*.proto
     args = [

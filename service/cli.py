@@ -10,6 +10,7 @@ import os
 import re
 import sys
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
@@ -78,29 +79,27 @@ def _remote_lift(
 def _local_lift(
     model: Path | None, fmt: str, threshold: float | None, batch: int, intrinsics: Intrinsics | None
 ) -> Lift:
-    """Lift in this process with the service's own code: load checks, input rules, response fields."""
-    from service.__main__ import limits_of, load_lifter
-    from service.config import BUNDLED_MODEL, Settings
+    """Lift in this process with the core the servers use: load checks, input rules, the reply."""
+    from service.app import limits_of, load_lifter
+    from service.config import Settings
     from service.errors import LiftError
-    from service.http_api import to_pose_results
-    from service.keypoints import PoseInput, prepare_poses
+    from service.keypoints import PoseInput, prepare_request
+    from service.replies import build_replies
 
-    settings = Settings(
-        model_path=model or BUNDLED_MODEL, max_request_poses=batch, queue_size=max(batch, 4096)
-    )
-    lifter, limits = load_lifter(settings), limits_of(settings)
+    settings = Settings() if model is None else Settings(model_path=model)
+    lifter = load_lifter(settings)
+    limits = replace(limits_of(settings), max_request_poses=batch)  # --batch-size poses per request
     joints, model_id = lifter.info.joint_names, lifter.info.model_id
 
     def lift(points: np.ndarray, conf: np.ndarray | None) -> list[LiftResult]:
         poses = [PoseInput(p, ~np.isnan(p).any(axis=1), None if conf is None else conf[i], fmt, intrinsics)
                  for i, p in enumerate(points)]  # fmt: skip
         try:
-            inputs = prepare_poses(poses, limits, threshold)
-            prediction = lifter.lift(inputs.keypoints_2d, inputs.visible)
+            inputs = prepare_request(len(poses), poses.__getitem__, threshold, limits)
+            replies = build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible)).check()
         except LiftError as err:
             raise LiftClientError(str(err), "rejected") from err
-        replies = to_pose_results(inputs, prediction)  # the same fields as the HTTP reply
-        return [LiftResult.from_fields(d.__getitem__, joints, model_id) for d in replies]
+        return [LiftResult.from_fields(d.__getitem__, joints, model_id) for d in replies.to_json()]
 
     return lift
 
@@ -125,14 +124,15 @@ def result_json(result: LiftResult, points: np.ndarray, conf: np.ndarray | None)
     keypoints = [None if gone else p.tolist() for p, gone in zip(points, missing, strict=True)]
     confidence = None if conf is None else [None if gone else float(c)
                                             for c, gone in zip(conf, missing, strict=True)]  # fmt: skip
-    return {"input": {"keypoints": keypoints, "confidence": confidence},
-            "pose_3d": result.pose_3d.tolist(), "pose_3d_camera": result.pose_3d_camera.tolist(),
-            "camera": result.camera.tolist(), "scale": result.scale, "rotation": result.rotation.tolist(),
-            "reprojection": result.reprojection.tolist(),
-            "reprojection_error_px": result.reprojection_error_px,
-            "visible": result.visible.tolist(), "imputed": result.imputed.tolist(),
-            "derived": result.derived.tolist(), "plausibility": result.plausibility,
-            "warnings": list(result.warnings)}  # fmt: skip
+    fields = {name: _json_value(getattr(result, name)) for name in LiftResult.pose_fields()}
+    return {"input": {"keypoints": keypoints, "confidence": confidence}, **fields}
+
+
+def _json_value(value: Any) -> Any:
+    """A LiftResult field as JSON: arrays as nested lists, tuples as lists."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return list(value) if isinstance(value, tuple) else value
 
 
 def warn_about(results: Sequence[LiftResult], poses: Poses) -> None:
@@ -231,6 +231,7 @@ def run_formats(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The `repnet` argument parser with its subcommands."""
     parser = argparse.ArgumentParser(prog="repnet", description="RepNet 2D-to-3D pose lifting.")
     sub = parser.add_subparsers(dest="command", required=True)
     serve = sub.add_parser("serve", help="run the HTTP and gRPC server (python -m service; see --help)",
@@ -267,9 +268,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the `repnet` command; the exit status (EXIT_*)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["serve"]:  # every flag, --help included, belongs to the server's own parser
-        from service.__main__ import main as serve
+        from service.app import main as serve
 
         return serve(argv[1:])
     args = build_parser().parse_args(argv)

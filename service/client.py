@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import httpx
@@ -34,6 +34,8 @@ class LiftClientError(Exception):
         self.details = tuple(details)
 
 
+# The per-pose shapes of the float matrices of a reply (-1: one row per model joint); the reply's
+# fields are declared in service/replies.py, and tests/service/test_replies.py checks these against it.
 _SHAPES = {"pose_3d": (-1, 3), "pose_3d_camera": (-1, 3), "camera": (2, 3), "rotation": (3, 3),
            "reprojection": (-1, 2)}  # fmt: skip
 
@@ -56,6 +58,11 @@ class LiftResult:
     model_id: str
     plausibility: float | None = None  # in [0, 1]; None when the model has no plausibility output
     warnings: tuple[str, ...] = ()  # why the answer may be wrong, e.g. the format looks mistaken
+
+    @classmethod
+    def pose_fields(cls) -> tuple[str, ...]:
+        """The names of the reply's fields a LiftResult carries, in reply order (not joints, model_id)."""
+        return tuple(f.name for f in fields(cls) if f.name not in ("joints", "model_id"))
 
     @classmethod
     def from_fields(cls, get: Callable[[str], Any], joints: Sequence[str], model_id: str) -> LiftResult:
@@ -154,8 +161,21 @@ class _HttpBase:
         header = response.headers.get("retry-after", "") if response is not None else ""
         return min(float(header), 30.0) if header.replace(".", "", 1).isdigit() else self.backoff * 2**attempt
 
-    def _unreachable(self, err: Exception) -> LiftClientError:
-        return LiftClientError(f"cannot reach {self.url}: {err}")
+    def _next(
+        self, outcome: httpx.Response | httpx.HTTPError, method: str, path: str, attempt: int
+    ) -> httpx.Response | float:
+        """The retry policy of both clients, after try `attempt` of `method path`: the response to give
+        back, or the seconds to wait before the next try. 503 answers (queue full, model not ready) and
+        refused connections are retried; any other failure raises LiftClientError."""
+        if isinstance(outcome, httpx.Response):
+            if outcome.status_code != 503 or (delay := self._delay(outcome, attempt)) is None:
+                return outcome
+            return delay
+        if not isinstance(outcome, httpx.ConnectError):
+            raise LiftClientError(f"{method} {path} failed: {outcome!r}") from outcome
+        if (delay := self._delay(None, attempt)) is None:
+            raise LiftClientError(f"cannot reach {self.url}: {outcome}") from outcome
+        return delay
 
 
 class LiftClient(_HttpBase):
@@ -178,23 +198,23 @@ class LiftClient(_HttpBase):
         self.close()
 
     def close(self) -> None:
+        """Close the HTTP connections."""
         self._http.close()
 
     def _send(self, method: str, path: str, body: dict[str, Any] | None = None) -> httpx.Response:
         attempt = 0
         while True:
-            try:
-                response = self._http.request(method, path, json=body)
-            except httpx.ConnectError as err:
-                if (delay := self._delay(None, attempt)) is None:
-                    raise self._unreachable(err) from err
-            except httpx.HTTPError as err:
-                raise LiftClientError(f"{method} {path} failed: {err!r}") from err
-            else:
-                if response.status_code != 503 or (delay := self._delay(response, attempt)) is None:
-                    return response
-            time.sleep(delay)
+            outcome = self._next(self._try(method, path, body), method, path, attempt)
+            if isinstance(outcome, httpx.Response):
+                return outcome
+            time.sleep(outcome)
             attempt += 1
+
+    def _try(self, method: str, path: str, body: dict[str, Any] | None) -> httpx.Response | httpx.HTTPError:
+        try:
+            return self._http.request(method, path, json=body)
+        except httpx.HTTPError as err:
+            return err
 
     def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
              confidence_threshold: float | None = None,
@@ -246,23 +266,25 @@ class AsyncLiftClient(_HttpBase):
         await self.aclose()
 
     async def aclose(self) -> None:
+        """Close the HTTP connections."""
         await self._http.aclose()
 
     async def _send(self, method: str, path: str, body: dict[str, Any] | None = None) -> httpx.Response:
         attempt = 0
         while True:
-            try:
-                response = await self._http.request(method, path, json=body)
-            except httpx.ConnectError as err:
-                if (delay := self._delay(None, attempt)) is None:
-                    raise self._unreachable(err) from err
-            except httpx.HTTPError as err:
-                raise LiftClientError(f"{method} {path} failed: {err!r}") from err
-            else:
-                if response.status_code != 503 or (delay := self._delay(response, attempt)) is None:
-                    return response
-            await asyncio.sleep(delay)
+            outcome = self._next(await self._try(method, path, body), method, path, attempt)
+            if isinstance(outcome, httpx.Response):
+                return outcome
+            await asyncio.sleep(outcome)
             attempt += 1
+
+    async def _try(
+        self, method: str, path: str, body: dict[str, Any] | None
+    ) -> httpx.Response | httpx.HTTPError:
+        try:
+            return await self._http.request(method, path, json=body)
+        except httpx.HTTPError as err:
+            return err
 
     async def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
                    confidence_threshold: float | None = None,

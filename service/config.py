@@ -12,7 +12,8 @@ BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "repnet-h36m.onnx"
 
 
 class Settings(BaseSettings):
-    """Everything an operator can set. Create it once in __main__ and pass it down."""
+    """Everything an operator can set, and the only place a default lives. app.main creates it once
+    and passes it down (Lifter, Engine, Limits, the HTTP app and the gRPC server take no defaults)."""
 
     model_config = SettingsConfigDict(env_prefix="REPNET_", extra="ignore", frozen=True)
 

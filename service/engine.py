@@ -1,4 +1,4 @@
-"""Engine: the dynamic batcher that coalesces poses from every transport into shared session runs."""
+"""Engine: the dynamic batcher that coalesces ModelInputs from every transport into shared Lifter runs."""
 
 from __future__ import annotations
 
@@ -7,18 +7,16 @@ import contextlib
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 
-from service import geometry
-from service.errors import ModelNotReady, ModelOutputError, Overloaded
+from service.errors import ModelNotReady, Overloaded
 from service.keypoints import ModelInput
 from service.lifter import Lifter, Prediction
-from service.lookalike import format_warnings
 from service.metrics import Metrics
 
 
@@ -36,58 +34,20 @@ class _Chunk:
         return int(self.keypoints_2d.shape[0])
 
 
-Rows = TypeVar("Rows", Prediction, ModelInput)
-Reply = TypeVar("Reply")
+T = TypeVar("T")
 
-# Requests of at most this many poses are converted on the caller's event loop by lift_async:
-# cheaper than the hop to a worker thread and back.
+# Adapters prepare and answer requests of at most this many poses on their event loop (offload):
+# cheaper than the hop to a worker thread and back (docs/BENCHMARKS.md).
 INLINE_POSES = 8
-# The Prediction arrays a reply carries per pose, in reply order.
-RESULT_ARRAYS = (
-    "pose_3d",
-    "pose_3d_camera",
-    "camera",
-    "scale",
-    "rotation",
-    "reprojection",
-    "reprojection_error_px",
-)
 
 
-def concat_rows(parts: Sequence[Rows]) -> Rows:
-    """Join Predictions (or ModelInputs) of consecutive pose ranges into one, in order."""
-    if len(parts) == 1:
-        return parts[0]
-    first = parts[0]
-    joined = {f.name: [getattr(p, f.name) for p in parts] for f in fields(first)}
-    columns: dict[str, Any] = {k: None if v[0] is None else np.concatenate(v) for k, v in joined.items()}
-    return type(first)(**columns)  # None: an optional output the model does not have
-
-
-def result_columns(inputs: ModelInput, prediction: Prediction, flat: bool = False) -> dict[str, list[Any]]:
-    """Every reply field for all poses as Python values, one list item per pose (a few ndarray.tolist
-    calls for the whole batch instead of several per pose; tolist on float32 gives the same floats as
-    converting to float64 first). `flat`: each pose's matrices as one flat list, as proto carries them."""
-    n = len(prediction)
-    columns: dict[str, list[Any]] = {}
-    for name in RESULT_ARRAYS:
-        values = getattr(prediction, name)
-        columns[name] = (values.reshape(n, -1) if flat and values.ndim > 1 else values).tolist()
-    given = np.flatnonzero(~np.isnan(inputs.intrinsics[:, 0]))
-    if len(given):  # turned along the ray to the person: the camera-frame orientation
-        k = inputs.intrinsics[given]
-        ray = geometry.ray_rotation(inputs.keypoints_2d[given], inputs.visible[given], k[:, :2], k[:, 2:])
-        turned = geometry.rotate_to_camera(prediction.pose_3d[given], ray @ prediction.rotation[given])
-        rows = (turned.reshape(len(given), -1) if flat else turned).tolist()
-        for i, pose in zip(given.tolist(), rows, strict=True):
-            columns["pose_3d_camera"][i] = pose
-    for name in ("visible", "imputed", "derived"):
-        columns[name] = getattr(inputs, name).tolist()
-    # None per pose when the model has no plausibility output: null over HTTP, unset in proto.
-    plausibility = prediction.plausibility
-    columns["plausibility"] = [None] * n if plausibility is None else plausibility.tolist()
-    columns["warnings"] = format_warnings(inputs, prediction)
-    return columns
+async def offload(count: int, work: Callable[..., T], *args: Any) -> T:
+    """work(*args), the CPU work of a request of `count` poses (input rules, reply building): on the
+    caller's event loop up to INLINE_POSES poses, else on a worker thread, so that the loop keeps
+    serving the other requests meanwhile."""
+    if count <= INLINE_POSES:
+        return work(*args)
+    return await asyncio.get_running_loop().run_in_executor(None, work, *args)
 
 
 def _wake(room: asyncio.Future[None]) -> None:
@@ -96,22 +56,19 @@ def _wake(room: asyncio.Future[None]) -> None:
 
 
 class Engine:
-    """One worker thread runs the Lifter on batches of queued requests.
+    """One worker thread runs one Lifter on batches of queued ModelInputs; adapters get Predictions.
 
     An idle batcher runs a request at once; under load (work queued during the last run) a batch
     starts when max_batch poses are queued or max_wait_s after the last run ended. Requests larger
-    than max_batch are split into chunks. The queue holds at most
-    queue_size poses: a request that does not fit is refused at once with Overloaded.
+    than max_batch are split into chunks. The queue holds at most queue_size poses: a request that
+    does not fit is refused at once with Overloaded. The engine knows no reply and no wire format.
+
+    An Engine batches for one model: a service with several models would hold one Engine per model
+    (app.py builds them, adapters pick one by the request's model), each batching its own runs.
     """
 
     def __init__(
-        self,
-        lifter: Lifter,
-        metrics: Metrics | None = None,
-        *,
-        max_batch: int = 256,
-        max_wait_s: float = 0.0005,
-        queue_size: int = 4096,
+        self, lifter: Lifter, metrics: Metrics | None, *, max_batch: int, max_wait_s: float, queue_size: int
     ) -> None:
         if max_batch < 1 or queue_size < 1 or max_wait_s < 0:
             raise ValueError("max_batch and queue_size must be >= 1 and max_wait_s >= 0")
@@ -173,32 +130,11 @@ class Engine:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(room, remaining)
 
-    async def lift_async(
-        self,
-        count: int,
-        prepare: Callable[[], ModelInput],
-        reply: Callable[[ModelInput, Prediction], Reply],
-        transport: str,
-        started: float | None = None,
-    ) -> Reply:
-        """prepare() the `count` poses of a request, queue them, await their runs and build the
-        reply, for adapters on an event loop. Up to INLINE_POSES poses are converted on the loop;
-        larger requests on a worker thread, so that the loop keeps serving the others. The parse
-        histogram gets the time from `started` (time.perf_counter(), default now) to prepared inputs."""
-        loop = asyncio.get_running_loop()
-        started = time.perf_counter() if started is None else started
-        inline = count <= INLINE_POSES
-        try:
-            inputs = prepare() if inline else await loop.run_in_executor(None, prepare)
-        finally:
-            if self.metrics is not None:
-                self.metrics.parse_seconds.labels(transport=transport).observe(time.perf_counter() - started)
-        prediction = concat_rows([await asyncio.wrap_future(f) for f in self.submit(inputs, transport)])
-        return (
-            reply(inputs, prediction)
-            if inline
-            else await loop.run_in_executor(None, reply, inputs, prediction)
-        )
+    async def lift_async(self, inputs: ModelInput, transport: str) -> Prediction:
+        """Queue `inputs` (Overloaded at once when the queue is full) and await their Prediction in
+        input order, for adapters on an event loop."""
+        futures = self.submit(inputs, transport)
+        return Prediction.join([await asyncio.wrap_future(f) for f in futures])
 
     def _chunks(self, inputs: ModelInput, transport: str) -> list[_Chunk]:
         return [
@@ -245,7 +181,7 @@ class Engine:
     def lift(self, inputs: ModelInput, transport: str) -> Prediction:
         """Queue `inputs`, wait for their runs and return their Prediction in input order."""
         futures = self.submit(inputs, transport)
-        return concat_rows([f.result() for f in futures])
+        return Prediction.join([f.result() for f in futures])
 
     def close(self, timeout: float | None = None) -> bool:
         """Refuse new work, finish everything queued, stop the worker; False if it timed out."""
@@ -302,18 +238,10 @@ class Engine:
                 self.metrics.queue_wait_seconds.labels(transport=chunk.transport).observe(
                     start - chunk.enqueued
                 )
-        failed = np.zeros(0, dtype=np.int64)  # rows of the batch the model failed on
         try:
             keypoints = np.concatenate([c.keypoints_2d for c in batch])  # (B, J, 2)
             visible = np.concatenate([c.visible for c in batch])  # (B, J)
-            try:
-                prediction = self.lifter.lift(keypoints, visible)
-            except ModelOutputError as err:
-                if self.metrics is not None:
-                    self.metrics.model_output_errors.inc(len(err.rows))
-                if not isinstance(err.partial, Prediction):
-                    raise
-                prediction, failed = err.partial, np.array(err.rows, dtype=np.int64)
+            prediction = self.lifter.lift(keypoints, visible)
         except Exception as err:  # handed to every caller of the batch; each adapter logs it once
             for chunk in batch:
                 chunk.future.set_exception(err)
@@ -321,16 +249,10 @@ class Engine:
         if self.metrics is not None:
             self.metrics.inference_seconds.observe(time.monotonic() - start)
             self.metrics.batch_size.observe(len(prediction))
-            if prediction.plausibility is not None and not len(failed):
+            if prediction.plausibility is not None and not prediction.failed.any():
                 self.metrics.observe_plausibility(prediction.plausibility)
         offset = 0
-        for chunk in batch:
+        for chunk in batch:  # rows the model failed on are marked in the Prediction (failed)
             stop = offset + len(chunk)
-            mine = failed[(failed >= offset) & (failed < stop)]
-            if len(mine):  # the requests the failed poses belong to fail; the others are answered
-                chunk.future.set_exception(
-                    ModelOutputError((mine - offset).tolist(), prediction.slice(offset, stop))
-                )
-            else:
-                chunk.future.set_result(prediction.slice(offset, stop))
+            chunk.future.set_result(prediction.slice(offset, stop))
             offset = stop

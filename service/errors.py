@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, replace
 
 # How many violations one error message lists; the rest are counted, not spelled out.
 MAX_LISTED_VIOLATIONS = 10
@@ -46,8 +45,13 @@ class Violation:
         object.__setattr__(self, "field", clip(self.field, MAX_FIELD_CHARS))
         object.__setattr__(self, "reason", clip(self.reason, MAX_REASON_CHARS))
 
+    def within(self, parent: str) -> Violation:
+        """This violation as a field of `parent`: keypoints[4] within poses[2] is poses[2].keypoints[4]."""
+        return replace(self, field=f"{parent}.{self.field}")
+
     @property
     def message(self) -> str:
+        """Field, joint name and reason in one line (the gRPC status message)."""
         where = f"{self.field} ({self.joint_name})" if self.joint_name else self.field
         return f"{where}: {self.reason}"
 
@@ -85,12 +89,11 @@ MODEL_OUTPUT_MESSAGE = "the model produced non-finite output for this input; thi
 class ModelOutputError(LiftError):
     """The model produced non-finite output for some poses: a server fault (HTTP 500, INTERNAL).
 
-    `rows` are the failed poses of the run; `partial` is the run's Prediction with those rows
-    replaced, so that the other requests of the batch can still be answered."""
+    `rows` are the failed poses of the request (replies.Replies.failed); the other poses of the same
+    run are answered as usual."""
 
-    def __init__(self, rows: Sequence[int], partial: Any = None) -> None:
+    def __init__(self, rows: Sequence[int]) -> None:
         self.rows = tuple(rows)
-        self.partial = partial
         super().__init__(MODEL_OUTPUT_MESSAGE)
 
 

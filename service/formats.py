@@ -114,6 +114,37 @@ MEDIAPIPE33 = _format(
 )  # fmt: skip
 
 FORMATS: dict[str, KeypointFormat] = {f.name: f for f in (H36M17, MPII16, COCO17, BODY25, MEDIAPIPE33)}
+FORMAT_NAMES: tuple[str, ...] = tuple(FORMATS)  # ModelInput.format_index points into this
+
+# COCO's nose, shoulders and hips; Human3.6M has its pelvis, knee, ankle, shoulder and elbow there.
+_NOSE = COCO17.joint_names.index("nose")
+_SHOULDERS = [COCO17.joint_names.index(j) for j in ("left_shoulder", "right_shoulder")]
+_HIPS = [COCO17.joint_names.index(j) for j in ("left_hip", "right_hip")]
+
+
+@cache
+def lookalike_of(name: str) -> str | None:
+    """The other format a pose in `name` is mistaken for: the one with as many joints, if any."""
+    count = len(FORMATS[name].joint_names)
+    others = [f for f in FORMATS if f != name and len(FORMATS[f].joint_names) == count]
+    return others[0] if len(others) == 1 else None
+
+
+def nose_height(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.float32]:
+    """How far joint 0 of (n, 17, 2) points lies beyond the shoulders (5, 6), in torso lengths
+    (from the hips 11, 12) along the torso: (n,), NaN where a joint is missing or the torso has no
+    length. Read as coco17, joint 0 is the nose, above the shoulders (typically +0.3); read as
+    h36m17, those joints are the pelvis, left knee and ankle, left shoulder and elbow, and joint 0
+    lies below "the shoulders" (typically -0.6). It uses the body's own axis, not the image's; the
+    reply's format mix-up warning reads it (service.lookalike)."""
+    # Missing joints may hold NaN or huge values: their results are replaced by NaN, never read.
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        shoulders = points[:, _SHOULDERS].mean(axis=1)  # (n, 2)
+        axis = shoulders - points[:, _HIPS].mean(axis=1)  # (n, 2)
+        length = (axis**2).sum(axis=1)  # (n,)
+        height = ((points[:, _NOSE] - shoulders) * axis).sum(axis=1) / length
+    ok = visible[:, [_NOSE, *_SHOULDERS, *_HIPS]].all(axis=1) & (length > 0)
+    return np.where(ok, height, np.nan).astype(np.float32)
 
 
 def _check_points(fmt: KeypointFormat, points: np.ndarray, visible: np.ndarray, num: int) -> None:
@@ -147,10 +178,11 @@ def to_model_joints(
     first, second, has_source, midpoint = _gather(fmt)
     src_visible = visible.astype(bool)
     out_visible = src_visible[:, first] & src_visible[:, second] & has_source  # (N, 17)
-    pairs = points[:, first].astype(np.float64) + points[:, second]  # (N, 17, 2); a single source: 2 p
-    # Missing joints may hold NaN or inf: their sums are replaced by 0, never read.
+    # Missing joints may hold NaN or inf: their sums are replaced by 0, never read. The sum is taken
+    # in the wire's precision (float32 from gRPC stays float32) and cast to float32 once.
     with np.errstate(invalid="ignore", over="ignore"):
-        out = np.where(out_visible[..., None], pairs / 2, 0.0).astype(np.float32)  # (N, 17, 2)
+        pairs = points[:, first] + points[:, second]  # (N, 17, 2); a single source: 2 p
+        out = np.where(out_visible[..., None], pairs / 2, 0.0).astype(np.float32, copy=False)  # (N, 17, 2)
     derived = np.broadcast_to(midpoint, out_visible.shape).copy()
     return out, out_visible, derived, ~out_visible
 

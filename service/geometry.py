@@ -80,11 +80,12 @@ def rotate_to_camera(pose_3d: np.ndarray, rotation: np.ndarray) -> FloatArray:
     return np.asarray(pose_3d.astype(np.float64) @ rotation.transpose(0, 2, 1), dtype=np.float32)
 
 
-def _visible_stats(points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def visible_stats(points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean (N, 2) and standard deviation (N,) of (N, J, 2) points over their visible joints.
 
-    The deviation is taken over all coordinates of the visible joints together, as the
-    model's input normalisation does.
+    The deviation is taken over all coordinates of the visible joints together, as the model's
+    input normalisation does: the one spread formula of the service (input rules, the start-up
+    check, the reprojection and the format mix-up score all use it).
     """
     w = visible[..., None].astype(np.float64)  # (N, J, 1)
     count = np.maximum(w.sum(axis=(1, 2)), 1.0)  # (N,)
@@ -98,7 +99,7 @@ def _visible_stats(points: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray,
 def visible_spread(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.float64]:
     """(N,) the standard deviation of (N, J, 2) points over their visible joints, as the model's
     input normalisation takes it: the size of a pose in pixels."""
-    return _visible_stats(points, visible)[1]
+    return visible_stats(points, visible)[1]
 
 
 def reproject(
@@ -110,8 +111,8 @@ def reproject(
     scaled by the input's standard deviation and moved to the input's visible mean.
     """
     projected = pose_3d.astype(np.float64) @ camera.astype(np.float64).transpose(0, 2, 1)  # (N, J, 2)
-    proj_mean, _ = _visible_stats(projected, visible)
-    in_mean, in_std = _visible_stats(keypoints_2d, visible)
+    proj_mean, _ = visible_stats(projected, visible)
+    in_mean, in_std = visible_stats(keypoints_2d, visible)
     pixels = (projected - proj_mean[:, None]) * in_std[:, None, None] + in_mean[:, None]
     return np.asarray(pixels, dtype=np.float32)
 

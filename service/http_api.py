@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from functools import partial
 from typing import Any
 
 import numpy as np
@@ -17,7 +16,7 @@ from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException
 
-from service.engine import Engine, result_columns
+from service.engine import Engine, offload
 from service.errors import (
     MAX_ECHO_CHARS,
     MAX_ERROR_ITEMS,
@@ -37,10 +36,11 @@ from service.http_middleware import (
     LiftMetricsMiddleware,
     LoadShedMiddleware,
 )
-from service.keypoints import Limits, ModelInput, PoseInput, pose_field, prepare_poses
+from service.keypoints import Limits, ModelInput, PoseInput, prepare_request
 from service.lifter import ModelInfo, Prediction
 from service.metrics import INVALID, Metrics, outcome_of
 from service.page import add_page
+from service.replies import build_replies
 from service.schemas import (
     FRAME_DOC,
     UNKNOWN_FIELD,
@@ -64,32 +64,34 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 
 
 def _layout_violations(
-    pose: PoseIn, width: int, fmt: str, size: tuple[float, float] | None, field: str, index: int
+    pose: PoseIn, width: int, fmt: str, size: tuple[float, float] | None, index: int
 ) -> list[Violation]:
-    """Rules on rows of 3 and 4 values: where their confidence and their pixel scale come from."""
+    """Rules on rows of 3 and 4 values: where their confidence and their pixel scale come from
+    (fields named within the pose)."""
     found = []
     if width >= 3 and pose.confidence is not None:
         reason = "give the confidence either as the third value of each joint or as `confidence`, not both"
-        found.append(Violation(f"{field}.confidence", reason, "confidence_twice", pose=index))
+        found.append(Violation("confidence", reason, "confidence_twice", pose=index))
     if width == 4 and size is None:
         reason = (
             "rows of 4 values are MediaPipe landmarks [x, y, z, visibility] with x and y normalised to "
             "[0, 1]: give image_size [width, height] in pixels to scale them"
         )
-        found.append(Violation(f"{field}.image_size", reason, "image_size_needed", pose=index))
+        found.append(Violation("image_size", reason, "image_size_needed", pose=index))
     if width == 4 and fmt != "mediapipe33" and fmt in FORMATS:  # an unknown format is named later
         reason = (
             "rows of 4 values are MediaPipe landmarks [x, y, z, visibility]: send format mediapipe33, "
             f"not {fmt}"
         )
-        found.append(Violation(f"{field}.keypoints", reason, "layout_format", pose=index))
+        found.append(Violation("keypoints", reason, "layout_format", pose=index))
     return found
 
 
 def to_pose_input(pose: PoseIn, request: LiftRequest, index: int) -> PoseInput:
     """The wire-independent form of one JSON pose; null joints are marked not present. Rows of
     [x, y, confidence] give the confidence; MediaPipe rows [x, y, z, visibility] are scaled by the
-    image size and give the visibility as the confidence. Raises InvalidKeypoints on a bad layout."""
+    image size and give the visibility as the confidence. Raises InvalidKeypoints on a bad layout
+    (fields named within the pose)."""
     fmt = pose.format or request.format
     size = pose.image_size or request.image_size
     camera = pose.intrinsics or request.intrinsics
@@ -102,7 +104,7 @@ def to_pose_input(pose: PoseIn, request: LiftRequest, index: int) -> PoseInput:
     confidence = None if pose.confidence is None else np.array(pose.confidence, dtype=np.float64)
     if width == 2 and size is None:
         return PoseInput(rows, present, confidence, fmt, intrinsics)
-    if found := _layout_violations(pose, width, fmt, size, pose_field("poses", index), index):
+    if found := _layout_violations(pose, width, fmt, size, index):
         raise InvalidKeypoints(found)
     points = rows[:, :2] if size is None else rows[:, :2] * np.asarray(size)  # (K, 2) px
     if width >= 3:  # a missing joint's confidence is never read: 0 keeps the range check quiet
@@ -116,16 +118,23 @@ class LiftJSONResponse(JSONResponse):
     A non-finite number, which the model should never produce, is written as null."""
 
     def render(self, content: Any) -> bytes:
+        """`content` as JSON bytes."""
         return pydantic_core.to_json(content, inf_nan_mode="null")
 
 
-def to_pose_results(inputs: ModelInput, prediction: Prediction) -> list[dict[str, Any]]:
-    """One JSON-ready dict per pose."""
-    columns = result_columns(inputs, prediction)
-    return [{name: values[i] for name, values in columns.items()} for i in range(len(prediction))]
+def _prepare(request: LiftRequest, limits: Limits) -> ModelInput:
+    poses, threshold = request.poses, request.confidence_threshold
+    return prepare_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
+
+
+def reply_of(info: ModelInfo, inputs: ModelInput, prediction: Prediction) -> LiftJSONResponse:
+    """The 200 answer to a request; ModelOutputError when the model failed on any of its poses."""
+    poses = build_replies(inputs, prediction).check().to_json()
+    return LiftJSONResponse({"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses})
 
 
 def error_item(v: Violation) -> dict[str, Any]:
+    """One violation as an item of a 4xx body's `detail`."""
     return {
         "field": v.field,
         "reason": v.reason,
@@ -190,6 +199,7 @@ def content_type_violation(content_type: str | None, violations: Sequence[Violat
 
 
 def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
+    """What GET /v1/model says: the model, its joints and formats, the limits, its public metadata."""
     formats = [
         FormatInfo(
             name=f.name,
@@ -218,44 +228,30 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
         plausibility=engine.lifter.has_plausibility,
         plausibility_calibration=info.plausibility_calibration,
         evaluation=info.evaluation,
-        metadata=info.metadata,
+        metadata=info.public_metadata,
     )
 
 
-def create_app(
-    engine: Engine,
-    metrics: Metrics,
-    limits: Limits,
-    max_body_bytes: int = 4 << 20,
-    ui: bool = True,
-    max_in_flight: int = 128,
-) -> FastAPI:
-    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
-    `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
-    requests in progress, the next is answered 503 at once."""
-    info = engine.lifter.info
-    app = FastAPI(
-        title="RepNet pose lifting",
-        version="1.0.0",
-        description="Lifts 2D human keypoints to a 3D pose and a weak-perspective camera "
-        "(RepNet, Wandt & Rosenhahn, CVPR 2019).\n\n" + FRAME_DOC,
-    )
-    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
-    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
-    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)  # added last: outermost
+def error_response(err: Exception) -> JSONResponse:
+    """The answer to a core error: 422 with the violations, 503 to retry, 500 for the model's fault."""
+    if isinstance(err, InvalidKeypoints):
+        return JSONResponse(error_body(err.violations), status_code=422)
+    if isinstance(err, Overloaded | ModelNotReady):
+        return JSONResponse({"detail": str(err)}, status_code=503, headers={"Retry-After": "1"})
+    if isinstance(err, ModelOutputError):  # counted by the handler; one line, no traceback
+        log.error("POST /lift: %s", err)
+        return JSONResponse({"detail": str(err)}, status_code=500)
+    raise err  # any other LiftError is a server fault: the 500 handler logs it
+
+
+def add_error_handlers(app: FastAPI, metrics: Metrics) -> None:
+    """The one error path of the API: core errors, pydantic's and FastAPI's 400 as JSON error bodies."""
 
     @app.exception_handler(LiftError)
     async def handle_lift_error(request: Request, err: Exception) -> JSONResponse:
         setattr(request.state, OUTCOME_KEY, outcome_of(err))
-        if isinstance(err, InvalidKeypoints):
-            metrics.reject("http", err.violations)
-            return JSONResponse(error_body(err.violations), status_code=422)
-        if isinstance(err, Overloaded | ModelNotReady):
-            return JSONResponse({"detail": str(err)}, status_code=503, headers={"Retry-After": "1"})
-        if isinstance(err, ModelOutputError):  # counted by the engine; one line, no traceback
-            log.error("POST /lift: %s", err)
-            return JSONResponse({"detail": str(err)}, status_code=500)
-        raise err  # any other LiftError is a server fault: the 500 handler logs it
+        metrics.count_error("http", err)
+        return error_response(err)
 
     @app.exception_handler(RequestValidationError)
     async def handle_validation_error(request: Request, err: Exception) -> JSONResponse:
@@ -281,31 +277,34 @@ def create_app(
         metrics.reject("http", [violation])
         return JSONResponse(error_body([violation]), status_code=400)
 
-    def prepare(request: LiftRequest) -> ModelInput:
-        poses: list[PoseInput] = []
-        violations: list[Violation] = []
-        for i, pose in enumerate(request.poses):
-            try:
-                poses.append(to_pose_input(pose, request, i))
-            except InvalidKeypoints as err:
-                violations.extend(err.violations)
-        if violations:
-            raise InvalidKeypoints(violations)
-        return prepare_poses(poses, limits, request.confidence_threshold)
 
-    def reply(inputs: ModelInput, prediction: Prediction) -> LiftJSONResponse:
-        body = {
-            "model_id": info.model_id,
-            "joints": list(info.joint_names),
-            "poses": to_pose_results(inputs, prediction),
-        }
-        return LiftJSONResponse(body)
+def create_app(
+    engine: Engine, metrics: Metrics, limits: Limits, *, max_body_bytes: int, ui: bool, max_in_flight: int
+) -> FastAPI:
+    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
+    `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
+    requests in progress, the next is answered 503 at once."""
+    info = engine.lifter.info
+    app = FastAPI(
+        title="RepNet pose lifting",
+        version="1.0.0",
+        description="Lifts 2D human keypoints to a 3D pose and a weak-perspective camera "
+        "(RepNet, Wandt & Rosenhahn, CVPR 2019).\n\n" + FRAME_DOC,
+    )
+    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
+    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
+    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)  # added last: outermost
+
+    add_error_handlers(app, metrics)
 
     @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
     async def lift(request: LiftRequest, http: Request) -> Response:
         """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
-        started = getattr(http.state, STARTED_KEY, None)  # the body was read and parsed since then
-        return await engine.lift_async(len(request.poses), partial(prepare, request), reply, "http", started)
+        count = len(request.poses)
+        with metrics.parsing("http", getattr(http.state, STARTED_KEY, None)):  # since the body arrived
+            inputs = await offload(count, _prepare, request, limits)
+        prediction = await engine.lift_async(inputs, "http")
+        return await offload(count, reply_of, info, inputs, prediction)
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:

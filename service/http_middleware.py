@@ -23,6 +23,7 @@ class _BodyTooLarge(Exception):
 
 
 def body_violation(size: int, limit: int) -> Violation:
+    """The violation of a body of at least `size` bytes over the `limit`."""
     return Violation(
         "body", f"the request body has {size} bytes or more, the limit is {limit}", "body_too_large"
     )
@@ -37,6 +38,7 @@ class BodyLimitMiddleware:
         self.metrics = metrics
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Pass the request on, or answer 413 once its body passes max_bytes."""
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
@@ -93,7 +95,7 @@ async def send_json(send: Send, status: int, payload: Any, *extra: tuple[bytes, 
 
 
 def _is_lift(scope: Scope) -> bool:
-    return scope["type"] == "http" and scope["path"] == LIFT_PATH and scope["method"] == "POST"
+    return bool(scope["type"] == "http" and scope["path"] == LIFT_PATH and scope["method"] == "POST")
 
 
 class LoadShedMiddleware:
@@ -109,6 +111,7 @@ class LoadShedMiddleware:
         self.in_flight = 0  # on the server's one event loop: no lock
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Pass POST /lift on while fewer than max_in_flight are in progress, else answer 503 at once."""
         if not _is_lift(scope):
             await self.app(scope, receive, send)
             return
@@ -153,6 +156,7 @@ class LiftMetricsMiddleware:
         self.metrics = metrics
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Pass POST /lift on, counting and timing it by its outcome."""
         if not _is_lift(scope):
             await self.app(scope, receive, send)
             return

@@ -44,6 +44,7 @@ class HttpServer(uvicorn.Server):
 
     @contextlib.contextmanager
     def capture_signals(self) -> Generator[None, None, None]:
+        """Leave SIGTERM and SIGINT to main()."""
         yield
 
     async def startup(self, sockets: list[socket.socket] | None = None) -> None:

@@ -1,8 +1,8 @@
-"""Detector keypoints -> model input: every input rule of the service and the format conversion."""
+"""Input rules: detector poses (PoseInput) -> the valid ones as model input, and each other's violations."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cache
 
@@ -10,56 +10,80 @@ import numpy as np
 import numpy.typing as npt
 
 from service.errors import InvalidKeypoints, Violation, echo
-from service.formats import FORMATS, MODEL_JOINTS, KeypointFormat, to_model_joints
-from service.geometry import BoolArray, FloatArray
-from service.lookalike import FORMAT_NAMES, lookalike_of, nose_height
+from service.formats import (
+    FORMAT_NAMES,
+    FORMATS,
+    MODEL_JOINTS,
+    KeypointFormat,
+    lookalike_of,
+    nose_height,
+    to_model_joints,
+)
+from service.geometry import BoolArray, FloatArray, visible_stats
 
 DEFAULT_FORMAT = "h36m17"
 # Below this spread (px) the visible joints count as one point: the input cannot be normalised.
 MIN_SPREAD_PX = 1e-3
+Points = npt.NDArray[np.floating]
 
 
 @dataclass(frozen=True)
 class Limits:
-    """The documented input limits, from Settings."""
+    """The documented input limits; app.limits_of takes them from Settings."""
 
-    max_request_poses: int = 1024
-    min_visible_joints: int = 6
-    confidence_threshold: float = 0.2  # default when a request does not set its own
-    max_coordinate: float = 1e6  # px
+    max_request_poses: int
+    min_visible_joints: int
+    confidence_threshold: float  # default when a request does not set its own
+    max_coordinate: float  # px
 
 
 @dataclass(frozen=True)
 class PoseInput:
     """One detector pose as a transport received it."""
 
-    points: npt.NDArray[np.float64]  # (K, 2) px; rows of absent joints are ignored
+    # (K, 2) px in the wire's precision (JSON float64, proto float32); rows of absent joints are ignored
+    points: Points
     present: BoolArray  # (K,) False where the request marks the joint missing (JSON null)
-    confidence: npt.NDArray[np.float64] | None = None  # (K,) in [0, 1], or None
+    confidence: Points | None = None  # (K,) in [0, 1], or None
     format: str = DEFAULT_FORMAT
     # (fx, fy, cx, cy) px of the pinhole camera that saw the pose, if the client knows it.
     intrinsics: tuple[float, float, float, float] | None = None
+    # The pose's own confidence threshold, checked by check_threshold (a stream frame has one);
+    # None: the request's, else the server default.
+    confidence_threshold: float | None = None
 
 
 @dataclass(frozen=True)
 class ModelInput:
-    """N poses in the model's joints, ready for Lifter.lift."""
+    """N poses in the model's joints, ready for Lifter.lift, with what the reply needs of their input."""
 
     keypoints_2d: FloatArray  # (N, 17, 2) px; 0 where not visible
     visible: BoolArray  # (N, 17)
     derived: BoolArray  # (N, 17) the joint is the midpoint of two detector joints
     imputed: BoolArray  # (N, 17) no visible source: the model fills the joint in
-    format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into lookalike.FORMAT_NAMES
-    nose_height: npt.NDArray[np.float32]  # (N,) lookalike.nose_height of its 17 input joints, or NaN
+    format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into formats.FORMAT_NAMES
+    nose_height: npt.NDArray[np.float32]  # (N,) formats.nose_height of its 17 input joints, or NaN
     intrinsics: FloatArray  # (N, 4) fx, fy, cx, cy px of the pose's camera; NaN where not given
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
 
 
-def pose_field(prefix: str, index: int) -> str:
-    """The field name of pose `index`: "poses[3]" in a batch; the prefix itself for one frame."""
-    return f"{prefix}[{index}]" if prefix == "poses" else prefix
+@dataclass(frozen=True)
+class Prepared:
+    """A request's poses after the input rules: the valid ones as one ModelInput, in request order,
+    and per pose what is wrong with it (fields named within the pose, e.g. keypoints[4])."""
+
+    inputs: ModelInput  # the valid poses
+    violations: tuple[tuple[Violation, ...], ...]  # per pose of the request; () for a valid one
+
+    def check(self) -> ModelInput:
+        """The model input when every pose is valid; else InvalidKeypoints listing every violation
+        of every pose, named within the request: poses[2].keypoints[4]."""
+        named = [v.within(f"poses[{i}]") for i, found in enumerate(self.violations) for v in found]
+        if named:
+            raise InvalidKeypoints(named)
+        return self.inputs
 
 
 def check_threshold(threshold: float | None, limits: Limits) -> float:
@@ -67,68 +91,74 @@ def check_threshold(threshold: float | None, limits: Limits) -> float:
     if threshold is None:
         return limits.confidence_threshold
     if not (np.isfinite(threshold) and 0.0 <= threshold <= 1.0):
-        raise InvalidKeypoints(
-            [
-                Violation(
-                    "confidence_threshold",
-                    f"must be a number in [0, 1], got {threshold:g}",
-                    "confidence_range",
-                )
-            ]
-        )
+        reason = f"must be a number in [0, 1], got {threshold:g}"
+        raise InvalidKeypoints([Violation("confidence_threshold", reason, "confidence_range")])
     return float(threshold)
 
 
-def _count_violations(poses: Sequence[PoseInput], limits: Limits, prefix: str) -> list[Violation]:
-    if not poses:
-        return [Violation(prefix, "the batch is empty; send at least one pose", "empty_batch")]
-    if len(poses) > limits.max_request_poses:
-        reason = f"{len(poses)} poses in one request, the limit is {limits.max_request_poses}"
-        return [Violation(prefix, reason, "batch_too_large")]
-    return []
+def check_request(count: int, threshold: float | None, limits: Limits) -> None:
+    """The rules on a request as a whole (an HTTP body, a gRPC Lift): its threshold, its pose count."""
+    check_threshold(threshold, limits)
+    if not count:
+        raise InvalidKeypoints(
+            [Violation("poses", "the batch is empty; send at least one pose", "empty_batch")]
+        )
+    if count > limits.max_request_poses:
+        reason = f"{count} poses in one request, the limit is {limits.max_request_poses}"
+        raise InvalidKeypoints([Violation("poses", reason, "batch_too_large")])
 
 
-def _shape_violations(pose: PoseInput, i: int, prefix: str) -> list[Violation]:
+def prepare_request(
+    count: int, read: Callable[[int], PoseInput], threshold: float | None, limits: Limits
+) -> ModelInput:
+    """The model input of a request (an HTTP body, a gRPC Lift) of `count` poses, all valid; else
+    InvalidKeypoints listing what is wrong: the layout of the poses (read(i) converts pose i from the
+    wire, or raises InvalidKeypoints named within the pose), else the request's rules, else each
+    pose's rules."""
+    poses: list[PoseInput] = []
+    found: list[Violation] = []
+    for i in range(count):
+        try:
+            poses.append(read(i))
+        except InvalidKeypoints as err:
+            found.extend(v.within(f"poses[{i}]") for v in err.violations)
+    if found:
+        raise InvalidKeypoints(found)
+    check_request(count, threshold, limits)
+    return prepare_poses(poses, limits, threshold).check()
+
+
+def _shape_violations(pose: PoseInput, i: int) -> list[Violation]:
     """Format and per-joint counts; a pose with any of these is not checked further."""
-    base = pose_field(prefix, i)
     fmt = FORMATS.get(pose.format)
     if fmt is None:
         reason = f"unknown format {echo(pose.format)}; expected one of {', '.join(FORMATS)}"
-        return [Violation(f"{base}.format", reason, "unknown_format", pose=i)]
+        return [Violation("format", reason, "unknown_format", pose=i)]
     joints = len(fmt.joint_names)
     if pose.points.shape[0] != joints:
         reason = f"format {fmt.name} has {joints} joints, got {pose.points.shape[0]}"
-        return [Violation(f"{base}.keypoints", reason, "joint_count", pose=i)]
+        return [Violation("keypoints", reason, "joint_count", pose=i)]
     if pose.confidence is not None and pose.confidence.shape[0] != joints:
         reason = f"expected {joints} values (one per joint of {fmt.name}), got {pose.confidence.shape[0]}"
-        return [Violation(f"{base}.confidence", reason, "confidence_count", pose=i)]
+        return [Violation("confidence", reason, "confidence_count", pose=i)]
     return []
 
 
 def _value_violations(
     fmt: KeypointFormat,
-    index: Sequence[int],
+    index: npt.NDArray[np.intp],
     points: np.ndarray,
     used: np.ndarray,
     confidence: np.ndarray,
     limits: Limits,
-    prefix: str,
 ) -> list[Violation]:
-    """Coordinates and confidences of (n, K) stacked poses of one format."""
+    """Coordinates and confidences of (n, K) stacked poses of one format; `index`: their request index."""
     found: list[Violation] = []
     with np.errstate(invalid="ignore"):
         bad_conf = ~((confidence >= 0.0) & (confidence <= 1.0))  # NaN fails both
     for p, j in np.argwhere(bad_conf) if bad_conf.any() else ():  # argwhere costs more than any()
-        found.append(
-            Violation(
-                f"{pose_field(prefix, index[p])}.confidence[{j}]",
-                f"confidence must be a number in [0, 1], got {confidence[p, j]:g}",
-                "confidence_range",
-                pose=index[p],
-                joint=int(j),
-                joint_name=fmt.joint_names[j],
-            )
-        )
+        reason = f"confidence must be a number in [0, 1], got {confidence[p, j]:g}"
+        found.append(_joint_violation(fmt, f"confidence[{j}]", reason, "confidence_range", int(index[p]), j))
     finite = np.isfinite(points).all(axis=-1)  # (n, K)
     with np.errstate(invalid="ignore"):
         in_range = (np.abs(points) <= limits.max_coordinate).all(axis=-1)
@@ -142,42 +172,36 @@ def _value_violations(
             )
         else:
             reason, code = f"coordinates must be finite numbers, got {xy}", "non_finite"
-        found.append(
-            Violation(
-                f"{pose_field(prefix, index[p])}.keypoints[{j}]",
-                reason,
-                code,
-                pose=index[p],
-                joint=int(j),
-                joint_name=fmt.joint_names[j],
-            )
-        )
+        found.append(_joint_violation(fmt, f"keypoints[{j}]", reason, code, int(index[p]), j))
     return found
 
 
+def _joint_violation(
+    fmt: KeypointFormat, field: str, reason: str, code: str, pose: int, joint: int
+) -> Violation:
+    return Violation(field, reason, code, pose=pose, joint=int(joint), joint_name=fmt.joint_names[joint])
+
+
 def _model_violations(
-    index: Sequence[int], points: np.ndarray, visible: np.ndarray, limits: Limits, prefix: str
+    index: npt.NDArray[np.intp], points: np.ndarray, visible: np.ndarray, limits: Limits
 ) -> list[Violation]:
     """Rules on the converted (n, 17) model joints: enough of them, and not all at one point."""
     found: list[Violation] = []
     count = visible.sum(axis=1)  # (n,)
-    w = visible[..., None]
-    mean = (points * w).sum(axis=1) / np.maximum(count, 1)[:, None]  # (n, 2)
-    spread = np.sqrt((((points - mean[:, None]) * w) ** 2).sum(axis=(1, 2)) / np.maximum(2 * count, 1))
+    mean, spread = visible_stats(points, visible)  # (n, 2), (n,) px
     for p in range(len(index)):
-        field = f"{pose_field(prefix, index[p])}.keypoints"
         if count[p] < limits.min_visible_joints:
             reason = (
                 f"{count[p]} of {len(MODEL_JOINTS)} model joints are visible after the confidence "
                 f"threshold and format conversion, need at least {limits.min_visible_joints}"
             )
-            found.append(Violation(field, reason, "too_few_visible", pose=index[p]))
+            found.append(Violation("keypoints", reason, "too_few_visible", pose=int(index[p])))
         elif spread[p] < MIN_SPREAD_PX:
             reason = (
                 f"all visible joints are at one point ({mean[p, 0]:g}, {mean[p, 1]:g}); "
                 "the pose needs a spatial extent"
             )
-            found.append(Violation(field, reason, "degenerate", pose=index[p]))
+            found.append(Violation("keypoints", reason, "degenerate", pose=int(index[p])))
     return found
 
 
@@ -189,67 +213,103 @@ def _used(fmt: KeypointFormat) -> np.ndarray:
     return used
 
 
-def _stack(fmt: KeypointFormat, poses: Sequence[PoseInput], cut: float) -> tuple[np.ndarray, ...]:
-    """Points (n, K, 2), confidences (n, K) (1 where none given) and visibility (n, K) of poses."""
-    points = np.stack([p.points for p in poses]).astype(np.float64)
+def _stack(
+    fmt: KeypointFormat, poses: Sequence[PoseInput], cut: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points (n, K, 2), confidences (n, K) (1 where none given) and visibility (n, K) of poses;
+    `cut`: (n, 1) each pose's confidence threshold."""
+    points = np.stack([p.points for p in poses])  # the wire's dtype: float32 stays float32
     ones = np.ones(len(fmt.joint_names))
-    confidence = np.stack([ones if p.confidence is None else p.confidence for p in poses]).astype(np.float64)
+    confidence = np.stack([ones if p.confidence is None else p.confidence for p in poses])
     with np.errstate(invalid="ignore"):  # a NaN confidence is reported, not used
         visible = np.stack([p.present for p in poses]).astype(bool) & (confidence >= cut)
     return points, confidence, visible
 
 
-def prepare_poses(
-    poses: Sequence[PoseInput], limits: Limits, threshold: float | None = None, prefix: str = "poses"
-) -> ModelInput:
-    """Check `poses` against every input rule and convert them to the model's joints.
+def _clean(index: npt.NDArray[np.intp], found: list[Violation]) -> BoolArray:
+    """(n,) True for the poses (request indices `index`) that have none of the violations `found`."""
+    return ~np.isin(index, [v.pose or 0 for v in found])  # violations of one pose name it
 
-    Raises InvalidKeypoints listing each broken rule with its field (pose index and joint).
-    `prefix` names the poses in messages: "poses" for a batch, "pose" for one stream frame.
+
+@dataclass(frozen=True)
+class _Part:
+    """The valid poses of one format: their request indices and their converted model input."""
+
+    index: npt.NDArray[np.intp]
+    columns: tuple[np.ndarray, ...]  # keypoints_2d, visible, derived, imputed, format_index, nose_height
+
+
+def _prepare_format(
+    fmt: KeypointFormat,
+    index: npt.NDArray[np.intp],
+    poses: Sequence[PoseInput],
+    cut: np.ndarray,
+    limits: Limits,
+) -> tuple[_Part, list[Violation]]:
+    """Check and convert the poses of one format; a pose with bad values is not checked further."""
+    points, confidence, visible = _stack(fmt, poses, cut)
+    found = _value_violations(fmt, index, points, visible & _used(fmt), confidence, limits)
+    if found and not (ok := _clean(index, found)).all():
+        points, visible, index = points[ok], visible[ok], index[ok]
+    converted = to_model_joints(fmt, points, visible)
+    model = _model_violations(index, converted[0], converted[1], limits)
+    if model and not (ok := _clean(index, model)).all():
+        points, visible, index = points[ok], visible[ok], index[ok]
+        converted = (converted[0][ok], converted[1][ok], converted[2][ok], converted[3][ok])
+    # The geometry a format mix-up shows, kept for the reply's warnings (service.lookalike).
+    height = (
+        nose_height(points, visible) if lookalike_of(fmt.name) else np.full(len(index), np.nan, np.float32)
+    )
+    format_index = np.full(len(index), FORMAT_NAMES.index(fmt.name), np.int8)
+    return _Part(index, (*converted, format_index, height)), found + model
+
+
+def prepare_poses(poses: Sequence[PoseInput], limits: Limits, threshold: float | None = None) -> Prepared:
+    """Check each pose against every pose rule and convert the valid ones to the model's joints.
+
+    `threshold`: the request's confidence threshold (see check_request), for the poses without
+    their own; None: the server default. Broken rules are returned per pose, never raised.
     """
-    cut = check_threshold(threshold, limits)
-    if found := _count_violations(poses, limits, prefix):
-        raise InvalidKeypoints(found)
-    violations: list[Violation] = []
+    found: list[list[Violation]] = [[] for _ in poses]
     groups: dict[str, list[int]] = {}
     for i, pose in enumerate(poses):
-        if shape := _shape_violations(pose, i, prefix):
-            violations.extend(shape)
+        if shape := _shape_violations(pose, i):
+            found[i] = shape
         else:
             groups.setdefault(pose.format, []).append(i)
-    n = len(poses)
-    intrinsics = np.array([p.intrinsics or (np.nan,) * 4 for p in poses], np.float32).reshape(n, 4)
-    out = ModelInput(
-        keypoints_2d=np.zeros((n, len(MODEL_JOINTS), 2), np.float32),
-        visible=np.zeros((n, len(MODEL_JOINTS)), bool),
-        derived=np.zeros((n, len(MODEL_JOINTS)), bool),
-        imputed=np.zeros((n, len(MODEL_JOINTS)), bool),
-        format_index=np.zeros(n, np.int8),
-        nose_height=np.full(n, np.nan, np.float32),
-        intrinsics=intrinsics,
-    )
-    for name, index in groups.items():
-        fmt = FORMATS[name]
-        points, confidence, visible = _stack(fmt, [poses[i] for i in index], cut)
-        if found := _value_violations(fmt, index, points, visible & _used(fmt), confidence, limits, prefix):
-            violations.extend(found)
-            continue
-        converted = to_model_joints(fmt, points, visible)
-        if found := _model_violations(index, converted[0].astype(np.float64), converted[1], limits, prefix):
-            violations.extend(found)
-            continue
-        # The geometry a format mix-up shows, kept for the reply's warnings (service.lookalike).
-        height = nose_height(points, visible) if lookalike_of(name) else np.full(len(index), np.nan)
-        format_index = np.full(len(index), FORMAT_NAMES.index(name), np.int8)
-        if len(index) == n and not violations:  # one format for the whole request: no scatter
-            return ModelInput(
-                *converted, format_index=format_index, nose_height=height, intrinsics=intrinsics
-            )
-        targets: tuple[np.ndarray, ...] = (out.keypoints_2d, out.visible, out.derived, out.imputed)
-        for target, value in zip(
-            (*targets, out.format_index, out.nose_height), (*converted, format_index, height), strict=True
-        ):
-            target[index] = value
-    if violations:
-        raise InvalidKeypoints(sorted(violations, key=lambda v: (v.pose or 0, v.joint or -1)))
-    return out
+    default = limits.confidence_threshold if threshold is None else threshold
+    parts: list[_Part] = []
+    for name, members in groups.items():
+        group = [poses[i] for i in members]
+        cut = np.array(
+            [[default if p.confidence_threshold is None else p.confidence_threshold] for p in group]
+        )
+        part, broken = _prepare_format(FORMATS[name], np.array(members, np.intp), group, cut, limits)
+        parts.append(part)
+        for v in broken:
+            found[v.pose or 0].append(v)
+    rows, (points, visible, derived, imputed, format_index, height) = _join(parts)
+    camera = np.array([poses[i].intrinsics or (np.nan,) * 4 for i in rows.tolist()], np.float32)
+    inputs = ModelInput(points, visible, derived, imputed, format_index, height, camera.reshape(len(rows), 4))
+    return Prepared(inputs, tuple(tuple(sorted(f, key=lambda v: v.joint or -1)) for f in found))
+
+
+def _join(parts: list[_Part]) -> tuple[npt.NDArray[np.intp], tuple[np.ndarray, ...]]:
+    """The request indices and columns of every format's valid poses, in request order."""
+    if len(parts) == 1:  # one format: already in order
+        return parts[0].index, parts[0].columns
+    if not parts:  # no valid pose
+        flags = np.zeros((0, len(MODEL_JOINTS)), bool)
+        points = np.zeros((0, len(MODEL_JOINTS), 2), np.float32)
+        return np.zeros(0, np.intp), (
+            points,
+            flags,
+            flags,
+            flags,
+            np.zeros(0, np.int8),
+            np.zeros(0, np.float32),
+        )
+    index = np.concatenate([p.index for p in parts])
+    order = np.argsort(index, kind="stable")
+    joined = tuple(np.concatenate(c)[order] for c in zip(*(p.columns for p in parts), strict=True))
+    return index[order], joined

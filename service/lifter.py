@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -12,8 +14,9 @@ import numpy as np
 import onnxruntime as ort
 
 from service import geometry
-from service.errors import InvalidKeypoints, ModelLoadError, ModelOutputError, Violation
-from service.geometry import FloatArray
+from service.config import Settings
+from service.errors import InvalidKeypoints, ModelLoadError, Violation
+from service.geometry import BoolArray, FloatArray
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +26,8 @@ OUTPUTS = ("pose_3d", "camera")
 # validation poses; its calibration is the JSON metadata entry PLAUSIBILITY_CALIBRATION.
 PLAUSIBILITY = "plausibility"
 PLAUSIBILITY_CALIBRATION = "plausibility_calibration"
-# What a row the model failed on holds while the rest of its run is derived (never returned).
+# What a row the model failed on holds, so that the reply of the rest of its run can be derived
+# (never sent: the reply marks the row failed).
 STAND_IN_CAMERA = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=np.float32)
 # The start-up check's bounds for a person: the 3D pose spans this much (mm) along its longest
 # axis, and its reprojection misses the input by at most this fraction of the input's spread.
@@ -31,11 +35,31 @@ PERSON_EXTENT_MM = (300.0, 5000.0)
 MAX_REPROJECTION_SPREAD = 0.25
 
 
-def non_finite_rows(*arrays: np.ndarray) -> np.ndarray:
+def non_finite_rows(*arrays: np.ndarray) -> BoolArray:
     """(N,) True for each pose with a NaN or infinity in any of the (N, ...) arrays."""
     n = arrays[0].shape[0]
-    finite = [np.isfinite(a.reshape(n, -1)).all(axis=1) for a in arrays]
-    return ~np.logical_and.reduce(finite)
+    finite = np.ones(n, bool)
+    for a in arrays:
+        finite &= np.isfinite(a.reshape(n, -1)).all(axis=1)
+    return ~finite
+
+
+# An absolute path of the machine that built the model (POSIX, two or more parts), e.g. in the
+# metadata's train_command: /root/.cache/repnet/runs/s5_r2_limbs/last.pt.
+_BUILD_PATH = re.compile(r"(?<![\w.~:/-])/(?:[^\s/;,:'\"=]+/)+[^\s/;,:'\"=]*")
+
+
+def without_build_paths(text: str) -> str:
+    """`text` with each absolute path cut to what says something off the build machine: from its
+    last `runs` folder on (runs/s5_r2_limbs/last.pt), else its last part (last.pt)."""
+
+    def cut(match: re.Match[str]) -> str:
+        parts = [p for p in match.group(0).split("/") if p]
+        if "runs" in parts:
+            return "/".join(parts[len(parts) - 1 - parts[::-1].index("runs") :])
+        return parts[-1] if parts else match.group(0)
+
+    return _BUILD_PATH.sub(cut, text)
 
 
 @dataclass(frozen=True)
@@ -49,10 +73,15 @@ class ModelInfo:
     metadata: dict[str, str]  # every custom metadata entry, verbatim
 
     @property
+    def public_metadata(self) -> dict[str, str]:
+        """Every metadata entry as GET /v1/model shows it: build paths cut (without_build_paths)."""
+        return {key: without_build_paths(value) for key, value in self.metadata.items()}
+
+    @property
     def evaluation(self) -> dict[str, Any]:
-        """The evaluation figures embedded at export (empty for an untrained model)."""
+        """The evaluation figures embedded at export (empty for an untrained model), build paths cut."""
         try:
-            value = json.loads(self.metadata.get("evaluation", "{}") or "{}")
+            value = json.loads(without_build_paths(self.metadata.get("evaluation", "{}") or "{}"))
         except json.JSONDecodeError:
             return {}
         return value if isinstance(value, dict) else {}
@@ -69,15 +98,12 @@ class ModelInfo:
 
 @dataclass(frozen=True)
 class Prediction:
-    """The model's outputs for N poses and the camera quantities derived from them."""
+    """The model's outputs for N poses, and which of them the model failed on."""
 
     pose_3d: FloatArray  # (N, J, 3) mm, pelvis at origin, template frame
     camera: FloatArray  # (N, 2, 3) weak-perspective K
-    scale: FloatArray  # (N,) s = sqrt(trace(K K^T) / 2)
-    rotation: FloatArray  # (N, 3, 3) camera orientation, det 1
-    pose_3d_camera: FloatArray  # (N, J, 3) mm, pose_3d rotated into the camera's orientation
-    reprojection: FloatArray  # (N, J, 2) px, K X mapped back into the input's pixels
-    reprojection_error_px: FloatArray  # (N,) mean pixel distance over the visible joints
+    # (N,) the model's output was not finite: pose_3d, camera and plausibility hold stand-ins there.
+    failed: BoolArray
     plausibility: FloatArray | None = None  # (N,) in [0, 1]; None when the model has no such output
 
     def __len__(self) -> int:
@@ -88,6 +114,15 @@ class Prediction:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         sliced: dict[str, Any] = {k: None if v is None else v[start:stop] for k, v in values.items()}
         return replace(self, **sliced)
+
+    @classmethod
+    def join(cls, parts: Sequence[Prediction]) -> Prediction:
+        """The Predictions of consecutive pose ranges as one, in order."""
+        if len(parts) == 1:
+            return parts[0]
+        joined = {f.name: [getattr(p, f.name) for p in parts] for f in fields(cls)}
+        columns: dict[str, Any] = {k: None if v[0] is None else np.concatenate(v) for k, v in joined.items()}
+        return cls(**columns)  # None: an optional output the model does not have
 
 
 def _read_info(session: ort.InferenceSession, path: Path) -> ModelInfo:
@@ -145,18 +180,20 @@ class Lifter:
         self._outputs = [*OUTPUTS, PLAUSIBILITY] if self.has_plausibility else list(OUTPUTS)
 
     @classmethod
-    def load(
-        cls, path: Path, intra_op_threads: int = 0, inter_op_threads: int = 1, spinning: bool = True
-    ) -> Lifter:
-        """Open the model at `path`; raise ModelLoadError saying what is wrong with it."""
+    def load(cls, path: Path, settings: Settings | None = None) -> Lifter:
+        """Open the model at `path` with the session options of `settings` (threads and spinning;
+        default Settings(): the service's defaults and REPNET_* variables); raise ModelLoadError
+        saying what is wrong with the model."""
+        settings = Settings() if settings is None else settings
         if path.is_dir():
             raise ModelLoadError(f"model path is a directory, not an ONNX file: {path}")
         if not path.is_file():
             raise ModelLoadError(f"model file not found: {path}")
         options = ort.SessionOptions()
-        options.intra_op_num_threads = intra_op_threads
-        options.inter_op_num_threads = inter_op_threads
-        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+        options.intra_op_num_threads = settings.intra_op_threads  # 0: one per core
+        options.inter_op_num_threads = settings.inter_op_threads
+        spinning = "1" if settings.intra_op_spinning else "0"
+        options.add_session_config_entry("session.intra_op.allow_spinning", spinning)
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         try:
             session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
@@ -172,19 +209,19 @@ class Lifter:
         where = f"{self.path}: the model fails its check on {len(keypoints_2d)} known poses"
         try:
             prediction = self.lift(keypoints_2d, visibility)
-        except ModelOutputError as err:
-            raise ModelLoadError(f"{where}: non-finite output for poses {list(err.rows)}") from None
         except Exception as err:  # onnxruntime's own untyped errors: a graph that loads but cannot run
             message = " ".join(str(err).split())  # one line
             raise ModelLoadError(f"{where}: the run failed: {message}") from None
+        reprojection = geometry.reproject(prediction.camera, prediction.pose_3d, keypoints_2d, visibility)
+        error = geometry.reprojection_error(reprojection, keypoints_2d, visibility)  # (N,) px
+        if (failed := prediction.failed | ~np.isfinite(error)).any():
+            raise ModelLoadError(f"{where}: non-finite output for poses {np.flatnonzero(failed).tolist()}")
         extent = np.ptp(prediction.pose_3d, axis=1).max(axis=1)  # (N,) mm
         low, high = PERSON_EXTENT_MM
         if not ((extent >= low) & (extent <= high)).all():
             found = ", ".join(f"{e:.0f}" for e in extent)
             raise ModelLoadError(f"{where}: pose_3d spans {found} mm, a person spans {low:.0f} to {high:.0f}")
-        pairs = zip(keypoints_2d, visibility, strict=True)
-        spread = np.array([points[seen].std(axis=0).mean() for points, seen in pairs])  # (N,) px
-        error = prediction.reprojection_error_px
+        spread = geometry.visible_spread(keypoints_2d, visibility)  # (N,) px
         if not (error <= MAX_REPROJECTION_SPREAD * spread).all():
             found = ", ".join(f"{e:.1f}" for e in error)
             raise ModelLoadError(
@@ -194,6 +231,7 @@ class Lifter:
 
     @property
     def num_joints(self) -> int:
+        """J, the number of model joints."""
         return len(self.info.joint_names)
 
     def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
@@ -217,7 +255,7 @@ class Lifter:
                 ]
             )
         visible = visibility.astype(bool)
-        points = np.where(visible[..., None], keypoints_2d, 0.0).astype(np.float32)  # (N, J, 2)
+        points = np.where(visible[..., None], keypoints_2d, 0.0).astype(np.float32, copy=False)  # (N, J, 2)
         if not np.isfinite(points).all():
             raise InvalidKeypoints(
                 [Violation("keypoints_2d", "visible coordinates must be finite", "non_finite")]
@@ -227,36 +265,9 @@ class Lifter:
         )
         failed = non_finite_rows(pose_3d, camera, *plausibility)  # (N,)
         if failed.any():
-            # The geometry cannot take them (an SVD of NaN does not converge): stand-ins for the
-            # failed rows, reported below, so that the other poses of the run are still answered.
+            # Stand-ins for the failed rows (the camera geometry cannot take NaN: an SVD of NaN does
+            # not converge), so that the other poses of the run are still answered.
             pose_3d = np.where(failed[:, None, None], 0.0, pose_3d).astype(np.float32)
             camera = np.where(failed[:, None, None], STAND_IN_CAMERA, camera).astype(np.float32)
             plausibility = [np.where(failed, 0.0, p).astype(np.float32) for p in plausibility]
-        prediction = self._derive(pose_3d, camera, plausibility, points, visible)
-        failed |= non_finite_rows(
-            prediction.rotation, prediction.reprojection, prediction.reprojection_error_px
-        )
-        if failed.any():
-            raise ModelOutputError(np.flatnonzero(failed).tolist(), prediction)
-        return prediction
-
-    def _derive(
-        self,
-        pose_3d: np.ndarray,
-        camera: np.ndarray,
-        plausibility: list[np.ndarray],
-        points: np.ndarray,
-        visible: np.ndarray,
-    ) -> Prediction:
-        rotation = geometry.camera_rotation(camera)
-        reprojection = geometry.reproject(camera, pose_3d, points, visible)
-        return Prediction(
-            pose_3d=pose_3d,
-            camera=camera,
-            scale=geometry.camera_scale(camera),
-            rotation=rotation,
-            pose_3d_camera=geometry.rotate_to_camera(pose_3d, rotation),
-            reprojection=reprojection,
-            reprojection_error_px=geometry.reprojection_error(reprojection, points, visible),
-            plausibility=plausibility[0] if plausibility else None,
-        )
+        return Prediction(pose_3d, camera, failed, plausibility[0] if plausibility else None)

@@ -1,22 +1,16 @@
-"""Format mix-ups: poses sent under the wrong 17-joint label (coco17 as h36m17, the default, or
-back), told apart by their geometry, their reprojection error and the model's plausibility."""
+"""Format mix-ups: a pose under the wrong 17-joint label, told by its geometry, reprojection and plausibility.
+
+coco17 keypoints sent as h36m17 (the default) or back give the reply's format warning."""
 
 from __future__ import annotations
-
-from functools import cache
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from service.formats import COCO17, FORMATS, H36M17
-from service.geometry import visible_spread
+from service.formats import COCO17, FORMAT_NAMES, H36M17, lookalike_of
+from service.geometry import FloatArray, visible_spread
+from service.keypoints import ModelInput
 
-if TYPE_CHECKING:
-    from service.keypoints import ModelInput
-    from service.lifter import Prediction
-
-FORMAT_NAMES: tuple[str, ...] = tuple(FORMATS)  # ModelInput.format_index points into this
 # The mix-up score of a pose is its reprojection error as a fraction of its spread (the standard
 # deviation of its visible coordinates) plus GEOMETRY_WEIGHT times the geometric evidence (in
 # [-1, 1]) that it is in the other format; a warning is given above THRESHOLD. Chosen on
@@ -33,41 +27,11 @@ THRESHOLD = 0.5
 PLAUSIBILITY_FLOOR = 0.01
 PLAUSIBILITY_WEIGHT = 0.05
 
-# COCO's nose, shoulders and hips; Human3.6M has its pelvis, knee, ankle, shoulder and elbow there.
-_NOSE = COCO17.joint_names.index("nose")
-_SHOULDERS = [COCO17.joint_names.index(j) for j in ("left_shoulder", "right_shoulder")]
-_HIPS = [COCO17.joint_names.index(j) for j in ("left_hip", "right_hip")]
-
-
 # Why the geometry points to the other format, for each given format.
 _GEOMETRY_NOTE = {
     H36M17.name: "joint 0 sits above the shoulders (5, 6) like COCO's nose, not between the hips",
     COCO17.name: "joint 0 is not above the shoulders (5, 6) as COCO's nose would be",
 }
-
-
-@cache
-def lookalike_of(name: str) -> str | None:
-    """The other format a pose in `name` is mistaken for: the one with as many joints, if any."""
-    count = len(FORMATS[name].joint_names)
-    others = [f for f in FORMATS if f != name and len(FORMATS[f].joint_names) == count]
-    return others[0] if len(others) == 1 else None
-
-
-def nose_height(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.float32]:
-    """How far joint 0 of (n, 17, 2) points lies beyond the shoulders (5, 6), in torso lengths
-    (from the hips 11, 12) along the torso: (n,), NaN where a joint is missing or the torso has no
-    length. Read as coco17, joint 0 is the nose, above the shoulders (typically +0.3); read as
-    h36m17, those joints are the pelvis, left knee and ankle, left shoulder and elbow, and joint 0
-    lies below "the shoulders" (typically -0.6). It uses the body's own axis, not the image's."""
-    # Missing joints may hold NaN or huge values: their results are replaced by NaN, never read.
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        shoulders = points[:, _SHOULDERS].mean(axis=1)  # (n, 2)
-        axis = shoulders - points[:, _HIPS].mean(axis=1)  # (n, 2)
-        length = (axis**2).sum(axis=1)  # (n,)
-        height = ((points[:, _NOSE] - shoulders) * axis).sum(axis=1) / length
-    ok = visible[:, [_NOSE, *_SHOULDERS, *_HIPS]].all(axis=1) & (length > 0)
-    return np.where(ok, height, np.nan).astype(np.float32)
 
 
 # Per format in FORMAT_NAMES: it has a lookalike, and the sign that turns nose_height into evidence
@@ -80,32 +44,38 @@ def geometric_evidence(inputs: ModelInput) -> npt.NDArray[np.float64]:
     """(N,) the evidence in [-1, 1] from nose_height that each pose is in its format's lookalike
     (0 where it cannot be read)."""
     height = np.clip(np.nan_to_num(inputs.nose_height.astype(np.float64), nan=0.0), -1.0, 1.0)
-    return height * _TOWARD_LOOKALIKE[inputs.format_index]
+    return np.asarray(height * _TOWARD_LOOKALIKE[inputs.format_index], np.float64)
 
 
-def relative_error(inputs: ModelInput, prediction: Prediction) -> npt.NDArray[np.float64]:
-    """(N,) reprojection error as a fraction of the pose's spread: the same for any image size."""
+def relative_error(inputs: ModelInput, error_px: FloatArray) -> npt.NDArray[np.float64]:
+    """(N,) reprojection error (N,) px as a fraction of the pose's spread: the same for any image size."""
     spread = visible_spread(inputs.keypoints_2d, inputs.visible)  # (N,) px
-    return prediction.reprojection_error_px.astype(np.float64) / np.maximum(spread, 1e-9)
+    return error_px.astype(np.float64) / np.maximum(spread, 1e-9)
 
 
 def mixup_scores(
-    inputs: ModelInput, prediction: Prediction, relative: npt.NDArray[np.float64] | None = None
+    inputs: ModelInput,
+    error_px: FloatArray,
+    plausibility: FloatArray | None,
+    relative: npt.NDArray[np.float64] | None = None,
 ) -> npt.NDArray[np.float64]:
-    """(N,) the mix-up score of each pose (NaN for a format without a lookalike); `relative`:
-    relative_error, when the caller has it."""
-    relative = relative_error(inputs, prediction) if relative is None else relative
+    """(N,) the mix-up score of each pose (NaN for a format without a lookalike) from its reprojection
+    error (N,) px and the model's plausibility (N,) if it has one; `relative`: relative_error, when
+    the caller has it."""
+    relative = relative_error(inputs, error_px) if relative is None else relative
     scores = relative + GEOMETRY_WEIGHT * geometric_evidence(inputs)
-    if prediction.plausibility is not None:
-        scores = scores + PLAUSIBILITY_WEIGHT * (prediction.plausibility < PLAUSIBILITY_FLOOR)
+    if plausibility is not None:
+        scores = scores + PLAUSIBILITY_WEIGHT * (plausibility < PLAUSIBILITY_FLOOR)
     return np.where(_HAS_LOOKALIKE[inputs.format_index], scores, np.nan)
 
 
-def format_warnings(inputs: ModelInput, prediction: Prediction) -> list[list[str]]:
+def format_warnings(
+    inputs: ModelInput, error_px: FloatArray, plausibility: FloatArray | None
+) -> list[list[str]]:
     """Per pose, the warnings of its reply: today at most one, that the format looks wrong."""
-    relative = relative_error(inputs, prediction)
+    relative = relative_error(inputs, error_px)
     out: list[list[str]] = [[] for _ in range(len(inputs))]
-    flagged = np.flatnonzero(mixup_scores(inputs, prediction, relative) > THRESHOLD)  # NaN: False
+    flagged = np.flatnonzero(mixup_scores(inputs, error_px, plausibility, relative) > THRESHOLD)  # NaN: False
     if not len(flagged):
         return out
     evidence = geometric_evidence(inputs)

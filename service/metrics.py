@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
-from service.errors import InvalidKeypoints, ModelNotReady, Overloaded, Violation
+from service.errors import InvalidKeypoints, ModelNotReady, ModelOutputError, Overloaded, Violation
 
 # Latency buckets (s): fine below 10 ms where a single pose should land, coarse above.
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0,
@@ -101,7 +101,7 @@ class Metrics:
         )
         self.inference_seconds = Histogram(
             "repnet_inference_seconds",
-            "Time of one onnxruntime run (a whole batch), derived geometry included.",
+            "Time of one model run (a whole batch): onnxruntime, masking and the non-finite check.",
             buckets=LATENCY_BUCKETS,
             registry=registry,
         )
@@ -129,6 +129,7 @@ class Metrics:
         )
 
     def set_model(self, model_id: str, skeleton: str) -> None:
+        """Label repnet_model_info with the loaded model."""
         self.model_info.clear()
         self.model_info.labels(model_id=model_id, skeleton=skeleton).set(1)
 
@@ -138,8 +139,27 @@ class Metrics:
             self.plausibility.observe(float(value))
 
     def reject(self, transport: str, violations: Sequence[Violation]) -> None:
+        """Count a rejected input: once per reason it broke."""
         for code in sorted({v.code for v in violations}):
             self.rejected.labels(transport=transport, reason=code).inc()
+
+    def count_error(self, transport: str, error: BaseException) -> None:
+        """Count what an error answer says beyond its outcome: the reasons of rejected input, the
+        poses the model failed on (counted when answered, on every transport)."""
+        if isinstance(error, InvalidKeypoints):
+            self.reject(transport, error.violations)
+        elif isinstance(error, ModelOutputError):
+            self.model_output_errors.inc(len(error.rows))
+
+    @contextmanager
+    def parsing(self, transport: str, started: float | None = None) -> Iterator[None]:
+        """Time a request's input rules for the parse histogram, from `started` (time.perf_counter(),
+        default now: HTTP passes when the body began to arrive), valid or not."""
+        started = time.perf_counter() if started is None else started
+        try:
+            yield
+        finally:
+            self.parse_seconds.labels(transport=transport).observe(time.perf_counter() - started)
 
     def finish(self, transport: str, method: str, outcome: str, seconds: float) -> None:
         """Count one finished request and its latency."""
@@ -165,7 +185,7 @@ class Metrics:
             raise
         finally:
             gauge.dec()
-            if isinstance(error, InvalidKeypoints):
-                self.reject(transport, error.violations)
+            if error is not None:
+                self.count_error(transport, error)
             outcome = tracked.outcome or outcome_of(error)
             self.finish(transport, method, outcome, time.perf_counter() - start)

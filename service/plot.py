@@ -15,6 +15,7 @@ LEFT, RIGHT, CENTRE = "#1f77b4", "#d62728", "#444444"  # the subject's left blue
 
 
 def side_colour(joint: str) -> str:
+    """The colour of a joint by its side of the body."""
     return LEFT if joint.startswith("left_") else RIGHT if joint.startswith("right_") else CENTRE
 
 

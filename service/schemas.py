@@ -276,6 +276,8 @@ class ErrorResponse(BaseModel):
 
 
 class FormatInfo(BaseModel):
+    """A keypoint format of GET /v1/model: its joints and how they map onto the model's."""
+
     name: str
     description: str
     joint_names: list[str] = Field(description="The format's joints in the detector's order.")
@@ -285,6 +287,8 @@ class FormatInfo(BaseModel):
 
 
 class LimitsInfo(BaseModel):
+    """The input limits and batching settings of GET /v1/model."""
+
     max_request_poses: int
     max_body_bytes: int
     min_visible_joints: int
@@ -310,4 +314,7 @@ class ModelDescription(BaseModel):
         None, description="How the plausibility was calibrated (ONNX metadata `plausibility_calibration`)."
     )
     evaluation: dict[str, Any] = Field(description="Evaluation figures embedded in the model.")
-    metadata: dict[str, str] = Field(description="Every ONNX metadata entry, verbatim.")
+    metadata: dict[str, str] = Field(
+        description="Every ONNX metadata entry, with paths of the machine that built the model cut "
+        "to their runs/ folder or file name (runs/s5_r2_limbs/last.pt)."
+    )

@@ -81,6 +81,7 @@ class StreamClient:
         self.close()
 
     def close(self) -> None:
+        """Close the gRPC channel."""
         self._channel.close()
 
     def stream(self, frames: Iterable[ArrayLike | Frame], *, format: str = "h36m17",

@@ -20,13 +20,14 @@ with warnings.catch_warnings():  # starlette's note about httpx2 is not ours to 
     from fastapi.testclient import TestClient
 
 from service._proto.repnet.v1 import lifter_pb2_grpc
+from service.app import build_app, build_grpc_server, limits_of
 from service.config import BUNDLED_MODEL, Settings
 from service.engine import Engine
-from service.grpc_api import Health, create_server
-from service.http_api import create_app
-from service.keypoints import Limits
+from service.grpc_server import Health
+from service.keypoints import Limits, PoseInput, prepare_poses
 from service.lifter import Lifter, Prediction
 from service.metrics import Metrics
+from service.replies import Replies, build_replies
 
 # A person in mid-stride, template frame (mm; x right in the image, y down, z away from the
 # camera, facing it), Human3.6M 17-joint order; the pelvis at the origin.
@@ -64,10 +65,22 @@ def expected_reprojection(
     return np.asarray((kx - kx[visible].mean(axis=0)) * std + mean)
 
 
+def load_model(path: Path) -> Lifter:
+    """The model at `path` with the service's session settings, on one thread."""
+    return Lifter.load(path, Settings(intra_op_threads=1))
+
+
+def reply_of(lifter: Lifter, points: np.ndarray) -> Replies:
+    """The replies to (N, 17, 2) h36m17 poses, every joint present, as a request would get them."""
+    poses = [PoseInput(p.astype(np.float64), np.ones(len(p), bool)) for p in points]
+    inputs = prepare_poses(poses, limits_of(Settings())).check()
+    return build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible)).check()
+
+
 @pytest.fixture(scope="session")
 def lifter() -> Lifter:
     """The bundled model, or the one REPNET_MODEL_PATH names (to test another export)."""
-    return Lifter.load(Path(os.environ.get("REPNET_MODEL_PATH", BUNDLED_MODEL)), intra_op_threads=1)
+    return load_model(Path(os.environ.get("REPNET_MODEL_PATH", BUNDLED_MODEL)))
 
 
 @pytest.fixture
@@ -79,8 +92,16 @@ def trained(lifter: Lifter) -> Lifter:
 
 
 @pytest.fixture
-def limits() -> Limits:
-    return Limits(max_request_poses=16)
+def settings() -> Settings:
+    """The servers' settings in tests: small requests, and a gRPC server on a free localhost port."""
+    return Settings(
+        host="localhost", grpc_port=0, grpc_workers=8, max_request_poses=16, max_body_bytes=64 * 1024
+    )
+
+
+@pytest.fixture
+def limits(settings: Settings) -> Limits:
+    return limits_of(settings)
 
 
 @pytest.fixture
@@ -140,8 +161,8 @@ def engine(engine_factory: Callable[..., Engine], lifter: Lifter) -> Engine:
 
 
 @pytest.fixture
-def client(engine: Engine, metrics: Metrics, limits: Limits) -> Iterator[TestClient]:
-    with TestClient(create_app(engine, metrics, limits, max_body_bytes=64 * 1024)) as client:
+def client(engine: Engine, metrics: Metrics, settings: Settings) -> Iterator[TestClient]:
+    with TestClient(build_app(engine, metrics, settings)) as client:
         yield client
 
 
@@ -154,9 +175,9 @@ class GrpcHandle:
 
 
 @pytest.fixture
-def grpc_handle(engine: Engine, metrics: Metrics, limits: Limits) -> Iterator[GrpcHandle]:
+def grpc_handle(engine: Engine, metrics: Metrics, settings: Settings) -> Iterator[GrpcHandle]:
     """A real gRPC server on a free localhost port, sharing `engine` with `client`."""
-    server = create_server(engine, metrics, limits, "localhost:0", workers=8, max_message_bytes=64 * 1024)
+    server = build_grpc_server(engine, metrics, settings)
     server.start()
     channel = grpc.insecure_channel(f"localhost:{server.port}")
     try:
@@ -180,7 +201,7 @@ class LiveService:
 @pytest.fixture(scope="module")
 def live_service(lifter: Lifter) -> Iterator[LiveService]:
     """`python -m service` in-process: uvicorn and gRPC on free localhost ports (for clients)."""
-    from service.__main__ import build_service
+    from service.app import build_service
 
     settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1, shutdown_grace_s=1)
     service = build_service(settings, lifter)

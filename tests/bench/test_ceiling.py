@@ -9,6 +9,7 @@ from bench.roof import RoofRow
 from bench.run import CEILING, Report
 from bench.stats import Result, sample_poses
 from service.lifter import Lifter
+from tests.conftest import reply_of
 
 
 def test_constant_lifter_answers_every_pose_with_one_real_prediction(lifter: Lifter) -> None:
@@ -17,7 +18,8 @@ def test_constant_lifter_answers_every_pose_with_one_real_prediction(lifter: Lif
     prediction = constant.lift(poses, np.ones(poses.shape[:2], bool))
     assert len(prediction) == 5 and prediction.pose_3d.shape == (5, 17, 3)
     np.testing.assert_array_equal(prediction.camera[4], constant.answer.camera[0])
-    assert np.isfinite(prediction.reprojection).all()
+    assert not prediction.failed.any()
+    assert np.isfinite(reply_of(constant, poses).columns["reprojection"]).all()  # the reply can be built
 
 
 def result(name: str, concurrency: int, frames: int, p50: float = 1.0) -> Result:

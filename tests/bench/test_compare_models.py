@@ -6,7 +6,7 @@ from pathlib import Path
 
 from bench import compare_models
 from service.config import BUNDLED_MODEL
-from service.lifter import Lifter
+from tests.conftest import load_model
 
 
 def test_every_round_measures_every_model_and_the_table_shows_each_round(tmp_path: Path) -> None:
@@ -26,7 +26,7 @@ def test_every_round_measures_every_model_and_the_table_shows_each_round(tmp_pat
     text = compare_models.table(results)
     lines = text.splitlines()
     assert lines[0].startswith("| model | session.run batch 1 | Lifter.lift batch 1 | session.run batch 4")
-    model_id = Lifter.load(BUNDLED_MODEL).info.model_id
+    model_id = load_model(BUNDLED_MODEL).info.model_id
     assert (
         len(lines) == 4 and lines[2].startswith(f"| {model_id} |") and lines[3].startswith(f"| {model_id} |")
     )

@@ -10,7 +10,7 @@ from contextlib import contextmanager
 import pytest
 
 from bench.server import ServiceProcess
-from service.__main__ import Service, build_service
+from service.app import Service, build_service
 from service.config import Settings
 from service.lifter import Lifter
 

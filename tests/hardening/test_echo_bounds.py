@@ -7,6 +7,7 @@ import json
 
 import grpc
 import httpx
+import pytest
 
 from bench.server import ServiceProcess
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
@@ -55,13 +56,11 @@ def test_grpc_unknown_format_is_invalid_argument_with_a_short_message(
     pose = lifter_pb2.Pose2D(keypoints=POSE_2D.ravel().tolist(), format=fmt)
     with grpc.insecure_channel(service_process.target) as channel:
         stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
-        try:
+        with pytest.raises(grpc.RpcError) as refused:
             stub.Lift(lifter_pb2.LiftRequest(poses=[pose]), timeout=30)
-        except grpc.RpcError as err:
-            assert err.code() == grpc.StatusCode.INVALID_ARGUMENT, (err.code(), err.details()[:200])
-            assert len(err.details()) <= MAX_ITEM_CHARS and "(20000 characters)" in err.details()
-        else:
-            raise AssertionError("an unknown format was accepted")
+        err = refused.value
+        assert err.code() == grpc.StatusCode.INVALID_ARGUMENT, (err.code(), err.details()[:200])
+        assert len(err.details()) <= MAX_ITEM_CHARS and "(20000 characters)" in err.details()
 
         (result,) = stub.LiftStream(iter([lifter_pb2.LiftFrame(frame_id=7, pose=pose)]), timeout=30)
         assert result.WhichOneof("result") == "error"

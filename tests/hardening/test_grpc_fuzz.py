@@ -11,10 +11,11 @@ import pytest
 from prometheus_client import CollectorRegistry
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.app import build_grpc_server, limits_of
+from service.config import Settings
 from service.engine import Engine
 from service.formats import FORMATS, from_model_joints
-from service.grpc_api import create_server
-from service.keypoints import Limits, PoseInput, prepare_poses
+from service.keypoints import PoseInput, prepare_poses
 from service.lifter import Lifter
 from service.metrics import Metrics
 from tests.conftest import POSE_2D, GrpcHandle
@@ -130,18 +131,19 @@ def expected_poses(lifter: Lifter, frames: list[lifter_pb2.LiftFrame]) -> np.nda
         )
         for f in frames
     ]
-    model_input = prepare_poses(inputs, Limits(max_request_poses=len(inputs)))
+    model_input = prepare_poses(inputs, limits_of(Settings())).check()
     return lifter.lift(model_input.keypoints_2d, model_input.visible).pose_3d
 
 
 @pytest.fixture
 def roomy_stub(
-    engine_factory: Callable[..., Engine], lifter: Lifter, metrics: Metrics, limits: Limits
+    engine_factory: Callable[..., Engine], lifter: Lifter, metrics: Metrics, settings: Settings
 ) -> Iterator[lifter_pb2_grpc.PoseLifterStub]:
     """A server whose queue holds a whole stream window, as the defaults do: no frame is refused."""
     engine = engine_factory(lifter, max_batch=64, queue_size=1024)
-    server = create_server(engine, metrics, limits, "localhost:0",
-                           workers=4, max_message_bytes=64 * 1024, stream_window=256)  # fmt: skip
+    server = build_grpc_server(
+        engine, metrics, settings.model_copy(update={"grpc_workers": 4, "stream_window": 256})
+    )
     server.start()
     with grpc.insecure_channel(f"localhost:{server.port}") as channel:
         yield lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
@@ -196,12 +198,9 @@ def test_undecodable_bytes_end_only_that_stream(grpc_handle: GrpcHandle) -> None
     )  # bytes in, bytes out
     good = lifter_pb2.LiftFrame(frame_id=1, pose=Pose(keypoints=POSE_2D.ravel().tolist()))
     garbage = [good.SerializeToString(), b"\xff\xff\xff\xff\x0f not a protobuf message"]
-    try:
-        answers = list(raw(iter(garbage), timeout=10))
-    except grpc.RpcError as err:
-        assert err.code() in (grpc.StatusCode.INTERNAL, grpc.StatusCode.INVALID_ARGUMENT), err
-    else:
-        raise AssertionError(f"undecodable frame accepted: {answers}")
+    with pytest.raises(grpc.RpcError) as refused:  # an undecodable frame is never accepted
+        list(raw(iter(garbage), timeout=10))
+    assert refused.value.code() in (grpc.StatusCode.INTERNAL, grpc.StatusCode.INVALID_ARGUMENT), refused.value
     frames = [
         lifter_pb2.LiftFrame(frame_id=i, pose=Pose(keypoints=(POSE_2D + i).ravel().tolist()))
         for i in range(5)

@@ -12,8 +12,8 @@ import grpc
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service.__main__ import Service
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.app import Service
 from service.config import Settings
 from service.lifter import Lifter
 from tests.conftest import POSE_2D, GatedLifter

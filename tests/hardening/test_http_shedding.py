@@ -11,7 +11,7 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
-from service.__main__ import Service
+from service.app import Service
 from service.config import Settings
 from service.lifter import Lifter
 from tests.conftest import POSE_2D, GatedLifter

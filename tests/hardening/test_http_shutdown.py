@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from service.__main__ import Service, build_service
+from service.app import Service, build_service
 from service.config import Settings
 from service.http_server import FIRST_REQUEST_WAIT_S
 from service.lifter import Lifter

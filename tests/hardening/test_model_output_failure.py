@@ -12,8 +12,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.__main__ import Service
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.app import Service
 from service.config import Settings
 from service.lifter import Lifter
 from tests.conftest import POSE_2D

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from bench.server import ROOT
-from service.__main__ import main
+from service.app import main
 from service.config import BUNDLED_MODEL
 
 onnx = pytest.importorskip("onnx")

@@ -14,8 +14,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.__main__ import Service, build_service
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.app import Service, build_service
 from service.config import Settings
 from service.lifter import Lifter, Prediction
 from tests.conftest import POSE_2D

@@ -17,7 +17,7 @@ from service.client import AsyncLiftClient, LiftClient, LiftClientError, LiftRes
 from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
 from service.lifter import Lifter
 from service.stream_client import Frame, StreamClient
-from tests.conftest import POSE_2D, LiveService
+from tests.conftest import POSE_2D, LiveService, reply_of
 
 
 def _poses(n: int) -> np.ndarray:
@@ -32,12 +32,12 @@ def _free_port() -> int:
 
 
 def _assert_matches_lifter(result: LiftResult, lifter: Lifter, points: np.ndarray) -> None:
-    expected = lifter.lift(points[None].astype(np.float32), np.ones((1, 17), bool))
-    np.testing.assert_allclose(result.pose_3d, expected.pose_3d[0], rtol=1e-4, atol=1e-2)
-    np.testing.assert_allclose(result.camera, expected.camera[0], rtol=1e-4, atol=1e-6)
-    np.testing.assert_allclose(result.reprojection, expected.reprojection[0], rtol=1e-4, atol=1e-2)
-    np.testing.assert_allclose(result.rotation, expected.rotation[0], atol=1e-5)
-    assert result.scale == pytest.approx(float(expected.scale[0]), rel=1e-5)
+    expected = reply_of(lifter, points[None]).columns
+    np.testing.assert_allclose(result.pose_3d, expected["pose_3d"][0], rtol=1e-4, atol=1e-2)
+    np.testing.assert_allclose(result.camera, expected["camera"][0], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(result.reprojection, expected["reprojection"][0], rtol=1e-4, atol=1e-2)
+    np.testing.assert_allclose(result.rotation, expected["rotation"][0], atol=1e-5)
+    assert result.scale == pytest.approx(float(expected["scale"][0]), rel=1e-5)
 
 
 def test_http_lift_returns_typed_result_matching_the_model(live_service: LiveService, lifter: Lifter) -> None:
@@ -141,7 +141,10 @@ def test_503_gives_up_after_the_last_retry() -> None:
 
 
 def test_keypoints_of_the_wrong_rank_are_refused_before_sending() -> None:
-    with LiftClient("http://test", transport=_scripted([], [])) as client, pytest.raises(ValueError):
+    with (
+        LiftClient("http://test", transport=_scripted([], [])) as client,
+        pytest.raises(ValueError, match=r"expected keypoints of shape \(N, J, 2\), got \(17, 2\)"),
+    ):
         client.lift_batch(POSE_2D)  # (17, 2) is one pose, not a batch
 
 

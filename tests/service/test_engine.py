@@ -15,9 +15,11 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
+from service.app import limits_of
+from service.config import Settings
 from service.engine import Engine
 from service.errors import ModelNotReady, Overloaded
-from service.keypoints import Limits, ModelInput, PoseInput, prepare_poses
+from service.keypoints import ModelInput, PoseInput, prepare_poses
 from service.lifter import Lifter, Prediction
 from tests.conftest import POSE_2D, GatedLifter, GrpcHandle
 from tests.service.invalid_inputs import to_proto_pose
@@ -35,7 +37,7 @@ def variant(i: int) -> np.ndarray:
 
 
 def model_input(*poses: np.ndarray) -> ModelInput:
-    return prepare_poses([PoseInput(p, np.ones(17, bool)) for p in poses], Limits())
+    return prepare_poses([PoseInput(p, np.ones(17, bool)) for p in poses], limits_of(Settings())).check()
 
 
 def wait_until(condition: Callable[[], bool], what: str) -> None:

@@ -34,7 +34,7 @@ COCO_ORDER = (
 )  # fmt: skip
 
 
-@pytest.fixture()
+@pytest.fixture
 def poses() -> np.ndarray:
     rng = np.random.default_rng(0)
     return (STANDING[None] + rng.normal(0, 15, size=(8, 17, 2))).astype(np.float32)  # (8, 17, 2)

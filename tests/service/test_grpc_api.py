@@ -224,9 +224,13 @@ def test_undecodable_frame_ends_the_stream_after_the_frames_before_it(grpc_handl
     ]
     call = raw(iter([*good_frames, b"\xff\xff\xff\xff\x0f not a protobuf message"]), timeout=10)
     answers = []
-    with pytest.raises(grpc.RpcError) as raised:
+
+    def read_all() -> None:
         for answer in call:
             answers.append(lifter_pb2.LiftFrameResult.FromString(answer))
+
+    with pytest.raises(grpc.RpcError) as raised:
+        read_all()
     assert raised.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "cannot be decoded" in (raised.value.details() or "")
     assert [a.frame_id for a in answers] == [0, 1, 2] and all(a.HasField("pose") for a in answers)

@@ -161,6 +161,7 @@ def test_model_endpoint_lists_joints_formats_limits_and_metadata(client: TestCli
     assert info["limits"]["max_request_poses"] == 16 and info["limits"]["max_body_bytes"] == 64 * 1024
     assert info["limits"]["min_visible_joints"] == 6
     assert info["metadata"]["model_id"] == lifter.info.model_id and isinstance(info["evaluation"], dict)
+    assert info["metadata"] == lifter.info.public_metadata and "/root/" not in json.dumps(info)
     assert "millimetres" in info["coordinate_contract"]
 
 

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from service.app import limits_of
+from service.config import Settings
 from service.errors import InvalidKeypoints
 from service.formats import FORMATS, from_model_joints
-from service.keypoints import Limits, PoseInput, check_threshold, prepare_poses
+from service.keypoints import Limits, ModelInput, PoseInput, check_request, check_threshold, prepare_poses
 from tests.conftest import POSE_2D
+
+LIMITS = limits_of(Settings())
 
 
 def pose(
@@ -23,14 +29,18 @@ def pose(
     )
 
 
-def violations(*poses: PoseInput, limits: Limits | None = None) -> list[str]:
+def violations(*poses: PoseInput, limits: Limits = LIMITS) -> list[str]:
     with pytest.raises(InvalidKeypoints) as info:
-        prepare_poses(poses, limits or Limits())
+        prepare_poses(poses, limits).check()
     return [v.message for v in info.value.violations]
 
 
+def model_input(poses: list[PoseInput], limits: Limits = LIMITS) -> ModelInput:
+    return prepare_poses(poses, limits).check()
+
+
 def test_valid_poses_become_model_input() -> None:
-    out = prepare_poses([pose(), pose(POSE_2D + 5)], Limits())
+    out = model_input([pose(), pose(POSE_2D + 5)])
     assert out.keypoints_2d.shape == (2, 17, 2) and out.keypoints_2d.dtype == np.float32
     np.testing.assert_allclose(out.keypoints_2d[1], POSE_2D + 5, rtol=1e-6)
     assert out.visible.all() and not out.imputed.any() and not out.derived.any()
@@ -43,7 +53,7 @@ def test_missing_and_unconfident_joints_are_imputed_with_zero_coordinates() -> N
     points[3] = np.nan
     confidence = [0.9] * 17
     confidence[12] = 0.1
-    out = prepare_poses([pose(points, present, confidence)], Limits(confidence_threshold=0.2))
+    out = model_input([pose(points, present, confidence)], replace(LIMITS, confidence_threshold=0.2))
     assert np.flatnonzero(out.imputed[0]).tolist() == [3, 12]
     assert (out.keypoints_2d[0, [3, 12]] == 0).all() and np.isfinite(out.keypoints_2d).all()
 
@@ -52,15 +62,13 @@ def test_joints_of_unused_detector_points_are_not_checked() -> None:
     points, visible = from_model_joints(FORMATS["coco17"], POSE_2D[None])
     points[0, 1:5] = np.nan  # eyes and ears: the model uses none of them
     visible[0, 1:5] = True
-    out = prepare_poses([pose(points[0], visible[0], format="coco17")], Limits())
+    out = model_input([pose(points[0], visible[0], format="coco17")])
     assert out.derived[0].tolist() == [j in (0, 8) for j in range(17)]
 
 
 def test_poses_of_several_formats_keep_their_order() -> None:
     mpii, mpii_visible = from_model_joints(FORMATS["mpii16"], (POSE_2D + 40)[None])
-    out = prepare_poses(
-        [pose(), pose(mpii[0], mpii_visible[0], format="mpii16"), pose(POSE_2D + 80)], Limits()
-    )
+    out = model_input([pose(), pose(mpii[0], mpii_visible[0], format="mpii16"), pose(POSE_2D + 80)])
     np.testing.assert_allclose(
         out.keypoints_2d[:, 0], [POSE_2D[0], POSE_2D[0] + 40, POSE_2D[0] + 80], rtol=1e-6
     )
@@ -80,23 +88,58 @@ def test_every_broken_rule_is_listed_with_pose_and_joint() -> None:
 
 def test_minimum_visible_joints_is_configurable() -> None:
     present = np.arange(17) < 4
-    assert "4 of 17 model joints" in violations(pose(present=present), limits=Limits(min_visible_joints=5))[0]
-    assert prepare_poses([pose(present=present)], Limits(min_visible_joints=4)).visible.sum() == 4
+    fewer = replace(LIMITS, min_visible_joints=5)
+    assert "4 of 17 model joints" in violations(pose(present=present), limits=fewer)[0]
+    assert model_input([pose(present=present)], replace(LIMITS, min_visible_joints=4)).visible.sum() == 4
 
 
-def test_stream_frames_are_named_pose() -> None:
-    with pytest.raises(InvalidKeypoints, match=r"^pose.keypoints: format h36m17 has 17 joints, got 2$"):
-        prepare_poses([pose(POSE_2D[:2])], Limits(), prefix="pose")
+def test_each_pose_gets_its_own_violations_and_the_valid_ones_their_input() -> None:
+    """No retry pose by pose: the valid poses of a request with invalid ones are converted at once,
+    and each invalid pose is named by its own violations (relative to the pose), whatever rule
+    another pose of its format broke."""
+    bad = POSE_2D.copy()
+    bad[10] = [np.nan, 0]
+    prepared = prepare_poses(
+        [pose(), pose(bad), pose(present=np.arange(17) < 3), pose(format="vicon"), pose(POSE_2D + 9)], LIMITS
+    )
+    assert [[v.field for v in found] for found in prepared.violations] == [
+        [],
+        ["keypoints[10]"],
+        ["keypoints"],
+        ["format"],
+        [],
+    ]
+    assert [v.code for found in prepared.violations for v in found] == ["non_finite", "too_few_visible",
+                                                                         "unknown_format"]  # fmt: skip
+    np.testing.assert_allclose(prepared.inputs.keypoints_2d, np.stack([POSE_2D, POSE_2D + 9]), rtol=1e-6)
+    alone = prepare_poses([pose(POSE_2D + 9)], LIMITS).inputs
+    np.testing.assert_array_equal(prepared.inputs.keypoints_2d[1], alone.keypoints_2d[0])
+
+
+def test_a_pose_may_bring_its_own_confidence_threshold() -> None:
+    confidence = [0.5] * 17
+    sure, unsure = (replace(pose(confidence=confidence), confidence_threshold=t) for t in (0.4, 0.6))
+    prepared = prepare_poses([sure, unsure, pose(confidence=confidence)], LIMITS, threshold=0.6)
+    assert prepared.inputs.visible[0].all()  # its own threshold wins over the request's
+    assert [v.code for v in prepared.violations[1]] == ["too_few_visible"]
+    assert [v.code for v in prepared.violations[2]] == ["too_few_visible"]
+
+
+def test_request_rules_name_the_batch() -> None:
+    with pytest.raises(InvalidKeypoints, match=r"^poses: the batch is empty"):
+        check_request(0, None, LIMITS)
+    with pytest.raises(InvalidKeypoints, match=r"^poses: 17 poses in one request, the limit is 16$"):
+        check_request(17, None, replace(LIMITS, max_request_poses=16))
 
 
 @pytest.mark.parametrize("threshold", [-0.1, 1.01, float("nan")])
 def test_threshold_outside_unit_interval_is_rejected(threshold: float) -> None:
     with pytest.raises(InvalidKeypoints, match="confidence_threshold: must be a number in"):
-        check_threshold(threshold, Limits())
+        check_threshold(threshold, LIMITS)
 
 
 def test_long_lists_of_violations_are_cut_in_the_message() -> None:
     points = np.full((17, 2), np.nan)
     with pytest.raises(InvalidKeypoints) as info:
-        prepare_poses([pose(points)], Limits())
+        prepare_poses([pose(points)], LIMITS).check()
     assert len(info.value.violations) == 17 and str(info.value).endswith("; and 7 more")

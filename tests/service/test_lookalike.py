@@ -2,24 +2,19 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
-from service.engine import result_columns
-from service.formats import FORMATS, from_model_joints
-from service.keypoints import Limits, PoseInput, prepare_poses
+from service.app import limits_of
+from service.config import Settings
+from service.formats import FORMATS, from_model_joints, lookalike_of, nose_height
+from service.keypoints import ModelInput, PoseInput, prepare_poses
 from service.lifter import Lifter
-from service.lookalike import (
-    PLAUSIBILITY_FLOOR,
-    PLAUSIBILITY_WEIGHT,
-    format_warnings,
-    lookalike_of,
-    mixup_scores,
-    nose_height,
-)
+from service.lookalike import PLAUSIBILITY_FLOOR, PLAUSIBILITY_WEIGHT, mixup_scores
+from service.replies import Replies, build_replies
 from tests.conftest import POSE_3D, project
+
+LIMITS = limits_of(Settings())
 
 YAWS = (-80.0, -30.0, 0.0, 25.0, 60.0, 90.0, 150.0)
 NOSE_3D = POSE_3D[9]  # Human3.6M's neck/nose joint
@@ -43,9 +38,13 @@ def h36m_pose(yaw: float) -> tuple[np.ndarray, np.ndarray]:
     return project(POSE_3D, yaw), np.ones(17, bool)
 
 
+def replies_of(lifter: Lifter, poses: list[PoseInput]) -> tuple[ModelInput, Replies]:
+    inputs = prepare_poses(poses, LIMITS).check()
+    return inputs, build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible))
+
+
 def warnings_of(lifter: Lifter, poses: list[PoseInput]) -> list[list[str]]:
-    inputs = prepare_poses(poses, Limits(max_request_poses=64))
-    return format_warnings(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible))
+    return list(replies_of(lifter, poses)[1].columns["warnings"])
 
 
 @pytest.mark.parametrize("face", [False, True], ids=["no_face", "face"])
@@ -99,18 +98,16 @@ def test_nose_height_reads_joint_0_against_the_coco_torso() -> None:
 
 def test_an_implausible_pose_adds_to_the_score(lifter: Lifter) -> None:
     poses = [PoseInput(*h36m_pose(0.0), None, "h36m17"), PoseInput(*coco_pose(0.0, True), None, "h36m17")]
-    inputs = prepare_poses(poses, Limits())
-    prediction = lifter.lift(inputs.keypoints_2d, inputs.visible)
-    base = mixup_scores(inputs, replace(prediction, plausibility=None))
+    inputs, replies = replies_of(lifter, poses)
+    error = replies.columns["reprojection_error_px"]
+    base = mixup_scores(inputs, error, None)
     low = np.full(2, PLAUSIBILITY_FLOOR / 2, np.float32)
     high = np.full(2, 0.5, np.float32)
-    with_low = mixup_scores(inputs, replace(prediction, plausibility=low))
-    np.testing.assert_allclose(with_low, base + PLAUSIBILITY_WEIGHT)
-    np.testing.assert_allclose(mixup_scores(inputs, replace(prediction, plausibility=high)), base)
+    np.testing.assert_allclose(mixup_scores(inputs, error, low), base + PLAUSIBILITY_WEIGHT)
+    np.testing.assert_allclose(mixup_scores(inputs, error, high), base)
 
 
-def test_reply_columns_carry_the_warnings(trained: Lifter) -> None:
+def test_replies_carry_the_warnings(trained: Lifter) -> None:
     poses = [PoseInput(*coco_pose(0.0, True), None, "h36m17"), PoseInput(*h36m_pose(0.0), None, "h36m17")]
-    inputs = prepare_poses(poses, Limits())
-    columns = result_columns(inputs, trained.lift(inputs.keypoints_2d, inputs.visible))
-    assert len(columns["warnings"][0]) == 1 and columns["warnings"][1] == []
+    rows = replies_of(trained, poses)[1].to_json()
+    assert len(rows[0]["warnings"]) == 1 and rows[1]["warnings"] == []

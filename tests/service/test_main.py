@@ -18,8 +18,8 @@ import pytest
 from grpc_health.v1 import health_pb2
 from pydantic import ValidationError
 
-from service.__main__ import build_service, main, parse_settings
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.app import build_service, main, parse_settings
 from service.config import BUNDLED_MODEL, Settings
 from service.lifter import Lifter
 from tests.conftest import POSE_2D, GatedLifter
@@ -156,12 +156,10 @@ def test_shutdown_reports_not_serving_and_finishes_in_flight_requests(gated: Gat
 
     service.begin_shutdown()
     assert not service.grpc_server.health.serving and not service.engine.ready
-    with (
-        grpc.insecure_channel(f"127.0.0.1:{service.grpc_server.port}") as channel,
-        pytest.raises(grpc.RpcError),
-    ):
+    with grpc.insecure_channel(f"127.0.0.1:{service.grpc_server.port}") as channel:
         stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
-        stub.Lift(lifter_pb2.LiftRequest(poses=[to_proto_pose(good())]), timeout=5)  # no new calls
+        with pytest.raises(grpc.RpcError):
+            stub.Lift(lifter_pb2.LiftRequest(poses=[to_proto_pose(good())]), timeout=5)  # no new calls
     gated.gate.set()
     request.join(30)
     runner.join(30)

@@ -20,13 +20,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from service.app import build_app
 from service.config import Settings
 from service.engine import Engine
-from service.http_api import create_app
-from service.keypoints import Limits
 from service.lifter import Lifter
 from service.metrics import Metrics
 from service.page import ASSETS, CSP, STATIC_DIR
+from tests.conftest import load_model
 from tests.service.page_examples import EXAMPLES_PATH, build_examples, detector_pose
 
 SHOTS = Path(__file__).resolve().parents[2] / "runs" / "page"
@@ -49,11 +49,11 @@ def test_page_and_its_files_are_served_with_a_same_origin_policy(client: TestCli
 
 
 def test_ui_false_serves_the_api_alone(
-    engine: Engine, metrics: Metrics, limits: Limits, monkeypatch: pytest.MonkeyPatch
+    engine: Engine, metrics: Metrics, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv("REPNET_UI", "false")
     assert Settings().ui is False
-    with TestClient(create_app(engine, metrics, limits, ui=False)) as client:
+    with TestClient(build_app(engine, metrics, Settings())) as client:
         assert client.get("/").status_code == 404 and client.get("/ui/page.js").status_code == 404
         assert client.get("/healthz").status_code == 200
 
@@ -83,7 +83,7 @@ def test_bundled_examples_are_current() -> None:
 @contextlib.contextmanager
 def serving(lifter: Lifter) -> Iterator[str]:
     """The service as `python -m service` runs it, with a small body limit for the upload test."""
-    from service.__main__ import build_service
+    from service.app import build_service
 
     settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1,
                         shutdown_grace_s=1, max_body_bytes=BODY_LIMIT)  # fmt: skip
@@ -419,7 +419,7 @@ def test_page_shows_the_plausibility_of_a_model_that_has_it(driver: Any, tmp_pat
     pytest.importorskip("onnx")
     from tests.service.test_plausibility import build_model
 
-    plausible = Lifter.load(build_model(tmp_path / "plausible.onnx"), intra_op_threads=1)
+    plausible = load_model(build_model(tmp_path / "plausible.onnx"))
     with serving(plausible) as url:
         open_page(driver, url)
         assert "plausibility: given" in text_of(driver, "model-line")

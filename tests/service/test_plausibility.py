@@ -14,17 +14,15 @@ import pytest
 from prometheus_client import CollectorRegistry
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from service.app import build_app, build_grpc_server
 from service.cli import EXIT_OK, main
-from service.config import BUNDLED_MODEL
+from service.config import BUNDLED_MODEL, Settings
 from service.engine import Engine
 from service.errors import ModelLoadError
-from service.grpc_api import create_server
-from service.http_api import create_app
-from service.keypoints import Limits
 from service.lifter import PLAUSIBILITY_CALIBRATION, Lifter
 from service.metrics import Metrics
 from service.stream_client import StreamClient
-from tests.conftest import POSE_2D, POSE_3D, TestClient, project
+from tests.conftest import POSE_2D, POSE_3D, TestClient, load_model, project
 
 onnx = pytest.importorskip("onnx")  # the dev extra has it; service tests need no torch
 from onnx import TensorProto, helper  # noqa: E402
@@ -89,13 +87,13 @@ def build_model(path: Path, shape: list[int | str] | None = None) -> Path:
 
 @pytest.fixture(scope="module")
 def plain(tmp_path_factory: pytest.TempPathFactory) -> Lifter:
-    return Lifter.load(build_plain(tmp_path_factory.mktemp("model") / "plain.onnx"), intra_op_threads=1)
+    return load_model(build_plain(tmp_path_factory.mktemp("model") / "plain.onnx"))
 
 
 @pytest.fixture(scope="module")
 def plausible(tmp_path_factory: pytest.TempPathFactory) -> Lifter:
     path = build_model(tmp_path_factory.mktemp("model") / "plausible.onnx")
-    return Lifter.load(path, intra_op_threads=1)
+    return load_model(path)
 
 
 def poses(n: int) -> np.ndarray:
@@ -121,7 +119,7 @@ def test_lifter_returns_the_models_plausibility(plausible: Lifter, plain: Lifter
 def test_a_plausibility_output_of_another_shape_is_refused(tmp_path: Path) -> None:
     path = build_model(tmp_path / "wrong.onnx", shape=["N", 1])
     with pytest.raises(ModelLoadError, match=r"expected output plausibility of shape \(N,\), got \['N', 1\]"):
-        Lifter.load(path)
+        load_model(path)
 
 
 def _body(points: np.ndarray) -> dict[str, object]:
@@ -130,13 +128,13 @@ def _body(points: np.ndarray) -> dict[str, object]:
 
 @pytest.fixture
 def app_for(
-    engine_factory: Callable[..., Engine], metrics: Metrics
+    engine_factory: Callable[..., Engine], metrics: Metrics, settings: Settings
 ) -> Iterator[Callable[[Lifter], TestClient]]:
     clients: list[TestClient] = []
 
     def build(model: Lifter) -> TestClient:
         engine = engine_factory(model, max_batch=4)  # a 10-pose request runs in three chunks
-        client = TestClient(create_app(engine, metrics, Limits(max_request_poses=16)))
+        client = TestClient(build_app(engine, metrics, settings))
         clients.append(client.__enter__())
         return client
 
@@ -179,12 +177,15 @@ def test_http_plausibility_is_null_without_the_output(
 def test_grpc_lift_and_stream_carry_plausibility(
     engine_factory: Callable[..., Engine],
     metrics: Metrics,
+    settings: Settings,
     plausible: Lifter,
     plain: Lifter,
     with_output: bool,
 ) -> None:
     model = plausible if with_output else plain
-    server = create_server(engine_factory(model), metrics, Limits(), "localhost:0", workers=4)
+    server = build_grpc_server(
+        engine_factory(model), metrics, settings.model_copy(update={"grpc_workers": 4})
+    )
     server.start()
     try:
         with grpc.insecure_channel(f"localhost:{server.port}") as channel:

@@ -1,0 +1,248 @@
+"""Composition root: Settings -> Lifter -> Metrics -> Engine -> HTTP app + gRPC server, and main()."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from types import FrameType
+
+import numpy as np
+import uvicorn
+from fastapi import FastAPI
+from prometheus_client import CollectorRegistry
+from pydantic import ValidationError
+
+from service.config import Settings
+from service.engine import Engine
+from service.errors import ModelLoadError
+from service.formats import MODEL_JOINTS
+from service.grpc_server import GrpcServer, create_server
+from service.http_api import create_app
+from service.http_server import HttpServer
+from service.keypoints import Limits
+from service.lifter import Lifter
+from service.metrics import Metrics
+from service.schemas import EXAMPLE_KEYPOINTS
+
+log = logging.getLogger("service")
+
+
+def load_lifter(settings: Settings) -> Lifter:
+    """The model from settings.model_path; ModelLoadError if it is not the h36m17 model formats expect."""
+    lifter = Lifter.load(settings.model_path, settings)
+    if lifter.info.joint_names != MODEL_JOINTS:
+        raise ModelLoadError(
+            f"{settings.model_path}: joints {list(lifter.info.joint_names)} are not the h36m17 joints "
+            f"{list(MODEL_JOINTS)} that the keypoint formats map onto"
+        )
+    lifter.check_outputs(*known_poses())
+    return lifter
+
+
+def known_poses() -> tuple[np.ndarray, np.ndarray]:
+    """The check every model passes at start: the OpenAPI example person (N, 17, 2) px, its mirror
+    image, and the person without spine and head (as COCO detectors give it), with visibility."""
+    person = np.array(EXAMPLE_KEYPOINTS, dtype=np.float32)  # (17, 2)
+    mirrored = person * [-1.0, 1.0] + [2 * person[:, 0].mean(), 0.0]
+    visibility = np.ones((3, len(MODEL_JOINTS)), dtype=bool)
+    visibility[2, [MODEL_JOINTS.index("spine"), MODEL_JOINTS.index("head")]] = False
+    return np.stack([person, mirrored, person]).astype(np.float32), visibility
+
+
+def limits_of(settings: Settings) -> Limits:
+    """The input limits of `settings`."""
+    return Limits(
+        max_request_poses=settings.max_request_poses,
+        min_visible_joints=settings.min_visible_joints,
+        confidence_threshold=settings.confidence_threshold,
+        max_coordinate=settings.max_coordinate,
+    )
+
+
+@dataclass
+class Service:
+    """Both servers on one Engine (one onnxruntime session), and their orderly shutdown."""
+
+    settings: Settings
+    engine: Engine
+    metrics: Metrics
+    app: FastAPI
+    grpc_server: GrpcServer
+    http: uvicorn.Server
+    _stopping: threading.Event = field(default_factory=threading.Event)
+    _grpc_stopped: threading.Event | None = None
+    _delay: threading.Timer | None = None
+
+    def begin_shutdown(self) -> None:
+        """Report not ready (HTTP /readyz 503, gRPC health NOT_SERVING); after shutdown_delay_s
+        (time for load balancers to notice) stop accepting and drain."""
+        if self._stopping.is_set():
+            return
+        self._stopping.set()
+        log.info("shutting down: draining in-flight requests (grace %.1f s)", self.settings.shutdown_grace_s)
+        self.engine.stop_serving()
+        self.grpc_server.health.enter_graceful_shutdown()
+        if self.settings.shutdown_delay_s > 0:
+            self._delay = threading.Timer(self.settings.shutdown_delay_s, self.stop_accepting)
+            self._delay.daemon = True
+            self._delay.start()
+        else:
+            self.stop_accepting()
+
+    def stop_accepting(self) -> None:
+        """Refuse new calls and connections; in-flight ones get shutdown_grace_s to finish."""
+        if self._delay is not None:
+            self._delay.cancel()
+        if self._grpc_stopped is None:
+            self._grpc_stopped = self.grpc_server.stop(self.settings.shutdown_grace_s)
+        self.http.should_exit = True
+
+    def run(self) -> int:
+        """Serve until begin_shutdown, drain, then return the exit status."""
+        self.grpc_server.start()
+        log.info(
+            "model %s: HTTP on %s:%d, gRPC on %s:%d",
+            self.engine.lifter.info.model_id,
+            self.settings.host,
+            self.settings.http_port,
+            self.settings.host,
+            self.grpc_server.port,
+        )
+        status = 0
+        try:
+            self.http.run()  # returns once should_exit is set and HTTP requests have drained
+        except SystemExit as exit_:  # uvicorn exits when it cannot bind its port
+            status = exit_.code if isinstance(exit_.code, int) and exit_.code else 1
+        if not self._stopping.is_set():  # uvicorn stopped on its own
+            status = status or 1
+            self.begin_shutdown()
+        self.stop_accepting()  # in case uvicorn failed before the shutdown delay ran out
+        if self._grpc_stopped is not None:
+            self._grpc_stopped.wait(self.settings.shutdown_grace_s + 1)
+        self.engine.close(self.settings.shutdown_grace_s)
+        log.info("stopped; requests answered: %s", answered_requests(self.metrics))
+        return status
+
+
+def answered_requests(metrics: Metrics) -> str:
+    """'transport method outcome=count' for every lift request counted since start."""
+    counts = [
+        f"{s.labels['transport']} {s.labels['method']} {s.labels['outcome']}={s.value:.0f}"
+        for family in metrics.registry.collect()
+        if family.name == "repnet_requests"
+        for s in family.samples
+        if s.name == "repnet_requests_total"
+    ]
+    return ", ".join(counts) or "none"
+
+
+def build_engine(lifter: Lifter, metrics: Metrics, settings: Settings) -> Engine:
+    """The batcher of `lifter` with the batching settings."""
+    return Engine(
+        lifter,
+        metrics,
+        max_batch=settings.max_batch,
+        max_wait_s=settings.max_wait_ms / 1000,
+        queue_size=settings.queue_size,
+    )
+
+
+def build_app(engine: Engine, metrics: Metrics, settings: Settings) -> FastAPI:
+    """The HTTP app on `engine` with the HTTP settings."""
+    return create_app(
+        engine,
+        metrics,
+        limits_of(settings),
+        max_body_bytes=settings.max_body_bytes,
+        ui=settings.ui,
+        max_in_flight=settings.http_max_in_flight,
+    )
+
+
+def build_grpc_server(engine: Engine, metrics: Metrics, settings: Settings) -> GrpcServer:
+    """The gRPC server on `engine` (bound to host:grpc_port, not started) with the gRPC settings."""
+    return create_server(
+        engine,
+        metrics,
+        limits_of(settings),
+        f"{settings.host}:{settings.grpc_port}",
+        workers=settings.grpc_workers,
+        max_streams=settings.grpc_max_streams,
+        stream_idle_timeout_s=settings.stream_idle_timeout_s,
+        max_message_bytes=settings.max_body_bytes,
+        stream_window=settings.stream_window,
+    )
+
+
+def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
+    """Load the model (unless given) and wire both servers; nothing is started yet."""
+    lifter = lifter or load_lifter(settings)
+    metrics = Metrics(CollectorRegistry())
+    metrics.set_model(lifter.info.model_id, lifter.info.skeleton)
+    engine = build_engine(lifter, metrics, settings)
+    app = build_app(engine, metrics, settings)
+    grpc_server = build_grpc_server(engine, metrics, settings)
+    config = uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.http_port,
+        log_level=settings.log_level,
+        access_log=settings.log_level == "debug",  # one line per request costs more than a lift
+        timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
+        lifespan="off",
+    )
+    return Service(settings, engine, metrics, app, grpc_server, HttpServer(config))
+
+
+def parse_settings(argv: Sequence[str] | None) -> Settings:
+    """Flags override REPNET_* variables, which override the defaults; one flag per field."""
+    parser = argparse.ArgumentParser(
+        prog="python -m service",
+        description="RepNet pose-lifting server "
+        "(HTTP and gRPC). Every flag can also be set as REPNET_<FIELD>.",
+    )
+    for name, info in Settings.model_fields.items():
+        parser.add_argument(
+            f"--{name.replace('_', '-')}",
+            dest=name,
+            metavar=name.upper(),
+            # argparse formats help with %: a literal one (e.g. "+20 %") must be doubled.
+            help=f"{info.description or name} (default: {info.default})".replace("%", "%%"),
+        )
+    args = parser.parse_args(argv)
+    return Settings(**{k: v for k, v in vars(args).items() if v is not None})
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m service`: parse the settings, load the model, serve until a signal; the exit status."""
+    try:
+        settings = parse_settings(argv)
+    except ValidationError as err:
+        print(f"invalid settings:\n{err}", file=sys.stderr)
+        return 2
+    logging.basicConfig(
+        level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        service = build_service(settings)
+    except (ModelLoadError, OSError) as err:
+        log.error("cannot start: %s", err)
+        return 1
+    return serve(service)
+
+
+def serve(service: Service) -> int:
+    """Run `service` until SIGTERM or SIGINT, drain it and return the exit status (main thread only)."""
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("received %s", signal.Signals(signum).name)
+        service.begin_shutdown()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    return service.run()

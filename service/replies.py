@@ -1,0 +1,138 @@
+"""The reply: its fields (declared once), computed from a Prediction and its input, as JSON rows and proto."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from service import geometry
+from service._proto.repnet.v1 import lifter_pb2
+from service.errors import ModelOutputError
+from service.geometry import BoolArray, FloatArray
+from service.keypoints import ModelInput
+from service.lifter import Prediction, non_finite_rows
+from service.lookalike import format_warnings
+
+ANY = -1  # in a per-pose shape: one per model joint, or a list of any length
+
+
+@dataclass(frozen=True)
+class ReplyField:
+    """One field of a pose's reply, under the same name in JSON, proto, the pydantic schema and the client."""
+
+    name: str
+    shape: tuple[int, ...]  # per pose: () a scalar, ANY one per model joint (or any number of strings)
+    kind: type  # float, bool or str
+    optional: bool = False  # absent for some models: null in JSON, unset in proto
+
+
+# Every field of a pose's reply, in reply order. schemas.PoseResult (with the documentation), the
+# proto's PoseResult, client.LiftResult and the CLI's output rows carry exactly these
+# (tests/service/test_replies.py checks them).
+FIELDS: tuple[ReplyField, ...] = (
+    ReplyField("pose_3d", (ANY, 3), float),  # mm, pelvis at origin, template frame
+    ReplyField("pose_3d_camera", (ANY, 3), float),  # mm, pose_3d in the camera's orientation
+    ReplyField("camera", (2, 3), float),  # weak-perspective K
+    ReplyField("scale", (), float),  # s = sqrt(trace(K K^T) / 2)
+    ReplyField("rotation", (3, 3), float),  # camera orientation, det 1
+    ReplyField("reprojection", (ANY, 2), float),  # px, K X mapped back into the input's pixels
+    ReplyField("reprojection_error_px", (), float),  # mean pixel distance over the visible joints
+    ReplyField("visible", (ANY,), bool),  # the model saw the joint
+    ReplyField("imputed", (ANY,), bool),  # no visible source: the model filled it in
+    ReplyField("derived", (ANY,), bool),  # the midpoint of two detector joints
+    ReplyField("plausibility", (), float, optional=True),  # in [0, 1]; models with a plausibility output
+    ReplyField("warnings", (ANY,), str),  # why the answer may be wrong (service.lookalike)
+)
+NAMES: tuple[str, ...] = tuple(f.name for f in FIELDS)
+
+
+@dataclass(frozen=True)
+class Replies:
+    """The replies of N poses: per field of FIELDS an (N, *shape) array (warnings: N lists of
+    strings; plausibility: None for a model without it), and the poses that failed."""
+
+    columns: dict[str, Any]
+    # (N,) the model's output, or the geometry derived from it, is not finite: no reply, a server
+    # fault (ModelOutputError) for these poses alone.
+    failed: BoolArray
+
+    def __post_init__(self) -> None:
+        if tuple(self.columns) != NAMES:
+            raise ValueError(f"expected the reply fields {list(NAMES)}, got {list(self.columns)}")
+
+    def __len__(self) -> int:
+        return len(self.failed)
+
+    def check(self) -> Replies:
+        """These replies when no pose failed; else ModelOutputError naming the poses that did."""
+        if self.failed.any():
+            raise ModelOutputError(np.flatnonzero(self.failed).tolist())
+        return self
+
+    def _lists(self, flat: bool) -> dict[str, list[Any]]:
+        """Every field as one Python list item per pose: a few ndarray.tolist calls for all poses
+        instead of several per pose (tolist on float32 gives the same floats as converting to float64
+        first). `flat`: each pose's matrices as one flat list, as proto carries them."""
+        n = len(self)
+        lists: dict[str, list[Any]] = {}
+        for name, value in self.columns.items():
+            if value is None:
+                lists[name] = [None] * n  # null in JSON, unset in proto
+            elif isinstance(value, np.ndarray):
+                lists[name] = (value.reshape(n, -1) if flat and value.ndim > 2 else value).tolist()
+            else:
+                lists[name] = list(value)
+        return lists
+
+    def to_json(self) -> list[dict[str, Any]]:
+        """One JSON-ready dict per pose (HTTP, the CLI)."""
+        lists = self._lists(flat=False)
+        return [{name: values[i] for name, values in lists.items()} for i in range(len(self))]
+
+    def to_proto(self) -> list[lifter_pb2.PoseResult]:
+        """One proto PoseResult per pose (gRPC)."""
+        lists = self._lists(flat=True)
+        return [lifter_pb2.PoseResult(**{k: v[i] for k, v in lists.items()}) for i in range(len(self))]
+
+
+def build_replies(inputs: ModelInput, prediction: Prediction) -> Replies:
+    """Every reply field of the poses `inputs` from their `prediction`: the camera geometry
+    (computed here only), the input's joint flags and the warnings. A pose whose geometry is not
+    finite (a finite but absurd model output) fails like one the model failed on."""
+    camera, pose_3d = prediction.camera, prediction.pose_3d
+    points, visible = inputs.keypoints_2d, inputs.visible
+    with np.errstate(over="ignore", invalid="ignore"):  # what is not finite fails its pose below
+        rotation = geometry.camera_rotation(camera)  # (N, 3, 3)
+        reprojection = geometry.reproject(camera, pose_3d, points, visible)  # (N, J, 2) px
+        error = geometry.reprojection_error(reprojection, points, visible)  # (N,) px
+        pose_3d_camera = geometry.rotate_to_camera(pose_3d, camera_orientation(inputs, rotation))
+    columns = {
+        "pose_3d": pose_3d,
+        "pose_3d_camera": pose_3d_camera,
+        "camera": camera,
+        "scale": geometry.camera_scale(camera),
+        "rotation": rotation,
+        "reprojection": reprojection,
+        "reprojection_error_px": error,
+        "visible": visible,
+        "imputed": inputs.imputed,
+        "derived": inputs.derived,
+        "plausibility": prediction.plausibility,
+        "warnings": format_warnings(inputs, error, prediction.plausibility),
+    }
+    return Replies(columns, prediction.failed | non_finite_rows(rotation, reprojection, error))
+
+
+def camera_orientation(inputs: ModelInput, rotation: FloatArray) -> FloatArray:
+    """(N, 3, 3) each pose's orientation in the camera frame: the camera rotation R, turned along the
+    ray from the camera to the person where the pose's intrinsics are given (geometry.ray_rotation)."""
+    given = np.flatnonzero(~np.isnan(inputs.intrinsics[:, 0]))
+    if not len(given):
+        return rotation
+    k = inputs.intrinsics[given]
+    ray = geometry.ray_rotation(inputs.keypoints_2d[given], inputs.visible[given], k[:, :2], k[:, 2:])
+    turned: FloatArray = rotation.copy()
+    turned[given] = ray @ rotation[given]
+    return turned

@@ -1,0 +1,296 @@
+"""Streams: one stream's frames from read to answer, in order, within a bounded window (no wire format)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import deque
+from collections.abc import AsyncGenerator, AsyncIterator, Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+from service.engine import Engine, offload
+from service.errors import InvalidKeypoints, LiftError, ModelOutputError
+from service.keypoints import Limits, PoseInput, Prepared, prepare_poses
+from service.lifter import Prediction
+from service.replies import Replies, build_replies
+
+log = logging.getLogger(__name__)
+
+# A group that finds the batch queue full waits this long for room before its frames get an error:
+# the window already bounds what a stream holds, so a busy moment slows it down instead.
+QUEUE_WAIT_S = 5.0
+POSE_FIELD = "pose"
+R = TypeVar("R")  # what a frame's violations are named within: pose.keypoints[4]
+
+
+class StreamIdle(Exception):
+    """Nothing was in progress and no frame came for the idle timeout: the stream is closed."""
+
+
+class UnreadableFrame(Exception):
+    """A frame could not be read; every frame before it has been answered, and the stream ends."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame as the adapter read it: a pose to lift, or why it has none."""
+
+    frame_id: int
+    read_at: float  # time.perf_counter() when read
+    pose: PoseInput | None = None
+    error: LiftError | None = None  # why there is no pose (its layout or its threshold is wrong)
+
+
+@dataclass(frozen=True)
+class Answer:
+    """One frame's outcome: its row of its group's replies, or why it has none."""
+
+    frame: Frame
+    outcome: int | LiftError
+
+
+@dataclass(frozen=True)
+class Answers:
+    """A group's answers in frame order, and the replies their rows point into."""
+
+    items: list[Answer]
+    replies: Replies | None
+
+
+@dataclass
+class Group:
+    """Frames taken together: prepared in one call, lifted as one engine request, answered together."""
+
+    frames: list[Frame]
+    prepared: Prepared | None = None  # the input rules' outcome for the frames that have a pose
+    futures: list[Future[Prediction]] = field(default_factory=list)  # the runs of its valid poses
+    failure: LiftError | None = None  # why its valid poses get no reply (queue full, a failed run)
+
+    def done(self) -> bool:
+        """Every run of the group has finished (a group without runs at once)."""
+        return all(f.done() for f in self.futures)
+
+    def _outcome(self, replies: Replies | None, row: int) -> int | LiftError:
+        """A valid pose's outcome: its row of `replies`, or why its run failed."""
+        if self.failure is not None:
+            return self.failure
+        if replies is None:
+            raise ValueError("a group's valid poses are answered with replies or a failure")
+        return ModelOutputError([row]) if replies.failed[row] else row  # stand-ins are never sent
+
+    def answers(self, replies: Replies | None) -> list[Answer]:
+        """Each frame's answer, in order: why it has no pose, else its pose's violations, else why
+        its run failed, else its row of `replies` (the replies of the valid poses, in order)."""
+        violations = iter(self.prepared.violations if self.prepared is not None else ())
+        answers: list[Answer] = []
+        row = 0  # the next valid pose's row
+        for frame in self.frames:
+            if frame.error is not None:
+                answers.append(Answer(frame, frame.error))
+            elif found := next(violations):
+                answers.append(Answer(frame, InvalidKeypoints([v.within(POSE_FIELD) for v in found])))
+            else:
+                answers.append(Answer(frame, self._outcome(replies, row)))
+                row += 1
+        return answers
+
+
+class StreamState:
+    """What one stream holds: frames read and not taken yet, then groups taken and not answered yet.
+
+    At most `window` frames are held from read to answer (the reader waits for room: backpressure).
+    Frames are taken only while none of the stream's groups waits for a run, so the frames that
+    arrive during a run become the next groups (at most `max_group` frames each): the cost per frame
+    stays small, and one stream fills batches instead of waiting for each frame's run.
+    """
+
+    def __init__(self, window: int, max_group: int) -> None:
+        if window < 1 or max_group < 1:
+            raise ValueError(f"window and max_group must be >= 1, got {window} and {max_group}")
+        self.window = window
+        self.max_group = max_group
+        self.inbox: list[Frame] = []  # read, not taken
+        self.groups: deque[Group] = deque()  # taken, not answered, in order
+        self.held = 0  # frames read and not answered
+
+    def has_room(self) -> bool:
+        """Another frame may be read."""
+        return self.held < self.window
+
+    def add(self, frame: Frame) -> None:
+        """Hold a frame just read; ValueError when the window is full (read only while has_room())."""
+        if not self.has_room():
+            raise ValueError(f"the window of {self.window} frames is full")
+        self.inbox.append(frame)
+        self.held += 1
+
+    def can_take(self) -> bool:
+        """Frames wait, and none of this stream's groups waits for a run."""
+        return bool(self.inbox) and (not self.groups or self.groups[-1].done())
+
+    def take(self) -> list[Group]:
+        """Every frame read so far, as the next groups (queued behind the earlier ones)."""
+        frames, self.inbox = self.inbox, []
+        groups = [Group(frames[a : a + self.max_group]) for a in range(0, len(frames), self.max_group)]
+        self.groups.extend(groups)
+        return groups
+
+    def answerable(self) -> Group | None:
+        """The oldest group, once its runs have finished: answers leave in the order frames came."""
+        return self.groups[0] if self.groups and self.groups[0].done() else None
+
+    def answered(self, group: Group) -> None:
+        """The oldest group's answers have been sent: its frames leave the window."""
+        if not self.groups or self.groups[0] is not group:
+            raise ValueError("groups are answered oldest first")
+        self.groups.popleft()
+        self.held -= len(group.frames)
+
+
+async def _start(group: Group, engine: Engine, limits: Limits, transport: str) -> None:
+    """Prepare the group's poses (off the event loop when many) and queue the valid ones as one request."""
+    poses = [f.pose for f in group.frames if f.pose is not None]
+    if not poses:
+        return
+    group.prepared = await offload(len(poses), prepare_poses, poses, limits)
+    if len(group.prepared.inputs):
+        try:
+            group.futures = await engine.submit_async(group.prepared.inputs, transport, wait_s=QUEUE_WAIT_S)
+        except LiftError as err:  # queue full for too long, or shutting down
+            group.failure = err
+
+
+async def _finish(group: Group, encode: Callable[[Answers], R]) -> R:
+    """The encoded answers of a group whose runs have finished (off the event loop when many): a
+    failed run fails its frames, not the stream."""
+    prediction = None
+    if group.futures:
+        try:
+            prediction = Prediction.join([f.result() for f in group.futures])
+        except Exception:  # one run's fault must not end the stream
+            log.exception("stream frames %d..: lifting failed", group.frames[0].frame_id)
+            group.failure = LiftError("internal error while lifting this frame")
+    return await offload(len(group.frames), _answer, group, prediction, encode)
+
+
+def _answer(group: Group, prediction: Prediction | None, encode: Callable[[Answers], R]) -> R:
+    """Build the replies of a group's valid poses and encode its answers, in one go."""
+    replies = None
+    if prediction is not None and group.prepared is not None:
+        first = group.frames[0].frame_id
+        try:
+            replies = build_replies(group.prepared.inputs, prediction)
+        except Exception:  # one group's fault must not end the stream
+            log.exception("stream frames %d..: building the replies failed", first)
+            group.failure = LiftError("internal error while lifting this frame")
+        else:
+            if replies.failed.any():  # counted as each frame is answered; one line, no traceback
+                log.error(
+                    "stream frames %d..: %s", first, ModelOutputError(replies.failed.nonzero()[0].tolist())
+                )
+    return encode(Answers(group.answers(replies), replies))
+
+
+class _Reader:
+    """Reads a stream's frames into its StreamState while the window has room, and wakes the loop
+    that answers them: when a frame arrives, a run finishes or the frames end."""
+
+    def __init__(self, frames: AsyncIterator[Frame], state: StreamState) -> None:
+        self.state = state
+        self.wake = asyncio.Event()  # something may be actionable
+        self.ended = False  # no frame will come any more
+        self.unreadable: Exception | None = None  # why the frames ended, if they failed
+        self._room = asyncio.Event()  # a group was answered: the window may have room again
+        self._loop = asyncio.get_running_loop()
+        self._task = asyncio.create_task(self._read(frames))
+
+    async def _read(self, frames: AsyncIterator[Frame]) -> None:
+        try:
+            async for frame in frames:
+                self.state.add(frame)
+                self.wake.set()
+                while not self.state.has_room():
+                    self._room.clear()
+                    await self._room.wait()
+        except Exception as err:  # what cannot be read ends the stream once the rest is answered
+            self.unreadable = err
+        finally:  # the client half-closed, cancelled or the call failed: nothing more to read
+            self.ended = True
+            self.wake.set()
+
+    def watch(self, group: Group) -> None:
+        """Wake the loop when the group's runs finish (on the engine's thread)."""
+        for future in group.futures:
+            future.add_done_callback(self._on_done)
+
+    def _on_done(self, _: object) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: the server has stopped
+            self._loop.call_soon_threadsafe(self.wake.set)
+
+    def answered(self, group: Group) -> None:
+        """The oldest group's answers were sent: its frames make room in the window."""
+        self.state.answered(group)
+        self._room.set()
+
+    async def next_event(self, idle_timeout_s: float) -> None:
+        """Wait until something may be actionable; StreamIdle when nothing is in progress and no
+        frame comes for `idle_timeout_s`."""
+        if self.state.can_take() or self.state.answerable() is not None:
+            return
+        if self.state.held or self.ended:
+            await self.wake.wait()
+        elif not await _wait(self.wake, idle_timeout_s):
+            raise StreamIdle(f"no frame for {idle_timeout_s:g} s")
+
+    def close(self) -> None:
+        """Stop reading."""
+        self._task.cancel()
+
+
+async def answer_stream(
+    frames: AsyncIterator[Frame],
+    engine: Engine,
+    limits: Limits,
+    encode: Callable[[Answers], R],
+    *,
+    window: int,
+    idle_timeout_s: float,
+    transport: str,
+) -> AsyncGenerator[R, None]:
+    """Read `frames` and yield their answers group by group, in frame order (see StreamState), as
+    encode(answers) gives them: the transport's results, built off the event loop with the replies.
+
+    Raises StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s`, and
+    UnreadableFrame (after answering the frames before it) when `frames` fails.
+    """
+    reader = _Reader(frames, StreamState(window, engine.max_batch))
+    state = reader.state
+    try:
+        while True:
+            reader.wake.clear()
+            if state.can_take():
+                for taken in state.take():
+                    await _start(taken, engine, limits, transport)
+                    reader.watch(taken)
+            while (group := state.answerable()) is not None:
+                yield await _finish(group, encode)
+                reader.answered(group)
+            if reader.ended and not state.held:
+                if reader.unreadable is not None:
+                    raise UnreadableFrame(str(reader.unreadable)) from reader.unreadable
+                return
+            await reader.next_event(idle_timeout_s)
+    finally:
+        reader.close()
+
+
+async def _wait(event: asyncio.Event, timeout_s: float) -> bool:
+    """Wait for `event`; False if `timeout_s` passed first."""
+    try:
+        await asyncio.wait_for(event.wait(), timeout_s)
+    except asyncio.TimeoutError:
+        return False
+    return True

@@ -1,0 +1,127 @@
+"""The reply: one declaration of its fields, checked against every carrier; geometry computed once."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service import client, geometry
+from service._proto.repnet.v1 import lifter_pb2
+from service.app import limits_of
+from service.cli import EXIT_OK, main
+from service.config import Settings
+from service.errors import ModelOutputError
+from service.keypoints import ModelInput, PoseInput, prepare_poses
+from service.lifter import Lifter, Prediction
+from service.replies import ANY, FIELDS, NAMES, Replies, build_replies
+from service.schemas import PoseResult
+from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_2D
+
+INTRINSICS = (FOCAL_PX, FOCAL_PX, *CENTRE_PX)
+
+
+def model_input(*intrinsics: tuple[float, float, float, float] | None) -> ModelInput:
+    """POSE_2D moved across the image, once per item of `intrinsics` (the pose's camera, or None)."""
+    poses = [
+        PoseInput(POSE_2D + [300.0 * i, 40.0 * i], np.ones(17, bool), intrinsics=camera)
+        for i, camera in enumerate(intrinsics)
+    ]
+    return prepare_poses(poses, limits_of(Settings())).check()
+
+
+def replies_of(lifter: Lifter, inputs: ModelInput) -> Replies:
+    return build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible))
+
+
+def test_every_carrier_of_the_reply_has_exactly_the_declared_fields(tmp_path: Path) -> None:
+    """FIELDS is the one declaration; the pydantic schema, the proto, the client and the CLI's output
+    rows must carry the same names in the same order, and the client the same matrix shapes."""
+    assert list(PoseResult.model_fields) == list(NAMES)
+    assert [f.name for f in lifter_pb2.PoseResult.DESCRIPTOR.fields] == list(NAMES)
+    assert client.LiftResult.pose_fields() == NAMES
+    matrices = {f.name: f.shape for f in FIELDS if f.kind is float and len(f.shape) == 2}
+    assert client._SHAPES == matrices
+    path, out = tmp_path / "poses.json", tmp_path / "out.json"
+    path.write_text(json.dumps({"keypoints": POSE_2D.tolist()}))
+    assert main(["lift", str(path), "--local", "-o", str(out)]) == EXIT_OK
+    (row,) = json.loads(out.read_text())["poses"]
+    assert list(row) == ["frame", "person", "input", *NAMES]
+
+
+def test_optional_fields_are_the_optional_ones_of_every_carrier() -> None:
+    optional = {f.name for f in FIELDS if f.optional}
+    assert optional == {name for name, info in PoseResult.model_fields.items() if not info.is_required()} - {
+        "warnings"  # a list: empty, never absent
+    }
+    proto = lifter_pb2.PoseResult.DESCRIPTOR.fields_by_name
+    assert optional == {name for name in NAMES if proto[name].has_presence}
+
+
+def test_each_field_has_its_declared_shape_and_kind_per_pose(lifter: Lifter) -> None:
+    replies = replies_of(lifter, model_input(None, INTRINSICS, None))
+    assert len(replies) == 3 and not replies.failed.any()
+    for field in FIELDS:
+        value = replies.columns[field.name]
+        if field.kind is str:
+            assert len(value) == 3 and all(isinstance(w, str) for row in value for w in row), field.name
+            continue
+        if value is None:
+            assert field.optional, field.name
+            continue
+        shape = tuple(17 if s == ANY else s for s in field.shape)
+        assert value.shape == (3, *shape), field.name
+        assert value.dtype == (np.float32 if field.kind is float else np.bool_), field.name
+    rows, protos = replies.to_json(), replies.to_proto()
+    assert [list(r) for r in rows] == [list(NAMES)] * 3
+    np.testing.assert_array_equal(np.reshape(protos[1].pose_3d_camera, (17, 3)), rows[1]["pose_3d_camera"])
+    assert np.shape(rows[1]["rotation"]) == (3, 3) and len(protos[1].rotation) == 9
+
+
+def test_pose_3d_camera_turns_along_the_ray_only_where_intrinsics_are_given(lifter: Lifter) -> None:
+    inputs = model_input(None, INTRINSICS)
+    columns = replies_of(lifter, inputs).columns
+    pose, rotation = columns["pose_3d"].astype(np.float64), columns["rotation"].astype(np.float64)
+    np.testing.assert_allclose(columns["pose_3d_camera"][0], pose[0] @ rotation[0].T, atol=1e-3)
+    ray = geometry.ray_rotation(
+        inputs.keypoints_2d[1:], inputs.visible[1:], np.full((1, 2), FOCAL_PX), CENTRE_PX[None]
+    )
+    turned = ray[0].astype(np.float64) @ rotation[1]
+    np.testing.assert_allclose(columns["pose_3d_camera"][1], pose[1] @ turned.T, atol=1e-3)
+    assert not np.allclose(columns["pose_3d_camera"][1], pose[1] @ rotation[1].T, atol=1.0)
+
+
+def test_a_pose_whose_geometry_is_not_finite_fails_alone(lifter: Lifter) -> None:
+    """A finite but absurd camera reprojects beyond float32: that pose fails as if the model had
+    given NaN (ModelOutputError for it alone), the others are answered."""
+    inputs = model_input(None, None, None)
+    prediction = lifter.lift(inputs.keypoints_2d, inputs.visible)
+    camera = prediction.camera.copy()
+    camera[1] = 1e37
+    replies = build_replies(inputs, replace(prediction, camera=camera))
+    assert replies.failed.tolist() == [False, True, False]
+    with pytest.raises(ModelOutputError) as failed:
+        replies.check()
+    assert failed.value.rows == (1,)
+    model_failed = replace(prediction, failed=np.array([False, False, True]))
+    assert build_replies(inputs, model_failed).failed.tolist() == [False, False, True]
+
+
+def test_a_model_without_plausibility_leaves_it_out(lifter: Lifter) -> None:
+    inputs = model_input(None)
+    prediction = replace(lifter.lift(inputs.keypoints_2d, inputs.visible), plausibility=None)
+    replies = build_replies(inputs, prediction)
+    assert replies.to_json()[0]["plausibility"] is None
+    assert not replies.to_proto()[0].HasField("plausibility")
+
+
+def test_replies_refuse_columns_other_than_the_declared_fields() -> None:
+    with pytest.raises(ValueError, match="expected the reply fields"):
+        Replies({"pose_3d": np.zeros((1, 17, 3))}, np.zeros(1, bool))
+
+
+def test_a_prediction_is_only_the_models_outputs() -> None:
+    assert [f for f in Prediction.__dataclass_fields__] == ["pose_3d", "camera", "failed", "plausibility"]

@@ -1,0 +1,231 @@
+"""Stream bookkeeping without a server: the window, groups, answers in order, idle and unreadable streams."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator, Callable
+from concurrent.futures import Future
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from service.engine import Engine
+from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Violation
+from service.keypoints import Limits, PoseInput, prepare_poses
+from service.lifter import Lifter
+from service.replies import build_replies
+from service.stream import (
+    Answer,
+    Answers,
+    Frame,
+    Group,
+    StreamIdle,
+    StreamState,
+    UnreadableFrame,
+    answer_stream,
+)
+from tests.conftest import POSE_2D, GatedLifter
+
+
+def pose(i: int) -> PoseInput:
+    return PoseInput(POSE_2D + [5.0 * i, -2.0 * i], np.ones(17, bool))
+
+
+def frame(i: int, error: LiftError | None = None) -> Frame:
+    return Frame(i, time.perf_counter(), None if error else pose(i), error)
+
+
+def same(answers: Answers) -> Answers:
+    """The encoding a transport would give the answers: here none."""
+    return answers
+
+
+def outcomes(answers: list[Answer]) -> list[int | str]:
+    """Each answer's row, or its error's class name."""
+    return [a.outcome if isinstance(a.outcome, int) else type(a.outcome).__name__ for a in answers]
+
+
+def test_the_window_bounds_what_a_stream_holds_from_read_to_answer() -> None:
+    state = StreamState(window=3, max_group=2)
+    for i in range(3):
+        assert state.has_room()
+        state.add(frame(i))
+    assert not state.has_room()
+    with pytest.raises(ValueError, match="window of 3 frames is full"):
+        state.add(frame(3))
+    first, second = state.take()  # every frame read, in groups of at most max_group
+    assert [f.frame_id for f in first.frames] == [0, 1] and [f.frame_id for f in second.frames] == [2]
+    assert not state.has_room()  # taken is not answered
+    with pytest.raises(ValueError, match="oldest first"):
+        state.answered(second)
+    assert state.answerable() is first  # no run: done at once
+    state.answered(first)
+    assert state.held == 1 and state.has_room() and state.answerable() is second
+
+
+def test_frames_read_during_a_run_wait_for_it_and_become_the_next_group() -> None:
+    state = StreamState(window=8, max_group=8)
+    state.add(frame(0))
+    (running,) = state.take()
+    running.futures = [Future()]  # its run has not finished
+    state.add(frame(1))
+    state.add(frame(2))
+    assert not state.can_take() and state.answerable() is None
+    running.futures[0].set_result(None)
+    assert state.can_take() and state.answerable() is running
+    (following,) = state.take()
+    assert [f.frame_id for f in following.frames] == [1, 2]
+
+
+def test_a_groups_answers_follow_its_frames(lifter: Lifter, limits: Limits) -> None:
+    """One index space: each frame in order gets why it has no pose, its pose's violations (named
+    within `pose`), its run's failure, or the next row of the replies."""
+    bad = replace(pose(2), points=np.full((17, 2), np.nan))
+    unreadable = InvalidKeypoints(
+        [Violation("pose.keypoints", "expected 2 values (x, y) per joint", "joint_count")]
+    )
+    frames = [frame(0), frame(1, error=unreadable), replace(frame(2), pose=bad), frame(3), frame(4)]
+    group = Group(frames, prepare_poses([f.pose for f in frames if f.pose is not None], limits))
+    inputs = group.prepared.inputs if group.prepared else None
+    assert inputs is not None and len(inputs) == 3
+    prediction = lifter.lift(inputs.keypoints_2d, inputs.visible)
+    replies = build_replies(inputs, replace(prediction, failed=np.array([False, True, False])))
+    answers = group.answers(replies)
+    assert [a.frame.frame_id for a in answers] == [0, 1, 2, 3, 4]
+    assert outcomes(answers) == [0, "InvalidKeypoints", "InvalidKeypoints", "ModelOutputError", 2]
+    assert answers[1].outcome is unreadable
+    named = answers[2].outcome
+    assert isinstance(named, InvalidKeypoints) and named.violations[0].field == "pose.keypoints[0]"
+    group.failure = ModelNotReady("shutting down")
+    assert (
+        outcomes(group.answers(None))
+        == ["ModelNotReady", "InvalidKeypoints", "InvalidKeypoints"] + ["ModelNotReady"] * 2
+    )
+
+
+async def source(
+    frames: list[Frame], pulled: list[int], pause: asyncio.Event | None = None, fail: Exception | None = None
+) -> AsyncIterator[Frame]:
+    """Yield `frames` (the first alone, the rest once `pause` is set), recording each frame pulled;
+    then raise `fail`, if given."""
+    for k, f in enumerate(frames):
+        if k == 1 and pause is not None:
+            await pause.wait()
+        pulled.append(f.frame_id)
+        yield f
+    if fail is not None:
+        raise fail
+
+
+async def collect(groups: AsyncIterator[Answers]) -> list[Answer]:
+    return [answer async for group in groups for answer in group.items]
+
+
+async def until(condition: Callable[[], bool]) -> None:
+    deadline = time.monotonic() + 10
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        await asyncio.sleep(0.005)
+
+
+def test_a_stream_is_answered_in_order_and_fills_batches(
+    engine_factory: Callable[..., Engine], gated: GatedLifter, limits: Limits
+) -> None:
+    """The frames that arrive while a run is in progress are lifted together after it, in groups of
+    at most max_batch, and every frame gets the answer to its own pose."""
+    engine = engine_factory(gated, max_batch=4, queue_size=64)
+    frames = [frame(i) for i in range(7)]
+
+    async def scenario() -> list[Answer]:
+        pulled: list[int] = []
+        more = asyncio.Event()
+        stream = answer_stream(
+            source(frames, pulled, more), engine, limits, same, window=16, idle_timeout_s=30, transport="test"
+        )
+        gated.gate.clear()
+        answered = asyncio.create_task(collect(stream))
+        await until(gated.entered.is_set)  # frame 0 is in its run
+        more.set()
+        await until(lambda: len(pulled) == 7)
+        gated.gate.set()
+        return await answered
+
+    answers = asyncio.run(scenario())
+    assert [a.frame.frame_id for a in answers] == list(range(7))
+    assert gated.batches == [1, 4, 2]
+    assert all(isinstance(a.outcome, int) for a in answers)
+
+
+def test_the_reader_stops_reading_when_the_window_is_full(
+    engine_factory: Callable[..., Engine], gated: GatedLifter, limits: Limits
+) -> None:
+    engine = engine_factory(gated, max_batch=64, queue_size=64)
+    frames = [frame(i) for i in range(10)]
+
+    async def scenario() -> tuple[list[int], list[Answer]]:
+        pulled: list[int] = []
+        stream = answer_stream(
+            source(frames, pulled), engine, limits, same, window=3, idle_timeout_s=30, transport="t"
+        )
+        gated.gate.clear()
+        answered = asyncio.create_task(collect(stream))
+        await until(gated.entered.is_set)
+        await asyncio.sleep(0.2)
+        held = list(pulled)  # no answer left: the reader waits for room
+        gated.gate.set()
+        return held, await answered
+
+    held, answers = asyncio.run(scenario())
+    assert held == [0, 1, 2]
+    assert [a.frame.frame_id for a in answers] == list(range(10))
+
+
+def test_an_unreadable_frame_ends_the_stream_after_the_frames_before_it(
+    engine: Engine, limits: Limits
+) -> None:
+    got: list[Answer] = []
+
+    async def scenario() -> None:
+        failing = source([frame(0), frame(1)], [], fail=ValueError("bytes that are no frame"))
+        async for group in answer_stream(
+            failing, engine, limits, same, window=8, idle_timeout_s=30, transport="t"
+        ):
+            got.extend(group.items)
+
+    with pytest.raises(UnreadableFrame) as raised:
+        asyncio.run(scenario())
+    assert [a.frame.frame_id for a in got] == [0, 1] and all(isinstance(a.outcome, int) for a in got)
+    assert str(raised.value) == "bytes that are no frame"
+
+
+def test_a_stream_without_frames_is_closed_as_idle(engine: Engine, limits: Limits) -> None:
+    async def silent() -> AsyncIterator[Frame]:
+        await asyncio.Event().wait()  # never sends, never ends
+        yield frame(0)
+
+    async def scenario() -> None:
+        async for _ in answer_stream(
+            silent(), engine, limits, same, window=8, idle_timeout_s=0.1, transport="t"
+        ):
+            pass
+
+    start = time.monotonic()
+    with pytest.raises(StreamIdle, match="no frame for 0.1 s"):
+        asyncio.run(scenario())
+    assert time.monotonic() - start < 5
+
+
+def test_frames_the_engine_refuses_get_its_error_and_the_stream_goes_on(
+    engine: Engine, limits: Limits
+) -> None:
+    engine.close(timeout=10)
+
+    async def scenario() -> list[Answer]:
+        frames = source([frame(0), frame(1)], [])
+        return await collect(
+            answer_stream(frames, engine, limits, same, window=8, idle_timeout_s=30, transport="t")
+        )
+
+    assert outcomes(asyncio.run(scenario())) == ["ModelNotReady", "ModelNotReady"]
