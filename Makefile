@@ -24,7 +24,7 @@ IMAGE ?= repnet:0.1.0
 help:
 	@echo "make serve           install the service and start it (HTTP :8000, gRPC :50051)"
 	@echo "make test            install everything (service, training, dev tools) and run all tests"
-	@echo "make lint            ruff check;  make typecheck: mypy on service/"
+	@echo "make lint            ruff check;  make typecheck: mypy on service/ (strict) and training/"
 	@echo "make container-test  build and run the image with podman for real (root; deploy/test-container.sh)"
 	@echo "make image           docker build -t $(IMAGE) .   (where a Docker engine runs)"
 
@@ -52,7 +52,7 @@ lint: $(STAMP_DIR)/.test-installed
 	$(PY) -m ruff check .
 
 typecheck: $(STAMP_DIR)/.test-installed
-	$(PY) -m mypy service
+	$(PY) -m mypy service training
 
 check: lint typecheck test
 

@@ -35,6 +35,8 @@ J = skeleton.NUM_JOINTS
 
 @dataclass(frozen=True)
 class Recipe:
+    """One training step to time: its name and configurations."""
+
     name: str
     config: TrainConfig
     model: RepNetConfig
@@ -98,6 +100,7 @@ class MatmulFlops(TorchDispatchMode):
 
 
 def random_pool(rng: np.random.Generator, n: int = 20000) -> data.TrainingPool:
+    """A training pool of n random poses (the step's cost does not depend on the data)."""
     poses = rng.normal(0, 300, (n, J, 3)).astype(np.float32)
     poses -= poses[:, :1]
     points = rng.uniform(300, 700, (n, J, 2)).astype(np.float32)
@@ -125,6 +128,7 @@ def _trainer(recipe: Recipe, compile_model: bool = False) -> Trainer:
 
 
 def measure(recipe: Recipe, seconds: float, compile_model: bool = False) -> dict[str, float | str]:
+    """Samples per second of the recipe's step over `seconds`, after a few warm-up steps."""
     trainer = _trainer(recipe, compile_model)
     for step in range(3):  # warm-up (and the compiler's first runs)
         trainer.step(step)
@@ -162,6 +166,7 @@ def profile(recipe: Recipe, steps: int, top: int = 12) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """python -m bench.train_step: time each recipe's step and print the table."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

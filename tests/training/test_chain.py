@@ -148,12 +148,14 @@ def test_a_chain_goes_on_from_a_seeded_stage_such_as_a_shipped_model(
     _run(seeded, synthetic_h36m, "--seed-stage", f"longer={shipped}")
     assert not (seeded / "warm").exists()  # nothing before the seed was trained
     done = json.loads((seeded / "longer" / chain.DONE).read_text())
-    assert done["seeded_from"]["path"] == "tiny.onnx" and done["step"] == presets.get("tiny").stage("longer").stop
+    assert done["seeded_from"]["path"] == "tiny.onnx"
+    assert done["step"] == presets.get("tiny").stage("longer").stop
     # "turned" started from the seed's generator: its first weights are the shipped file's.
     seed_weights = checkpoint.load(shipped)["generator"]
     turned_init = checkpoint.load(seeded / "longer" / "best.pt")["generator"]
     assert all(torch.equal(turned_init[k], v) for k, v in seed_weights.items())
     lineage = json.loads(Lifter.load(seeded / "tiny.onnx").info.metadata["lineage"])
     stages = [s.get("stage") for s in lineage["generator"]]
-    assert stages[-2:] == ["longer", "turned"] and lineage["generator"][-2]["seeded_from"]["path"] == "tiny.onnx"
+    assert stages[-2:] == ["longer", "turned"]
+    assert lineage["generator"][-2]["seeded_from"]["path"] == "tiny.onnx"
     assert lineage["generator"][-1]["parent"]["path"] == "longer/best.pt"
