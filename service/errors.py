@@ -25,8 +25,16 @@ def echo(value: str) -> str:
     return f"{value[:MAX_ECHO_CHARS]!r}… ({len(value)} characters)"
 
 
+def encodable(text: str) -> str:
+    """`text` with each character UTF-8 cannot encode escaped (a lone surrogate, which JSON's
+    \\ud800 escape can put in a key, becomes the six characters `\\ud800`): an error that quotes
+    a request's text must still be writable as JSON, a gRPC status or pydantic's message."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 def clip(text: str, limit: int) -> str:
-    """`text` cut to at most `limit` characters, marked where it was cut."""
+    """`text` cut to at most `limit` characters, marked where it was cut, and `encodable`."""
+    text = encodable(text)
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, Strict, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
-from service.errors import echo
+from service.errors import echo, encodable
 from service.formats import FORMATS
 
 # Strict: a JSON string such as "12" or a boolean is not a coordinate.
@@ -55,7 +55,7 @@ def reject_unknown_keys(model: type[BaseModel], data: Any) -> None:
             UNKNOWN_FIELD,
             "unknown field {name} is not permitted{more}; expected one of {expected}",
             {
-                "key": str(unknown[0]),
+                "key": encodable(str(unknown[0])),
                 "name": echo(str(unknown[0])),
                 "more": more,
                 "expected": ", ".join(model.model_fields),
