@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ctypes
+import errno
 import logging
+import resource
 import socket
 import struct
 import sys
@@ -17,6 +19,14 @@ log = logging.getLogger(__name__)
 
 # How long shutdown waits for a connection accepted just before it to send its request.
 FIRST_REQUEST_WAIT_S = 2.0
+# File descriptors kept free of HTTP connections: gRPC connections, health probes, the model, logs.
+RESERVED_FDS = 128
+# How long the accept path rests when the process is out of file descriptors.
+ACCEPT_RETRY_S = 0.1
+# Most connections taken per readable event: a connection closed to make room for a new one (the
+# idle longest, at the connection cap) frees its descriptor only on the loop's next turn, so a
+# bigger burst could run past the descriptors RESERVED_FDS keeps free.
+ACCEPT_BATCH = 64
 SO_ATTACH_FILTER = 26  # Linux <asm-generic/socket.h>; the socket module does not name it
 
 
@@ -31,6 +41,24 @@ def stop_handshakes(listener: socket.socket) -> None:
     program = struct.pack("HL", 1, ctypes.addressof(drop_all))  # struct sock_fprog
     with contextlib.suppress(OSError):
         listener.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, program)
+
+
+def raise_open_file_limit() -> None:
+    """Raise this process's soft limit of open files to its hard limit (as Go programs do at start):
+    a soft limit of 1024 would cap the connections a server holds far below what it can serve."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != hard:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+
+
+def connection_cap(wanted: int) -> int:
+    """At most `wanted` HTTP connections, and never so many that the process would run out of file
+    descriptors: then accept() fails, and with it the readiness probe and gRPC health."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return wanted
+    return max(1, min(wanted, soft - RESERVED_FDS))
 
 
 class HttpServer(uvicorn.Server):
@@ -54,7 +82,8 @@ class HttpServer(uvicorn.Server):
         don't accept() connections in a loop"), and asyncio up to 100. When the loop is busy, an
         iteration takes tens of milliseconds: 512 clients that connect within a second then wait
         in the listen backlog for seconds, and a health probe's fresh connection behind them times
-        out. The reader takes the whole backlog each time the listener is readable."""
+        out. The reader takes up to ACCEPT_BATCH waiting connections each time the listener is
+        readable (the listener stays readable while more wait)."""
         await super().startup(sockets)
         loop = asyncio.get_running_loop()
         for server in getattr(self, "servers", []):
@@ -66,13 +95,16 @@ class HttpServer(uvicorn.Server):
 
     def _accept_waiting(self, acceptor: socket.socket) -> None:
         loop = asyncio.get_running_loop()
-        for _ in range(max(self.config.backlog, 1)):
+        for _ in range(ACCEPT_BATCH - len(self._connecting)):  # those not yet handed to uvicorn count
             try:
                 connection, _ = acceptor.accept()
             except (BlockingIOError, InterruptedError):
                 return  # the backlog is empty (or the loop's own accept took the last one)
             except OSError as err:  # ECONNABORTED, or out of file descriptors (EMFILE)
                 log.warning("accepting a connection failed: %s", err)
+                if err.errno in (errno.EMFILE, errno.ENFILE):  # the listener stays readable: rest
+                    loop.remove_reader(acceptor.fileno())
+                    loop.call_later(ACCEPT_RETRY_S, self._resume_accepting, acceptor)
                 return
             connection.setblocking(False)
             if connection.family in (socket.AF_INET, socket.AF_INET6):
@@ -82,6 +114,10 @@ class HttpServer(uvicorn.Server):
             )
             self._connecting.add(task)
             task.add_done_callback(self._connecting.discard)
+
+    def _resume_accepting(self, acceptor: socket.socket) -> None:
+        if acceptor in self._acceptors:  # not closed by shutdown meanwhile
+            asyncio.get_running_loop().add_reader(acceptor.fileno(), self._accept_waiting, acceptor)
 
     def _stop_accepting(self) -> None:
         loop = asyncio.get_running_loop()
