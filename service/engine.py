@@ -132,9 +132,31 @@ class Engine:
 
     async def lift_async(self, inputs: ModelInput, transport: str) -> Prediction:
         """Queue `inputs` (Overloaded at once when the queue is full) and await their Prediction in
-        input order, for adapters on an event loop."""
+        input order, for adapters on an event loop. When the caller is cancelled (a gRPC call
+        cancelled or past its deadline), every chunk of it still queued is dropped."""
         futures = self.submit(inputs, transport)
-        return Prediction.join([await asyncio.wrap_future(f) for f in futures])
+        try:
+            return Prediction.join([await asyncio.wrap_future(f) for f in futures])
+        except asyncio.CancelledError:
+            self.drop(futures)
+            raise
+
+    def drop(self, futures: list[Future[Prediction]]) -> int:
+        """Take the chunks of `futures` that are still queued out of the queue and cancel them (a
+        chunk in a run already finishes); the number of poses dropped."""
+        wanted = {id(f) for f in futures}
+        with self._cond:
+            dropped = [c for c in self._queue if id(c.future) in wanted]
+            if not dropped:
+                return 0
+            self._queue = deque(c for c in self._queue if id(c.future) not in wanted)
+            poses = sum(len(c) for c in dropped)
+            self._queued -= poses
+            self._set_depth()
+            self._room_freed()
+        for chunk in dropped:
+            chunk.future.cancel()
+        return poses
 
     def _chunks(self, inputs: ModelInput, transport: str) -> list[_Chunk]:
         return [

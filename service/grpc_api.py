@@ -11,6 +11,7 @@ from typing import Any
 
 import grpc
 import numpy as np
+from google.protobuf.message import DecodeError
 
 from service._proto.repnet.v1 import lifter_pb2
 from service.engine import Engine, offload
@@ -26,7 +27,7 @@ from service.errors import (
 )
 from service.keypoints import DEFAULT_FORMAT, Limits, ModelInput, PoseInput, check_threshold, prepare_request
 from service.lifter import Prediction
-from service.metrics import OVERLOADED, Metrics, outcome_of
+from service.metrics import INVALID, OVERLOADED, Metrics, outcome_of
 from service.replies import build_replies
 from service.stream import POSE_FIELD, Answer, Answers, Frame, StreamIdle, UnreadableFrame, answer_stream
 
@@ -113,6 +114,21 @@ def frame_error(err: LiftError) -> lifter_pb2.FrameError:
     )
 
 
+class UnreadableRequest:
+    """What read_lift_request gives for bytes that are not a LiftRequest."""
+
+    message = "the request cannot be decoded as a repnet.v1.LiftRequest (protobuf)"
+
+
+def read_lift_request(data: bytes) -> lifter_pb2.LiftRequest | UnreadableRequest:
+    """Lift's request deserializer: the message, or UnreadableRequest for Lift to answer
+    INVALID_ARGUMENT (an exception here would reach the client as UNKNOWN with a class name)."""
+    try:
+        return lifter_pb2.LiftRequest.FromString(data)
+    except DecodeError:
+        return UnreadableRequest()
+
+
 def proto_replies(inputs: ModelInput, prediction: Prediction) -> list[lifter_pb2.PoseResult]:
     """The PoseResults of a Lift; ModelOutputError when the model failed on any of its poses."""
     return build_replies(inputs, prediction).check().to_proto()
@@ -157,8 +173,14 @@ class PoseLifterServicer:
         self.metrics.finish(TRANSPORT, method, OVERLOADED, 0.0)
         await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, message)
 
-    async def Lift(self, request: lifter_pb2.LiftRequest, context: Context) -> lifter_pb2.LiftResponse:
+    async def Lift(
+        self, request: lifter_pb2.LiftRequest | UnreadableRequest, context: Context
+    ) -> lifter_pb2.LiftResponse:
         """Lift a batch of poses: one PoseResult per pose, in order, or one status for the call."""
+        if isinstance(request, UnreadableRequest):
+            self.metrics.reject(TRANSPORT, [Violation("request", request.message, "malformed")])
+            self.metrics.finish(TRANSPORT, "Lift", INVALID, 0.0)
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, request.message)
         if self._unary >= self.max_unary:
             await self._refuse(
                 context, "Lift", f"too many Lift calls in progress (limit {self.max_unary}); retry later"

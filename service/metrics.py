@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
@@ -19,6 +20,9 @@ BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048)
 PLAUSIBILITY_BUCKETS = (0.01, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 
 OK, INVALID, OVERLOADED, UNAVAILABLE, ERROR = "ok", "invalid", "overloaded", "unavailable", "error"
+# The client cancelled the call, its deadline passed, or it went away before its request was read.
+CANCELLED = "cancelled"
+UNAUTHENTICATED = "unauthenticated"  # no valid API key (REPNET_API_KEYS_FILE)
 
 
 def outcome_of(error: BaseException | None) -> str:
@@ -31,6 +35,8 @@ def outcome_of(error: BaseException | None) -> str:
         return OVERLOADED
     if isinstance(error, ModelNotReady):
         return UNAVAILABLE
+    if isinstance(error, asyncio.CancelledError):  # grpc.aio cancels a call's task (client, deadline)
+        return CANCELLED
     return ERROR
 
 
