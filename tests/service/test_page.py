@@ -125,7 +125,8 @@ def driver() -> Iterator[Any]:
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
                 "--window-size=1560,1250", "--force-device-scale-factor=1"):  # fmt: skip
         options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    # performance: every request the page makes (tests/hardening/test_docs_offline.py)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL", "performance": "ALL"})
     browser = webdriver.Chrome(options=options, service=Service(executable_path=chromedriver))
     SHOTS.mkdir(parents=True, exist_ok=True)
     try:
