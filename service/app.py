@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import ssl
 import sys
 import threading
 from collections.abc import Sequence
@@ -17,13 +18,15 @@ from fastapi import FastAPI
 from prometheus_client import CollectorRegistry
 from pydantic import ValidationError
 
+from service.auth import ApiKeys
 from service.config import Settings
 from service.engine import Engine
 from service.errors import ModelLoadError
 from service.formats import MODEL_JOINTS
-from service.grpc_server import GrpcServer, create_server
+from service.grpc_server import GrpcServer, GrpcTls, create_server
 from service.http_api import create_app
-from service.http_server import HttpServer
+from service.http_protocol import ConnectionLimits, guarded_protocol
+from service.http_server import HttpServer, connection_cap, raise_open_file_limit
 from service.keypoints import Limits
 from service.lifter import Lifter
 from service.metrics import Metrics
@@ -152,7 +155,19 @@ def build_engine(lifter: Lifter, metrics: Metrics, settings: Settings) -> Engine
     )
 
 
-def build_app(engine: Engine, metrics: Metrics, settings: Settings) -> FastAPI:
+def read_api_keys(settings: Settings) -> ApiKeys | None:
+    """The keys of settings.api_keys_file (None: no authentication); OSError or ValueError when the
+    file cannot be read or holds no key. Only their number is logged."""
+    if settings.api_keys_file is None:
+        return None
+    keys = ApiKeys.read(settings.api_keys_file)
+    log.info("API keys: %d from %s", len(keys), settings.api_keys_file)
+    return keys
+
+
+def build_app(
+    engine: Engine, metrics: Metrics, settings: Settings, api_keys: ApiKeys | None = None
+) -> FastAPI:
     """The HTTP app on `engine` with the HTTP settings."""
     return create_app(
         engine,
@@ -161,16 +176,21 @@ def build_app(engine: Engine, metrics: Metrics, settings: Settings) -> FastAPI:
         max_body_bytes=settings.max_body_bytes,
         ui=settings.ui,
         max_in_flight=settings.http_max_in_flight,
+        api_keys=api_keys,
     )
 
 
-def build_grpc_server(engine: Engine, metrics: Metrics, settings: Settings) -> GrpcServer:
+def build_grpc_server(
+    engine: Engine, metrics: Metrics, settings: Settings, api_keys: ApiKeys | None = None
+) -> GrpcServer:
     """The gRPC server on `engine` (bound to host:grpc_port, not started) with the gRPC settings."""
     return create_server(
         engine,
         metrics,
         limits_of(settings),
         f"{settings.host}:{settings.grpc_port}",
+        tls=grpc_tls(settings),
+        api_keys=api_keys,
         workers=settings.grpc_workers,
         max_streams=settings.grpc_max_streams,
         stream_idle_timeout_s=settings.stream_idle_timeout_s,
@@ -179,24 +199,51 @@ def build_grpc_server(engine: Engine, metrics: Metrics, settings: Settings) -> G
     )
 
 
+def grpc_tls(settings: Settings) -> GrpcTls | None:
+    """The gRPC server's TLS files as read now (None: plaintext); OSError if one cannot be read."""
+    if settings.tls_cert is None or settings.tls_key is None:
+        return None
+    ca = None if settings.tls_client_ca is None else settings.tls_client_ca.read_bytes()
+    return GrpcTls(settings.tls_cert.read_bytes(), settings.tls_key.read_bytes(), ca)
+
+
 def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
     """Load the model (unless given) and wire both servers; nothing is started yet."""
     lifter = lifter or load_lifter(settings)
     metrics = Metrics(CollectorRegistry())
     metrics.set_model(lifter.info.model_id, lifter.info.skeleton)
     engine = build_engine(lifter, metrics, settings)
-    app = build_app(engine, metrics, settings)
-    grpc_server = build_grpc_server(engine, metrics, settings)
-    config = uvicorn.Config(
+    api_keys = read_api_keys(settings)
+    app = build_app(engine, metrics, settings, api_keys)
+    grpc_server = build_grpc_server(engine, metrics, settings, api_keys)
+    return Service(settings, engine, metrics, app, grpc_server, HttpServer(http_config(app, settings)))
+
+
+def http_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
+    """uvicorn's configuration of the HTTP server: its connections guarded (service/http_protocol.py),
+    over TLS when tls_cert is set (requiring a client certificate when tls_client_ca is)."""
+    limits = ConnectionLimits(
+        header_timeout_s=settings.http_header_timeout_s,
+        max_header_bytes=settings.http_max_header_bytes,
+        body_timeout_s=settings.http_body_timeout_s,
+        body_min_rate=settings.http_body_min_rate,
+        max_connections=connection_cap(settings.http_max_connections),
+    )
+    ca = settings.tls_client_ca
+    return uvicorn.Config(
         app,
         host=settings.host,
         port=settings.http_port,
+        http=guarded_protocol(limits),
         log_level=settings.log_level,
         access_log=settings.log_level == "debug",  # one line per request costs more than a lift
         timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
         lifespan="off",
+        ssl_certfile=settings.tls_cert,
+        ssl_keyfile=settings.tls_key,
+        ssl_cert_reqs=ssl.CERT_REQUIRED if ca is not None else ssl.CERT_NONE,
+        ssl_ca_certs=ca,
     )
-    return Service(settings, engine, metrics, app, grpc_server, HttpServer(config))
 
 
 def parse_settings(argv: Sequence[str] | None) -> Settings:
@@ -228,9 +275,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
+    raise_open_file_limit()
     try:
         service = build_service(settings)
-    except (ModelLoadError, OSError) as err:
+    except (ModelLoadError, OSError, ValueError) as err:  # ValueError: an API keys file without keys
         log.error("cannot start: %s", err)
         return 1
     return serve(service)

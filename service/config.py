@@ -20,7 +20,11 @@ class Settings(BaseSettings):
     model_path: Path = Field(
         default=BUNDLED_MODEL, description="ONNX model file (the bundled model by default)"
     )
-    host: str = Field(default="0.0.0.0", description="address both servers bind to")
+    host: str = Field(
+        default="127.0.0.1",
+        description="address both servers bind to (this machine only; the container image sets "
+        "0.0.0.0 so that the ports it publishes reach it)",
+    )
     http_port: int = Field(default=8000, ge=0, le=65535, description="HTTP port (0: any free port)")
     grpc_port: int = Field(default=50051, ge=0, le=65535, description="gRPC port (0: any free port)")
     intra_op_threads: int = Field(
@@ -53,6 +57,45 @@ class Settings(BaseSettings):
         description="most POST /lift requests in progress at once; beyond: 503 with Retry-After at "
         "once, before the body is read (health, readiness and metrics are never refused)",
     )
+    http_header_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="a connection whose request line and headers are not complete this long after "
+        "it opened (or after its request's first byte) is closed (408 once part of a request came)",
+    )
+    http_max_header_bytes: int = Field(
+        default=64 * 1024, ge=1024, description="largest request line and headers; beyond: 431, closed"
+    )
+    http_body_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="time a request body has to arrive, plus 1 s per http_body_min_rate bytes "
+        "received; beyond: 408, closed",
+    )
+    http_body_min_rate: int = Field(
+        default=16 * 1024,
+        ge=1,
+        description="bytes per second a body must average after http_body_timeout_s",
+    )
+    http_max_connections: int = Field(
+        default=1000,
+        ge=1,
+        description="most HTTP connections open at once (never more than the limit of open files less 128); "
+        "beyond, the connection idle longest is closed, or the new one when none is idle",
+    )
+    tls_cert: Path | None = Field(
+        default=None, description="PEM certificate chain: serve HTTPS and gRPC over TLS (with tls_key)"
+    )
+    tls_key: Path | None = Field(default=None, description="PEM private key of tls_cert")
+    tls_client_ca: Path | None = Field(
+        default=None,
+        description="PEM CA certificates: require a client certificate signed by one (mutual TLS)",
+    )
+    api_keys_file: Path | None = Field(
+        default=None,
+        description="file of API keys, one per line: /lift, /v1/* and both gRPC methods then need "
+        "one (HTTP `Authorization: Bearer KEY`, gRPC `authorization` metadata)",
+    )
     max_batch: int = Field(default=256, ge=1, description="most poses in one onnxruntime run")
     max_wait_ms: float = Field(
         default=0.5,
@@ -81,6 +124,14 @@ class Settings(BaseSettings):
     )
     ui: bool = Field(default=True, description="serve the web page at GET / (false: the API alone)")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @model_validator(mode="after")
+    def _check_tls(self) -> Settings:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together: give both or neither")
+        if self.tls_client_ca is not None and self.tls_cert is None:
+            raise ValueError("tls_client_ca (mutual TLS) needs tls_cert and tls_key")
+        return self
 
     @model_validator(mode="after")
     def _check_queue(self) -> Settings:

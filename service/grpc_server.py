@@ -5,21 +5,24 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-from collections.abc import Callable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine
 from concurrent import futures
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, TypeAlias
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from service._proto.repnet.v1 import lifter_pb2_grpc
+from service._proto.repnet.v1 import lifter_pb2
+from service.auth import UNAUTHENTICATED_MESSAGE, ApiKeys
 from service.engine import Engine
-from service.grpc_api import SERVICE_NAME, PoseLifterServicer
+from service.grpc_api import SERVICE_NAME, TRANSPORT, PoseLifterServicer, read_lift_request
 from service.keypoints import Limits
-from service.metrics import Metrics
+from service.metrics import UNAUTHENTICATED, Metrics
 
 log = logging.getLogger(__name__)
+Handler: TypeAlias = "grpc.RpcMethodHandler[Any, Any]"  # generic in the stubs only
 
 
 def _log_failure(done: futures.Future[None]) -> None:
@@ -114,12 +117,87 @@ class GrpcServer:
                 self.loop.close()
 
 
+@dataclass(frozen=True)
+class GrpcTls:
+    """What the gRPC server serves TLS with: PEM bytes; client_ca set: mutual TLS."""
+
+    cert_chain: bytes
+    private_key: bytes
+    client_ca: bytes | None = None
+
+    def credentials(self) -> grpc.ServerCredentials:
+        """The server credentials (requiring a client certificate signed by client_ca, if set)."""
+        return grpc.ssl_server_credentials(
+            [(self.private_key, self.cert_chain)],
+            root_certificates=self.client_ca,
+            require_client_auth=self.client_ca is not None,
+        )
+
+
+async def _deny_unary(request: object, context: grpc.aio.ServicerContext[Any, Any]) -> None:
+    await context.abort(grpc.StatusCode.UNAUTHENTICATED, UNAUTHENTICATED_MESSAGE)
+
+
+async def _deny_stream(requests: object, context: grpc.aio.ServicerContext[Any, Any]) -> None:
+    await context.abort(grpc.StatusCode.UNAUTHENTICATED, UNAUTHENTICATED_MESSAGE)
+
+
+class ApiKeyInterceptor(grpc.aio.ServerInterceptor):
+    """repnet.v1.PoseLifter's methods need `authorization: Bearer KEY` metadata with a key of `keys`;
+    otherwise UNAUTHENTICATED with one message whatever was wrong. Health and reflection stay open."""
+
+    def __init__(self, keys: ApiKeys, metrics: Metrics) -> None:
+        self.keys = keys
+        self.metrics = metrics
+
+    async def intercept_service(
+        self,
+        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[Handler | None]],
+        handler_call_details: grpc.HandlerCallDetails,
+    ) -> Handler | None:
+        """The method's handler, or one that refuses the call."""
+        details = handler_call_details
+        handler = await continuation(details)
+        service, _, method = details.method.lstrip("/").partition("/")
+        if handler is None or service != SERVICE_NAME:
+            return handler
+        header = next((v for k, v in details.invocation_metadata or () if k == "authorization"), None)
+        if self.keys.accepts_header(header if isinstance(header, str) else None):
+            return handler
+        self.metrics.finish(TRANSPORT, method, UNAUTHENTICATED, 0.0)
+        if handler.request_streaming:
+            return grpc.stream_stream_rpc_method_handler(_deny_stream)
+        return grpc.unary_unary_rpc_method_handler(_deny_unary)
+
+
+def add_servicer(servicer: PoseLifterServicer, server: grpc.aio.Server) -> None:
+    """Register repnet.v1.PoseLifter as the generated add_PoseLifterServicer_to_server does, but
+    with Lift's request read by read_lift_request: grpcio answers a message that fails to decode
+    with UNKNOWN and a Python class name before any servicer code runs."""
+    handlers: dict[str, Handler] = {
+        "Lift": grpc.unary_unary_rpc_method_handler(
+            servicer.Lift,
+            request_deserializer=read_lift_request,
+            response_serializer=lifter_pb2.LiftResponse.SerializeToString,
+        ),
+        "LiftStream": grpc.stream_stream_rpc_method_handler(
+            servicer.LiftStream,
+            request_deserializer=lifter_pb2.LiftFrame.FromString,
+            response_serializer=lifter_pb2.LiftFrameResult.SerializeToString,
+        ),
+    }
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE_NAME, handlers),))
+    server.add_registered_method_handlers(SERVICE_NAME, handlers)
+
+
 def create_server(
     engine: Engine,
     metrics: Metrics,
     limits: Limits,
     address: str,
     *,
+    tls: GrpcTls | None,
+    api_keys: ApiKeys | None,
     workers: int,
     max_streams: int,
     stream_idle_timeout_s: float,
@@ -130,12 +208,14 @@ def create_server(
 
     At most `workers` Lift calls and `max_streams` open streams at once; calls beyond get
     RESOURCE_EXHAUSTED. Health and reflection have no limit: a health check always answers.
+    `tls`: serve over TLS (None: plaintext). `api_keys`: the PoseLifter methods need one (None: open).
     """
 
     async def build(status: Health) -> tuple[grpc.aio.Server, int]:
         server = grpc.aio.server(
             # so_reuseport 0: a second server on a taken port fails instead of sharing it.
             options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.so_reuseport", 0)],
+            interceptors=[] if api_keys is None else [ApiKeyInterceptor(api_keys, metrics)],
         )
         servicer = PoseLifterServicer(
             engine,
@@ -146,12 +226,15 @@ def create_server(
             max_streams=max_streams,
             stream_idle_timeout_s=stream_idle_timeout_s,
         )
-        lifter_pb2_grpc.add_PoseLifterServicer_to_server(servicer, server)  # type: ignore[no-untyped-call]
+        add_servicer(servicer, server)
         health_pb2_grpc.add_HealthServicer_to_server(status.servicer, server)
         names = (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME)
         reflection.enable_server_reflection(names, server)
         try:
-            port = server.add_insecure_port(address)
+            if tls is None:
+                port = server.add_insecure_port(address)
+            else:
+                port = server.add_secure_port(address, tls.credentials())
         except RuntimeError as err:  # grpc's way to say the port is taken
             raise OSError(f"cannot bind the gRPC server to {address}: {err}") from err
         if port == 0:

@@ -3,47 +3,35 @@
 from __future__ import annotations
 
 import logging
-import time
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import pydantic_core
 from fastapi import FastAPI, Request
-from fastapi.exception_handlers import http_exception_handler
-from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from starlette.exceptions import HTTPException
 
+from service.api_docs import add_docs
+from service.auth import ApiKeys
 from service.engine import Engine, offload
-from service.errors import (
-    MAX_ECHO_CHARS,
-    MAX_ERROR_ITEMS,
-    InvalidKeypoints,
-    LiftError,
-    ModelNotReady,
-    ModelOutputError,
-    Overloaded,
-    Violation,
-    clip,
-)
+from service.errors import InvalidKeypoints, Violation
 from service.formats import FORMATS
+from service.http_errors import add_error_handlers
 from service.http_middleware import (
-    OUTCOME_KEY,
     STARTED_KEY,
+    ApiKeyMiddleware,
     BodyLimitMiddleware,
     LiftMetricsMiddleware,
     LoadShedMiddleware,
+    SecurityHeadersMiddleware,
 )
 from service.keypoints import Limits, ModelInput, PoseInput, prepare_request
 from service.lifter import ModelInfo, Prediction
-from service.metrics import INVALID, Metrics, outcome_of
+from service.metrics import Metrics
 from service.page import add_page
 from service.replies import build_replies
 from service.schemas import (
     FRAME_DOC,
-    UNKNOWN_FIELD,
     ErrorResponse,
     FormatInfo,
     LiftRequest,
@@ -56,7 +44,12 @@ from service.schemas import (
 log = logging.getLogger(__name__)
 
 ERRORS: dict[int | str, dict[str, Any]] = {
-    400: {"model": ErrorResponse, "description": "The body is not UTF-8 JSON, or is nested too deeply."},
+    400: {
+        "model": ErrorResponse,
+        "description": "The body is not UTF-8 JSON, is nested too deeply, or has a number of "
+        "thousands of digits.",
+    },
+    401: {"model": ErrorResponse, "description": "No valid API key (only when REPNET_API_KEYS_FILE is set)."},
     413: {"model": ErrorResponse, "description": "The body is larger than the limit."},
     422: {"model": ErrorResponse, "description": "A field breaks an input rule; `detail` names it."},
     503: {"model": ErrorResponse, "description": "Queue full or shutting down; retry later."},
@@ -133,71 +126,6 @@ def reply_of(info: ModelInfo, inputs: ModelInput, prediction: Prediction) -> Lif
     return LiftJSONResponse({"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses})
 
 
-def error_item(v: Violation) -> dict[str, Any]:
-    """One violation as an item of a 4xx body's `detail`."""
-    return {
-        "field": v.field,
-        "reason": v.reason,
-        "message": v.message,
-        "code": v.code,
-        "pose": v.pose,
-        "joint": v.joint,
-        "joint_name": v.joint_name,
-    }
-
-
-def error_body(violations: Sequence[Violation]) -> dict[str, Any]:
-    """The body of a 4xx: the first MAX_ERROR_ITEMS violations as items, and how many there were."""
-    return {
-        "detail": [error_item(v) for v in violations[:MAX_ERROR_ITEMS]],
-        "error_count": len(violations),
-    }
-
-
-def _loc_part(part: Any) -> str:
-    """One step of a pydantic error location in a field name; a key from the request is cut short."""
-    return f"[{part}]" if isinstance(part, int) else "." + clip(str(part), MAX_ECHO_CHARS)
-
-
-def violations_of(errors: Sequence[Any]) -> list[Violation]:
-    """Pydantic's errors as Violations, naming the field like the core does: poses[0].keypoints[3]."""
-    found = []
-    for error in errors:
-        loc = [p for p in error.get("loc", ()) if p != "body"]
-        if error.get("type") == UNKNOWN_FIELD:  # the key the error is about
-            loc.append(str((error.get("ctx") or {}).get("key", "")))
-        if error.get("type") == "json_invalid":
-            loc = []
-        field = "".join(_loc_part(p) for p in loc).lstrip(".") or "body"
-        pose = loc[1] if len(loc) > 1 and loc[0] == "poses" and isinstance(loc[1], int) else None
-        joint = None
-        if (
-            pose is not None
-            and len(loc) > 3
-            and loc[2] in ("keypoints", "confidence")
-            and isinstance(loc[3], int)
-        ):
-            joint = loc[3]
-        reason = str(error.get("msg", "invalid"))
-        if ctx_error := (error.get("ctx") or {}).get("error"):
-            reason = f"{reason}: {ctx_error}"
-        code = "malformed_json" if error.get("type") == "json_invalid" else "malformed"
-        found.append(Violation(field, reason, code, pose=pose, joint=joint))
-    return found
-
-
-def content_type_violation(content_type: str | None, violations: Sequence[Violation]) -> Violation | None:
-    """What to say when the body was not read as JSON because its content-type is not JSON (FastAPI
-    then validates the raw body and says "Input should be a valid dictionary"); None otherwise."""
-    if (content_type and "json" in content_type.lower()) or not any(v.field == "body" for v in violations):
-        return None
-    got = f"content-type: {clip(content_type, MAX_ECHO_CHARS)}" if content_type else "no content-type"
-    reason = f"expected a JSON body with content-type: application/json, got {got}"
-    if content_type and "form" in content_type:
-        reason += " (curl -d sends a form: add -H 'content-type: application/json')"
-    return Violation("body", reason, "content_type")
-
-
 def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
     """What GET /v1/model says: the model, its joints and formats, the limits, its public metadata."""
     formats = [
@@ -232,68 +160,39 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
     )
 
 
-def error_response(err: Exception) -> JSONResponse:
-    """The answer to a core error: 422 with the violations, 503 to retry, 500 for the model's fault."""
-    if isinstance(err, InvalidKeypoints):
-        return JSONResponse(error_body(err.violations), status_code=422)
-    if isinstance(err, Overloaded | ModelNotReady):
-        return JSONResponse({"detail": str(err)}, status_code=503, headers={"Retry-After": "1"})
-    if isinstance(err, ModelOutputError):  # counted by the handler; one line, no traceback
-        log.error("POST /lift: %s", err)
-        return JSONResponse({"detail": str(err)}, status_code=500)
-    raise err  # any other LiftError is a server fault: the 500 handler logs it
-
-
-def add_error_handlers(app: FastAPI, metrics: Metrics) -> None:
-    """The one error path of the API: core errors, pydantic's and FastAPI's 400 as JSON error bodies."""
-
-    @app.exception_handler(LiftError)
-    async def handle_lift_error(request: Request, err: Exception) -> JSONResponse:
-        setattr(request.state, OUTCOME_KEY, outcome_of(err))
-        metrics.count_error("http", err)
-        return error_response(err)
-
-    @app.exception_handler(RequestValidationError)
-    async def handle_validation_error(request: Request, err: Exception) -> JSONResponse:
-        if (started := getattr(request.state, STARTED_KEY, None)) is not None:  # rejected while parsed
-            metrics.parse_seconds.labels(transport="http").observe(time.perf_counter() - started)
-        violations = violations_of(err.errors() if isinstance(err, RequestValidationError) else [])
-        if not_json := content_type_violation(request.headers.get("content-type"), violations):
-            violations = [not_json]
-        setattr(request.state, OUTCOME_KEY, INVALID)
-        metrics.reject("http", violations)
-        return JSONResponse(error_body(violations), status_code=422)
-
-    @app.exception_handler(HTTPException)
-    async def handle_http_error(request: Request, err: Exception) -> Response:
-        """FastAPI answers 400 to a body it cannot decode (not UTF-8, nested too deep): name it."""
-        if not isinstance(err, HTTPException):
-            raise err
-        if err.status_code != 400 or request.url.path != "/lift":
-            return await http_exception_handler(request, err)
-        reason = "the body cannot be decoded as JSON (invalid UTF-8 or nested too deeply)"
-        violation = Violation("body", reason, "malformed_json")
-        setattr(request.state, OUTCOME_KEY, INVALID)
-        metrics.reject("http", [violation])
-        return JSONResponse(error_body([violation]), status_code=400)
-
-
 def create_app(
-    engine: Engine, metrics: Metrics, limits: Limits, *, max_body_bytes: int, ui: bool, max_in_flight: int
+    engine: Engine,
+    metrics: Metrics,
+    limits: Limits,
+    *,
+    max_body_bytes: int,
+    ui: bool,
+    max_in_flight: int,
+    api_keys: ApiKeys | None,
 ) -> FastAPI:
     """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
     `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
-    requests in progress, the next is answered 503 at once."""
+    requests in progress, the next is answered 503 at once. `api_keys`: POST /lift and /v1/* need
+    one of them (None: open)."""
     info = engine.lifter.info
     app = FastAPI(
         title="RepNet pose lifting",
         version="1.0.0",
         description="Lifts 2D human keypoints to a 3D pose and a weak-perspective camera "
         "(RepNet, Wandt & Rosenhahn, CVPR 2019).\n\n" + FRAME_DOC,
+        # Starlette would answer /lift/ with a redirect to an absolute URL built from the request's
+        # Host header (an open redirect behind a proxy that passes Host on): /lift/ is a 404.
+        redirect_slashes=False,
+        docs_url=None,  # add_docs: Swagger UI from this package, not a CDN
+        redoc_url=None,
     )
-    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
+    # Each add wraps the ones before: the last added runs first.
     app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
-    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)  # added last: outermost
+    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)  # while read
+    if api_keys is not None:
+        app.add_middleware(ApiKeyMiddleware, keys=api_keys)
+    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)
+    app.add_middleware(SecurityHeadersMiddleware)
 
     add_error_handlers(app, metrics)
 
@@ -320,6 +219,9 @@ def create_app(
             return JSONResponse({"detail": "shutting down"}, status_code=503)
         return JSONResponse({"status": "ready", "model_id": info.model_id})
 
+    for path, probe in (("/healthz", healthz), ("/readyz", readyz)):  # HEAD: 200 without a body
+        app.add_api_route(path, probe, methods=["HEAD"], include_in_schema=False)
+
     @app.get("/v1/model", response_model=ModelDescription, summary="Model, joints, formats and limits")
     async def model() -> ModelDescription:
         return describe_model(info, limits, engine, max_body_bytes)
@@ -328,6 +230,7 @@ def create_app(
     async def prometheus() -> Response:
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
+    add_docs(app)
     if ui:
         add_page(app)
     return app

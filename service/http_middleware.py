@@ -1,4 +1,4 @@
-"""ASGI middleware of the HTTP API: the request body size limit and request metrics."""
+"""ASGI middleware of the HTTP API: API keys, the body size limit, load shedding, request metrics, headers."""
 
 from __future__ import annotations
 
@@ -8,14 +8,16 @@ from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.auth import UNAUTHENTICATED_MESSAGE, ApiKeys
 from service.errors import Violation
-from service.metrics import ERROR, INVALID, OK, OVERLOADED, UNAVAILABLE, Metrics
+from service.metrics import CANCELLED, ERROR, INVALID, OK, OVERLOADED, UNAUTHENTICATED, UNAVAILABLE, Metrics
 
 # Key in the ASGI scope's state where exception handlers leave the outcome of a request.
 OUTCOME_KEY = "repnet_outcome"
 # Key in the ASGI scope's state: time.perf_counter() when a POST /lift arrived (the parse histogram).
 STARTED_KEY = "repnet_started"
 LIFT_PATH = "/lift"
+NOSNIFF = (b"x-content-type-options", b"nosniff")
 
 
 class _BodyTooLarge(Exception):
@@ -100,10 +102,15 @@ def _is_lift(scope: Scope) -> bool:
 
 class LoadShedMiddleware:
     """While max_in_flight POST /lift requests are in progress, answer the next with 503 and
-    Retry-After at once, before its body is read or parsed. The batch queue's limit counts poses,
-    so it would let 1024 one-pose requests in (p99 8 s), and it is reached only after each body
-    is parsed; this bound keeps the event loop's own queue short, so that health, readiness and
-    metrics, which pass untouched, answer in milliseconds under any load."""
+    Retry-After at once. The batch queue's limit counts poses, so it would let 1024 one-pose
+    requests in (p99 8 s), and it is reached only after each body is parsed; this bound keeps the
+    event loop's own queue short, so that health, readiness and metrics, which pass untouched,
+    answer in milliseconds under any load.
+
+    A request takes its slot only once its whole body has arrived: a client that sends headers and
+    then trickles its body (or nothing) holds no slot, so a few hundred of them cannot refuse
+    everyone else (the connection layer, service/http_protocol.py, answers them 408). When the
+    slots are already all taken as a request arrives, it is refused before its body is read."""
 
     def __init__(self, app: ASGIApp, max_in_flight: int) -> None:
         self.app = app
@@ -111,20 +118,53 @@ class LoadShedMiddleware:
         self.in_flight = 0  # on the server's one event loop: no lock
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        """Pass POST /lift on while fewer than max_in_flight are in progress, else answer 503 at once."""
+        """Read a POST /lift's body, then pass it on while fewer than max_in_flight are in
+        progress, else answer 503 at once."""
         if not _is_lift(scope):
             await self.app(scope, receive, send)
             return
         if self.in_flight >= self.max_in_flight:
-            scope.setdefault("state", {})[OUTCOME_KEY] = OVERLOADED
-            detail = f"too many requests in progress (limit {self.max_in_flight}); retry later"
-            await send_json(send, 503, {"detail": detail}, (b"retry-after", b"1"))
+            await self._refuse(scope, send)
+            return
+        body = await _read_body(receive)
+        if body is None:  # the client went away (or the connection layer timed it out)
+            scope.setdefault("state", {})[OUTCOME_KEY] = CANCELLED
+            return
+        if self.in_flight >= self.max_in_flight:
+            await self._refuse(scope, send)
             return
         self.in_flight += 1
         try:
-            await self.app(scope, receive, send)
+            await self.app(scope, _replay(body, receive), send)
         finally:
             self.in_flight -= 1
+
+    async def _refuse(self, scope: Scope, send: Send) -> None:
+        scope.setdefault("state", {})[OUTCOME_KEY] = OVERLOADED
+        detail = f"too many requests in progress (limit {self.max_in_flight}); retry later"
+        await send_json(send, 503, {"detail": detail}, (b"retry-after", b"1"))
+
+
+async def _read_body(receive: Receive) -> list[Message] | None:
+    """Every http.request message of a body, up to the last; None if the client disconnects first."""
+    messages = []
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            return None
+        messages.append(message)
+        if not message.get("more_body", False):
+            return messages
+
+
+def _replay(messages: list[Message], receive: Receive) -> Receive:
+    """A receive channel that gives `messages` again, then whatever `receive` gives (a disconnect)."""
+    pending = list(messages)
+
+    async def replay() -> Message:
+        return pending.pop(0) if pending else await receive()
+
+    return replay
 
 
 def _content_length(scope: Scope) -> int | None:
@@ -135,6 +175,55 @@ def _content_length(scope: Scope) -> int | None:
             except ValueError:
                 return None
     return None
+
+
+class SecurityHeadersMiddleware:
+    """`X-Content-Type-Options: nosniff` on every reply that does not set it itself: a browser must
+    not guess a reply's type (an error quoting a request's text read as HTML)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Pass the request on; add the header to its reply."""
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                if not any(name.lower() == NOSNIFF[0] for name, _ in headers):
+                    message = {**message, "headers": [*headers, NOSNIFF]}
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
+class ApiKeyMiddleware:
+    """POST /lift and /v1/* need `Authorization: Bearer KEY` with a key of `keys`; otherwise 401
+    with one message whatever was wrong (missing, malformed or unknown key). Health, readiness,
+    metrics, the page and the API docs stay open."""
+
+    def __init__(self, app: ASGIApp, keys: ApiKeys) -> None:
+        self.app = app
+        self.keys = keys
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Pass the request on, or answer 401."""
+        if scope["type"] != "http" or not _needs_key(scope["path"]):
+            await self.app(scope, receive, send)
+            return
+        header = next((v for n, v in scope.get("headers", []) if n == b"authorization"), None)
+        if self.keys.accepts_header(None if header is None else header.decode("latin-1")):
+            await self.app(scope, receive, send)
+            return
+        scope.setdefault("state", {})[OUTCOME_KEY] = UNAUTHENTICATED
+        await send_json(send, 401, {"detail": UNAUTHENTICATED_MESSAGE}, (b"www-authenticate", b"Bearer"))
+
+
+def _needs_key(path: str) -> bool:
+    return path == LIFT_PATH or path.startswith("/v1/")
 
 
 def outcome_of_status(status: int, state: dict[str, Any]) -> str:

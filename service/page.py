@@ -40,7 +40,7 @@ def add_page(app: FastAPI) -> None:
     index = (STATIC_DIR / "index.html").read_bytes()
     assets = {name: (STATIC_DIR / name).read_bytes() for name in ASSETS}
 
-    @app.get("/", include_in_schema=False)
+    @app.api_route("/", methods=["GET", "HEAD"], include_in_schema=False)
     async def page() -> Response:
         return Response(index, media_type="text/html; charset=utf-8", headers=HEADERS)
 
