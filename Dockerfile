@@ -38,6 +38,8 @@ RUN groupadd --gid 10001 repnet \
     && useradd --uid 10001 --gid 10001 --no-create-home --home-dir /nonexistent --shell /usr/sbin/nologin repnet
 COPY --from=build /opt/repnet /opt/repnet
 # ORT_DISABLE_TELEMETRY: onnxruntime >= 1.29 sends usage telemetry on Linux unless told not to.
+# REPNET_HOST: the service binds 127.0.0.1 by default (a workstation's `make serve` stays private);
+# in a container that is the container's own loopback, which published ports never reach.
 ENV PATH=/opt/repnet/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \

@@ -63,10 +63,9 @@ def _progress(items: Sequence[T], unit: str) -> Iterable[T]:
 Intrinsics = tuple[float, float, float, float]
 
 
-def _remote_lift(
-    url: str, fmt: str, threshold: float | None, timeout: float, intrinsics: Intrinsics | None
-) -> tuple[Lift, LiftClient]:
-    client = LiftClient(url, timeout=timeout)
+def _remote_lift(args: argparse.Namespace, fmt: str) -> tuple[Lift, LiftClient]:
+    client = LiftClient(args.url, timeout=args.timeout, api_key=args.api_key, ca_file=args.ca_file)
+    threshold, intrinsics = args.confidence_threshold, args.intrinsics
 
     def lift(points: np.ndarray, conf: np.ndarray | None) -> list[LiftResult]:
         return client.lift_batch(
@@ -180,7 +179,7 @@ def run_lift(args: argparse.Namespace) -> int:
         lift = _local_lift(args.model, fmt, args.confidence_threshold, args.batch_size, args.intrinsics)
         close = None
     else:
-        lift, close = _remote_lift(args.url, fmt, args.confidence_threshold, args.timeout, args.intrinsics)
+        lift, close = _remote_lift(args, fmt)
     try:
         results = _lift_all(lift, poses, args.batch_size)
     finally:
@@ -254,6 +253,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     lift.add_argument("--batch-size", type=int, default=256, help="poses per request (default 256)")
     lift.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
+    lift.add_argument("--api-key", default=os.environ.get("REPNET_API_KEY"),
+                      help="API key of a service with REPNET_API_KEYS_FILE (default: $REPNET_API_KEY; "
+                      "the variable keeps it out of the process list)")  # fmt: skip
+    lift.add_argument(
+        "--ca-file", type=Path, help="PEM CA certificates of an https:// --url (default: the system's)"
+    )
     lift.add_argument("-o", "--output", type=Path, help="output .json (default: stdout)")
     plot = sub.add_parser("plot", help="draw a lift output: 2D input with reprojection, 3D from two sides")
     plot.add_argument("input", type=Path, help="output .json of `repnet lift`")

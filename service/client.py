@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import ssl
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -138,6 +140,17 @@ def parse_response(response: httpx.Response) -> list[LiftResult]:
     return [LiftResult.from_fields(p.__getitem__, body["joints"], body["model_id"]) for p in body["poses"]]
 
 
+def connection_options(api_key: str | None, ca_file: str | Path | None) -> dict[str, Any]:
+    """httpx client arguments: the API key as `Authorization: Bearer KEY` on every request, and the
+    CA certificates (PEM) that an https:// server's certificate must chain to (None: the system's)."""
+    options: dict[str, Any] = {}
+    if api_key is not None:
+        options["headers"] = {"authorization": f"Bearer {api_key}"}
+    if ca_file is not None:
+        options["verify"] = ssl.create_default_context(cafile=str(ca_file))
+    return options
+
+
 class _HttpBase:
     """Settings and request building shared by the sync and async clients."""
 
@@ -182,14 +195,17 @@ class LiftClient(_HttpBase):
     """Synchronous HTTP client: `LiftClient(url).lift(keypoints, format="coco17")`.
 
     503 answers (queue full, model not ready) and refused connections are retried `retries` times
-    with exponential backoff; every other failure raises LiftClientError at once.
+    with exponential backoff; every other failure raises LiftClientError at once. `api_key`: sent as
+    a bearer token (a server with REPNET_API_KEYS_FILE); `ca_file`: the CA of an https:// server.
     """
 
     def __init__(self, url: str = DEFAULT_URL, *, timeout: float = 10.0, retries: int = 3,
                  backoff: float = 0.1, batch_size: int = DEFAULT_BATCH,
-                 transport: httpx.BaseTransport | None = None) -> None:  # fmt: skip
+                 transport: httpx.BaseTransport | None = None, api_key: str | None = None,
+                 ca_file: str | Path | None = None) -> None:  # fmt: skip
         super().__init__(url, timeout, retries, backoff, batch_size)
-        self._http = httpx.Client(base_url=url, timeout=timeout, transport=transport)
+        options = connection_options(api_key, ca_file)
+        self._http = httpx.Client(base_url=url, timeout=timeout, transport=transport, **options)
 
     def __enter__(self) -> LiftClient:
         return self
@@ -254,10 +270,12 @@ class AsyncLiftClient(_HttpBase):
 
     def __init__(self, url: str = DEFAULT_URL, *, timeout: float = 10.0, retries: int = 3,
                  backoff: float = 0.1, batch_size: int = DEFAULT_BATCH, max_concurrency: int = 8,
-                 transport: httpx.AsyncBaseTransport | None = None) -> None:  # fmt: skip
+                 transport: httpx.AsyncBaseTransport | None = None, api_key: str | None = None,
+                 ca_file: str | Path | None = None) -> None:  # fmt: skip
         super().__init__(url, timeout, retries, backoff, batch_size)
         self.max_concurrency = max_concurrency
-        self._http = httpx.AsyncClient(base_url=url, timeout=timeout, transport=transport)
+        options = connection_options(api_key, ca_file)
+        self._http = httpx.AsyncClient(base_url=url, timeout=timeout, transport=transport, **options)
 
     async def __aenter__(self) -> AsyncLiftClient:
         return self

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -65,13 +66,29 @@ def _rpc_error(err: grpc.RpcError) -> LiftClientError:
 
 
 class StreamClient:
-    """gRPC client: `for r in StreamClient("host:50051").stream(frames): ...` over LiftStream."""
+    """gRPC client: `for r in StreamClient("host:50051").stream(frames): ...` over LiftStream.
+
+    `target` is host:port, or `dns:///name:port` to spread calls over every address the name
+    resolves to (round_robin; e.g. the headless Service of deploy/k8s: one connection per pod).
+    `api_key`: sent as `authorization: Bearer KEY` metadata; `tls`: a TLS channel, whose server
+    certificate chains to `ca_file` (PEM; None: the system's CAs).
+    """
 
     def __init__(self, target: str = DEFAULT_TARGET, *, timeout: float | None = None, retries: int = 3,
-                 backoff: float = 0.1, max_message_bytes: int = 4 << 20) -> None:  # fmt: skip
+                 backoff: float = 0.1, max_message_bytes: int = 4 << 20, api_key: str | None = None,
+                 tls: bool = False, ca_file: str | Path | None = None) -> None:  # fmt: skip
         self.target, self.timeout, self.retries, self.backoff = target, timeout, retries, backoff
-        options = [("grpc.max_receive_message_length", max_message_bytes)]
-        self._channel = grpc.insecure_channel(target, options=options)
+        options = [
+            ("grpc.max_receive_message_length", max_message_bytes),
+            ("grpc.lb_policy_name", "round_robin"),  # pick_first, the default, calls one address only
+        ]
+        self._metadata = None if api_key is None else (("authorization", f"Bearer {api_key}"),)
+        if tls or ca_file is not None:
+            roots = None if ca_file is None else Path(ca_file).read_bytes()
+            credentials = grpc.ssl_channel_credentials(root_certificates=roots)
+            self._channel = grpc.secure_channel(target, credentials, options=options)
+        else:
+            self._channel = grpc.insecure_channel(target, options=options)
         self._stub = lifter_pb2_grpc.PoseLifterStub(self._channel)  # type: ignore[no-untyped-call]
 
     def __enter__(self) -> StreamClient:
@@ -102,7 +119,7 @@ class StreamClient:
                 yield lifter_pb2.LiftFrame(frame_id=frame_id, pose=pose,
                                            confidence_threshold=confidence_threshold)  # fmt: skip
 
-        call = self._stub.LiftStream(requests(), timeout=self.timeout)
+        call = self._stub.LiftStream(requests(), timeout=self.timeout, metadata=self._metadata)
         try:
             for answer in call:
                 if answer.WhichOneof("result") == "pose":
@@ -128,7 +145,7 @@ class StreamClient:
                                          confidence_threshold=confidence_threshold)  # fmt: skip
         for attempt in range(self.retries + 1):
             try:
-                response = self._stub.Lift(request, timeout=self.timeout)
+                response = self._stub.Lift(request, timeout=self.timeout, metadata=self._metadata)
                 joints, model_id = response.joints, response.model_id
                 return [LiftResult.from_fields(proto_field(p), joints, model_id) for p in response.poses]
             except grpc.RpcError as err:
