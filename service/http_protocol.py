@@ -135,7 +135,7 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         if self._lingering:
             return
         super().data_received(data)
-        if self._in_headers and not self.transport.is_closing():
+        if self._in_headers and not self._lingering and not self.transport.is_closing():
             self._header_bytes += len(data)
             if self._header_bytes > self._limits.max_header_bytes:
                 reason = f"the request line and headers are larger than {self._limits.max_header_bytes} bytes"
@@ -181,6 +181,11 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         super().on_response_complete()
         if self._body_done and not self.pipeline and not self.transport.is_closing():
             self.guard.set_idle(self)
+
+    def send_400_response(self, msg: str) -> None:
+        """A request the parser rejects (e.g. both Content-Length and Transfer-Encoding): 400 as JSON
+        with the headers of every reply, then close with a linger."""
+        self._answer_and_close(400, msg)
 
     # Closing
     def evict(self) -> None:
