@@ -64,12 +64,14 @@ def _serving(service: ServiceProcess, timeout: float = 1.0) -> bool:
 
 
 def nested_json(service: ServiceProcess) -> str:
+    """A body nested 100,000 levels deep: 400 that says so."""
     response = _post(service, b'{"poses": ' + b"[" * 100_000 + b"]" * 100_000 + b"}")
     assert response.status_code == 400 and "nested too deeply" in response.text, response.text[:200]
     return "100,000 levels: 400, nested too deeply"
 
 
 def extreme_numbers(service: ServiceProcess) -> str:
+    """±1e308, NaN, ±Infinity and 1e999 as a coordinate: 4xx, never 5xx."""
     seen = []
     for value in ("1e308", "-1e308", "NaN", "Infinity", "-Infinity", "1e999"):
         body = json.dumps({"poses": [{"keypoints": POSE}]}).replace(str(POSE[0][0]), value, 1)
@@ -79,6 +81,7 @@ def extreme_numbers(service: ServiceProcess) -> str:
 
 
 def error_amplification(service: ServiceProcess) -> str:
+    """300,000 numbers as keypoints: one small 422, fast."""
     start = time.perf_counter()
     response = _post(service, json.dumps({"poses": [{"keypoints": [1] * 300_000}]}).encode())
     seconds = time.perf_counter() - start
@@ -87,12 +90,14 @@ def error_amplification(service: ServiceProcess) -> str:
 
 
 def echo_bound(service: ServiceProcess) -> str:
+    """A 1 MB unknown key: a small 422."""
     response = _post(service, json.dumps({"poses": [{"keypoints": POSE, "k" * 1_000_000: 1}]}).encode())
     assert response.status_code == 422 and len(response.content) < 4096, len(response.content)
     return f"1 MB unknown key: 422, {len(response.content)} bytes"
 
 
 def body_limit(service: ServiceProcess) -> str:
+    """A 6 MiB body written whole before reading: its 413 arrives."""
     body = b"[" + b"0," * (3 * 1024 * 1024) + b"0]"
     head = b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: %d\r\n\r\n" % len(body)
     answer = _raw(service, head + body)
@@ -101,6 +106,7 @@ def body_limit(service: ServiceProcess) -> str:
 
 
 def pipelining(service: ServiceProcess) -> str:
+    """Three requests in one write: three answers, in order."""
     one = b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n"
     answer = _raw(service, one + one + b"GET /readyz HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n")
     assert answer.count(b"HTTP/1.1 200 ") == 3 and answer.rfind(b'"ready"') > answer.rfind(b'"ok"'), answer
@@ -108,6 +114,7 @@ def pipelining(service: ServiceProcess) -> str:
 
 
 def request_smuggling(service: ServiceProcess) -> str:
+    """Content-Length and Transfer-Encoding together: 400, and nothing behind it runs."""
     data = (b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: 5\r\ntransfer-encoding: chunked\r\n\r\n"
             b"0\r\n\r\nGET /metrics HTTP/1.1\r\nhost: x\r\n\r\n")  # fmt: skip
     answer = _raw(service, data)
@@ -116,6 +123,7 @@ def request_smuggling(service: ServiceProcess) -> str:
 
 
 def grpc_oversized(service: ServiceProcess) -> str:
+    """A 6 MB Lift: RESOURCE_EXHAUSTED, health still SERVING."""
     pose = lifter_pb2.Pose2D(keypoints=[1.0] * 34)
     request = lifter_pb2.LiftRequest(poses=[pose] * 40_000)  # ~6 MB > the 4 MiB limit
     with grpc.insecure_channel(service.target) as channel:
@@ -129,6 +137,7 @@ def grpc_oversized(service: ServiceProcess) -> str:
 
 
 def idle_streams(service: ServiceProcess) -> str:
+    """70 streams that went quiet: health and Lift still answer within 1 s."""
     frame = lifter_pb2.LiftFrame(frame_id=0, pose=lifter_pb2.Pose2D(keypoints=sum(POSE, [])))
     with grpc.insecure_channel(service.target) as channel:
         stub = _stub(channel)
@@ -152,6 +161,7 @@ def idle_streams(service: ServiceProcess) -> str:
 
 
 def undecodable_frame(service: ServiceProcess) -> str:
+    """An undecodable LiftStream frame: INVALID_ARGUMENT, no class name."""
     with grpc.insecure_channel(service.target) as channel:
         call = channel.stream_stream("/repnet.v1.PoseLifter/LiftStream")
         try:
@@ -164,13 +174,15 @@ def undecodable_frame(service: ServiceProcess) -> str:
 
 
 def f1_surrogate_key(service: ServiceProcess) -> str:
+    """F1: {"\\ud800": 1} at the top level and in a pose: 4xx."""
     statuses = [_post(service, b).status_code for b in (b'{"\\ud800": 1}', b'{"poses": [{"\\ud800": 1}]}')]
     assert all(400 <= s < 500 for s in statuses), statuses
     return f'{{"\\ud800": 1}} top level and in a pose: {statuses}'
 
 
 def f2_slow_bodies(service: ServiceProcess) -> str:
-    head = b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\ncontent-length: 1000\r\n\r\n{"
+    """F2: 130 one-byte bodies: a normal /lift gets 200, each of them 408."""
+    head = b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: 1000\r\n\r\n{"
     socks = [socket.create_connection(("127.0.0.1", service.http_port), timeout=60) for _ in range(130)]
     try:
         for sock in socks:
@@ -187,6 +199,7 @@ def f2_slow_bodies(service: ServiceProcess) -> str:
 
 
 def f3_header_lines(service: ServiceProcess) -> str:
+    """F3: 4 header lines of 32 MiB: 431 each, no memory kept."""
     before = rss_bytes(service.pid)
     answers = []
     for _ in range(4):
@@ -204,6 +217,7 @@ def f3_header_lines(service: ServiceProcess) -> str:
 
 
 def f4_idle_connections(service: ServiceProcess) -> str:
+    """F4: 1,200 idle connections: probes answer within 1 s, the header timer closes them."""
     socks = [socket.create_connection(("127.0.0.1", service.http_port), timeout=30) for _ in range(1200)]
     try:
         for sock in socks[1000:]:
@@ -217,11 +231,12 @@ def f4_idle_connections(service: ServiceProcess) -> str:
     finally:
         for sock in socks:
             sock.close()
-    assert ready == 200 and serving and seconds < 1 and closed == len(socks), (ready, serving, seconds, closed)
-    return f"1200 idle: /readyz and health in {seconds * 1e3:.0f} ms, {fds} fds, all closed by the header timer"
+    assert ready == 200 and serving and seconds < 1 and closed == len(socks), (ready, serving, seconds)
+    return f"1200 idle: /readyz and health in {seconds * 1e3:.0f} ms, {fds} fds, all closed by the timer"
 
 
 def f5_undecodable_lift(service: ServiceProcess) -> str:
+    """F5: undecodable Lift bytes: INVALID_ARGUMENT with a plain message."""
     with grpc.insecure_channel(service.target) as channel:
         try:
             channel.unary_unary("/repnet.v1.PoseLifter/Lift")(b"\xff\xff\xff\xff\x0f", timeout=10)
@@ -233,6 +248,7 @@ def f5_undecodable_lift(service: ServiceProcess) -> str:
 
 
 def f6_expired_lifts(service: ServiceProcess) -> str:
+    """F6: 40 x Lift(1024) with a 20 ms deadline: no RESOURCE_EXHAUSTED, counted as cancelled."""
     request = lifter_pb2.LiftRequest(poses=[lifter_pb2.Pose2D(keypoints=sum(POSE, []))] * 1024)
     codes = []
     with grpc.insecure_channel(service.target) as channel:
