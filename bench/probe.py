@@ -247,18 +247,24 @@ def f5_undecodable_lift(service: ServiceProcess) -> str:
     return f"Lift ff ff ff ff 0f: {code.name}: {message}"
 
 
-def f6_expired_lifts(service: ServiceProcess) -> str:
-    """F6: 40 x Lift(1024) with a 20 ms deadline: no RESOURCE_EXHAUSTED, counted as cancelled."""
-    request = lifter_pb2.LiftRequest(poses=[lifter_pb2.Pose2D(keypoints=sum(POSE, []))] * 1024)
+def expire_lifts(target: str, request: lifter_pb2.LiftRequest, calls: int, deadline_s: float) -> list[str]:
+    """`calls` concurrent Lifts of `request` with a deadline each; the status name each ended with."""
     codes = []
-    with grpc.insecure_channel(service.target) as channel:
-        futures = [_stub(channel).Lift.future(request, timeout=0.02) for _ in range(40)]
+    with grpc.insecure_channel(target) as channel:
+        futures = [_stub(channel).Lift.future(request, timeout=deadline_s) for _ in range(calls)]
         for future in futures:
             try:
                 future.result()
                 codes.append("OK")
             except grpc.RpcError as err:
                 codes.append(err.code().name)
+    return codes
+
+
+def f6_expired_lifts(service: ServiceProcess) -> str:
+    """F6: 40 x Lift(1024) with a 20 ms deadline: no RESOURCE_EXHAUSTED, counted as cancelled."""
+    request = lifter_pb2.LiftRequest(poses=[lifter_pb2.Pose2D(keypoints=sum(POSE, []))] * 1024)
+    codes = expire_lifts(service.target, request, 40, 0.02)
     time.sleep(2)
     metrics = httpx.get(service.url + "/metrics", timeout=10).text
     lines = [line for line in metrics.splitlines() if line.startswith('repnet_requests_total{method="Lift"')]

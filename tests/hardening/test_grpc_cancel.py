@@ -12,11 +12,11 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 
-import grpc
 import numpy as np
 import pytest
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from bench.probe import expire_lifts
+from service._proto.repnet.v1 import lifter_pb2
 from service.config import Settings
 from service.engine import Engine
 from service.keypoints import ModelInput
@@ -85,16 +85,7 @@ def test_lifts_past_their_deadline_are_dropped_and_counted_as_cancelled(
     target, metrics, slow = slow_service
     calls, poses = 40, 1024
     request = lifter_pb2.LiftRequest(poses=[lifter_pb2.Pose2D(keypoints=POSE_2D.ravel().tolist())] * poses)
-    codes = []
-    with grpc.insecure_channel(target) as channel:
-        stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
-        futures = [stub.Lift.future(request, timeout=0.02) for _ in range(calls)]
-        for future in futures:
-            try:
-                future.result()
-                codes.append("OK")
-            except grpc.RpcError as err:
-                codes.append(err.code().name)
+    codes = expire_lifts(target, request, calls, 0.02)
     time.sleep(1.5)  # what is still queued would run now, and the handlers have ended
 
     def counted(outcome: str) -> float:
