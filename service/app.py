@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import logging
 import signal
 import sys
@@ -17,8 +18,8 @@ from fastapi import FastAPI
 from prometheus_client import CollectorRegistry
 from pydantic import ValidationError
 
-from service.config import Settings
-from service.engine import Engine
+from service.config import BUNDLED_CAUSAL, BUNDLED_OFFLINE, Settings
+from service.engine import Engine, TemporalEngine
 from service.errors import ModelLoadError
 from service.formats import MODEL_JOINTS
 from service.grpc_server import GrpcServer, create_server
@@ -28,6 +29,9 @@ from service.keypoints import Limits
 from service.lifter import Lifter
 from service.metrics import Metrics
 from service.schemas import EXAMPLE_KEYPOINTS
+from service.temporal import TemporalLifter
+from service.tracking import TemporalModels, camera_poses
+from service.tracks import TrackBudget
 
 log = logging.getLogger("service")
 
@@ -42,6 +46,62 @@ def load_lifter(settings: Settings) -> Lifter:
         )
     lifter.check_outputs(*known_poses())
     return lifter
+
+
+def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> TemporalModels | None:
+    """The temporal models of the settings, checked: each must be the mode its setting names, trained
+    on the answers of the loaded single-frame model (its sha256) and pass its start-up check. A
+    bundled temporal model that does not belong to another single-frame model is left out with a
+    warning; a temporal model named in the settings that does not fit stops the start."""
+    if not settings.temporal:
+        return None
+    engines: dict[str, TemporalEngine] = {}
+    base = hashlib.sha256(settings.model_path.read_bytes()).hexdigest()
+    for mode, path, bundled in (
+        ("causal", settings.causal_model_path, BUNDLED_CAUSAL),
+        ("offline", settings.offline_model_path, BUNDLED_OFFLINE),
+    ):
+        if path == bundled and not path.is_file():
+            log.warning("no %s temporal model (%s): tracked poses are lifted alone", mode, path)
+            continue
+        temporal = TemporalLifter.load(path, settings)
+        if temporal.mode != mode:
+            raise ModelLoadError(f"{path}: a {temporal.mode} temporal model, set as the {mode} one")
+        if temporal.base_model_sha256 != base:
+            message = (
+                f"{path}: trained on the answers of the single-frame model with sha256 "
+                f"{temporal.base_model_sha256[:12]}, not of {settings.model_path.name} ({base[:12]})"
+            )
+            if path == bundled:
+                log.warning("%s: the %s temporal model is left out", message, mode)
+                continue
+            raise ModelLoadError(message)
+        check_temporal(temporal, lifter)
+        engines[mode] = TemporalEngine(
+            temporal,
+            max_batch=settings.max_batch,
+            max_wait_s=settings.max_wait_ms / 1000,
+            queue_size=settings.queue_size,
+        )
+    if not engines:
+        return None
+    budget = TrackBudget(settings.max_tracks, metrics.set_tracks)
+    return TemporalModels(
+        engines,
+        budget,
+        settings.stream_max_tracks,
+        settings.track_idle_s,
+        min(settings.max_temporal_poses, settings.queue_size),  # a larger request could never be queued
+    )
+
+
+def check_temporal(temporal: TemporalLifter, lifter: Lifter) -> None:
+    """The temporal model's start-up check on the single-frame answers to the known poses."""
+    points, visibility = known_poses()
+    prediction = lifter.lift(points, visibility)
+    poses = camera_poses(prediction, np.arange(len(points)))
+    keypoints = np.where(visibility[..., None], points, 0.0).astype(np.float32)
+    temporal.check_outputs(poses, keypoints, visibility.astype(np.float32))
 
 
 def known_poses() -> tuple[np.ndarray, np.ndarray]:
@@ -74,6 +134,7 @@ class Service:
     app: FastAPI
     grpc_server: GrpcServer
     http: uvicorn.Server
+    temporal: TemporalModels | None = None
     _stopping: threading.Event = field(default_factory=threading.Event)
     _grpc_stopped: threading.Event | None = None
     _delay: threading.Timer | None = None
@@ -125,6 +186,8 @@ class Service:
         if self._grpc_stopped is not None:
             self._grpc_stopped.wait(self.settings.shutdown_grace_s + 1)
         self.engine.close(self.settings.shutdown_grace_s)
+        for temporal in self.temporal.engines.values() if self.temporal is not None else ():
+            temporal.close(self.settings.shutdown_grace_s)
         log.info("stopped; requests answered: %s", answered_requests(self.metrics))
         return status
 
@@ -152,25 +215,32 @@ def build_engine(lifter: Lifter, metrics: Metrics, settings: Settings) -> Engine
     )
 
 
-def build_app(engine: Engine, metrics: Metrics, settings: Settings) -> FastAPI:
-    """The HTTP app on `engine` with the HTTP settings."""
+def build_app(
+    engine: Engine, metrics: Metrics, settings: Settings, temporal: TemporalModels | None = None
+) -> FastAPI:
+    """The HTTP app on `engine` (and the temporal models) with the HTTP settings."""
     return create_app(
         engine,
         metrics,
         limits_of(settings),
+        temporal=temporal,
         max_body_bytes=settings.max_body_bytes,
         ui=settings.ui,
         max_in_flight=settings.http_max_in_flight,
     )
 
 
-def build_grpc_server(engine: Engine, metrics: Metrics, settings: Settings) -> GrpcServer:
-    """The gRPC server on `engine` (bound to host:grpc_port, not started) with the gRPC settings."""
+def build_grpc_server(
+    engine: Engine, metrics: Metrics, settings: Settings, temporal: TemporalModels | None = None
+) -> GrpcServer:
+    """The gRPC server on `engine` (and the temporal models; bound to host:grpc_port, not started)
+    with the gRPC settings."""
     return create_server(
         engine,
         metrics,
         limits_of(settings),
         f"{settings.host}:{settings.grpc_port}",
+        temporal=temporal,
         workers=settings.grpc_workers,
         max_streams=settings.grpc_max_streams,
         stream_idle_timeout_s=settings.stream_idle_timeout_s,
@@ -185,8 +255,9 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
     metrics = Metrics(CollectorRegistry())
     metrics.set_model(lifter.info.model_id, lifter.info.skeleton)
     engine = build_engine(lifter, metrics, settings)
-    app = build_app(engine, metrics, settings)
-    grpc_server = build_grpc_server(engine, metrics, settings)
+    temporal = load_temporal(settings, lifter, metrics)
+    app = build_app(engine, metrics, settings, temporal)
+    grpc_server = build_grpc_server(engine, metrics, settings, temporal)
     config = uvicorn.Config(
         app,
         host=settings.host,
@@ -196,7 +267,7 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
         timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
         lifespan="off",
     )
-    return Service(settings, engine, metrics, app, grpc_server, HttpServer(config))
+    return Service(settings, engine, metrics, app, grpc_server, HttpServer(config), temporal)
 
 
 def parse_settings(argv: Sequence[str] | None) -> Settings:

@@ -18,6 +18,7 @@ from service.engine import Engine
 from service.grpc_api import SERVICE_NAME, PoseLifterServicer
 from service.keypoints import Limits
 from service.metrics import Metrics
+from service.tracking import TemporalModels
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +126,7 @@ def create_server(
     stream_idle_timeout_s: float,
     max_message_bytes: int,
     stream_window: int,
+    temporal: TemporalModels | None = None,
 ) -> GrpcServer:
     """A gRPC server (not started) bound to `address`, with health (`.health`) and reflection.
 
@@ -145,6 +147,7 @@ def create_server(
             max_unary=workers,
             max_streams=max_streams,
             stream_idle_timeout_s=stream_idle_timeout_s,
+            temporal=temporal,
         )
         lifter_pb2_grpc.add_PoseLifterServicer_to_server(servicer, server)  # type: ignore[no-untyped-call]
         health_pb2_grpc.add_HealthServicer_to_server(status.servicer, server)

@@ -36,6 +36,8 @@ from service.http_middleware import (
     LiftMetricsMiddleware,
     LoadShedMiddleware,
 )
+from service.http_models import describe_model
+from service.http_temporal import lift_temporal
 from service.keypoints import Limits, ModelInput, PoseInput, prepare_request
 from service.lifter import ModelInfo, Prediction
 from service.metrics import INVALID, Metrics, outcome_of
@@ -45,13 +47,12 @@ from service.schemas import (
     FRAME_DOC,
     UNKNOWN_FIELD,
     ErrorResponse,
-    FormatInfo,
     LiftRequest,
     LiftResponse,
-    LimitsInfo,
     ModelDescription,
     PoseIn,
 )
+from service.tracking import TemporalModels
 
 log = logging.getLogger(__name__)
 
@@ -127,9 +128,12 @@ def _prepare(request: LiftRequest, limits: Limits) -> ModelInput:
     return prepare_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
 
 
-def reply_of(info: ModelInfo, inputs: ModelInput, prediction: Prediction) -> LiftJSONResponse:
+def reply_of(
+    info: ModelInfo, inputs: ModelInput, prediction: Prediction, request: LiftRequest
+) -> LiftJSONResponse:
     """The 200 answer to a request; ModelOutputError when the model failed on any of its poses."""
-    poses = build_replies(inputs, prediction).check().to_json()
+    track_ids = [p.track_id for p in request.poses]
+    poses = build_replies(inputs, prediction, track_ids=track_ids).check().to_json()
     return LiftJSONResponse({"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses})
 
 
@@ -198,40 +202,6 @@ def content_type_violation(content_type: str | None, violations: Sequence[Violat
     return Violation("body", reason, "content_type")
 
 
-def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
-    """What GET /v1/model says: the model, its joints and formats, the limits, its public metadata."""
-    formats = [
-        FormatInfo(
-            name=f.name,
-            description=f.description,
-            joint_names=list(f.joint_names),
-            sources=[list(s) for s in f.sources],
-        )
-        for f in FORMATS.values()
-    ]
-    return ModelDescription(
-        model_id=info.model_id,
-        skeleton=info.skeleton,
-        joints=list(info.joint_names),
-        parents=list(info.parents),
-        formats=formats,
-        limits=LimitsInfo(
-            max_request_poses=limits.max_request_poses,
-            max_body_bytes=max_body_bytes,
-            min_visible_joints=limits.min_visible_joints,
-            confidence_threshold=limits.confidence_threshold,
-            max_coordinate_px=limits.max_coordinate,
-            max_batch=engine.max_batch,
-            max_wait_ms=engine.max_wait_s * 1000,
-            queue_size=engine.queue_size,
-        ),
-        plausibility=engine.lifter.has_plausibility,
-        plausibility_calibration=info.plausibility_calibration,
-        evaluation=info.evaluation,
-        metadata=info.public_metadata,
-    )
-
-
 def error_response(err: Exception) -> JSONResponse:
     """The answer to a core error: 422 with the violations, 503 to retry, 500 for the model's fault."""
     if isinstance(err, InvalidKeypoints):
@@ -279,7 +249,14 @@ def add_error_handlers(app: FastAPI, metrics: Metrics) -> None:
 
 
 def create_app(
-    engine: Engine, metrics: Metrics, limits: Limits, *, max_body_bytes: int, ui: bool, max_in_flight: int
+    engine: Engine,
+    metrics: Metrics,
+    limits: Limits,
+    *,
+    max_body_bytes: int,
+    ui: bool,
+    max_in_flight: int,
+    temporal: TemporalModels | None = None,
 ) -> FastAPI:
     """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
     `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
@@ -301,10 +278,18 @@ def create_app(
     async def lift(request: LiftRequest, http: Request) -> Response:
         """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
         count = len(request.poses)
-        with metrics.parsing("http", getattr(http.state, STARTED_KEY, None)):  # since the body arrived
+        started = getattr(http.state, STARTED_KEY, None)  # since the body arrived
+        if request.temporal != "off":
+
+            def read(i: int) -> PoseInput:
+                return to_pose_input(request.poses[i], request, i)
+
+            body = await lift_temporal(request, engine, temporal, limits, metrics, started, read)
+            return LiftJSONResponse(body)
+        with metrics.parsing("http", started):
             inputs = await offload(count, _prepare, request, limits)
         prediction = await engine.lift_async(inputs, "http")
-        return await offload(count, reply_of, info, inputs, prediction)
+        return await offload(count, reply_of, info, inputs, prediction, request)
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:
