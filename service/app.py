@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import logging
 import signal
-import ssl
 import sys
 import threading
 from collections.abc import Sequence
@@ -19,18 +19,20 @@ from prometheus_client import CollectorRegistry
 from pydantic import ValidationError
 
 from service.auth import ApiKeys
-from service.config import Settings
-from service.engine import Engine
+from service.config import BUNDLED_CAUSAL, BUNDLED_OFFLINE, Settings
+from service.engine import Engine, TemporalEngine
 from service.errors import ModelLoadError
 from service.formats import MODEL_JOINTS
-from service.grpc_server import GrpcServer, GrpcTls, create_server
+from service.grpc_server import GrpcServer, create_server, read_tls
 from service.http_api import create_app
-from service.http_protocol import ConnectionLimits, guarded_protocol
-from service.http_server import HttpServer, connection_cap, raise_open_file_limit
+from service.http_server import HttpServer, http_config, raise_open_file_limit
 from service.keypoints import Limits
 from service.lifter import Lifter
 from service.metrics import Metrics
 from service.schemas import EXAMPLE_KEYPOINTS
+from service.temporal import TemporalLifter
+from service.tracking import TemporalModels, camera_poses
+from service.tracks import TrackBudget
 
 log = logging.getLogger("service")
 
@@ -45,6 +47,62 @@ def load_lifter(settings: Settings) -> Lifter:
         )
     lifter.check_outputs(*known_poses())
     return lifter
+
+
+def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> TemporalModels | None:
+    """The temporal models of the settings, checked: each must be the mode its setting names, trained
+    on the answers of the loaded single-frame model (its sha256) and pass its start-up check. A
+    bundled temporal model that does not belong to another single-frame model is left out with a
+    warning; a temporal model named in the settings that does not fit stops the start."""
+    if not settings.temporal:
+        return None
+    engines: dict[str, TemporalEngine] = {}
+    base = hashlib.sha256(settings.model_path.read_bytes()).hexdigest()
+    for mode, path, bundled in (
+        ("causal", settings.causal_model_path, BUNDLED_CAUSAL),
+        ("offline", settings.offline_model_path, BUNDLED_OFFLINE),
+    ):
+        if path == bundled and not path.is_file():
+            log.warning("no %s temporal model (%s): tracked poses are lifted alone", mode, path)
+            continue
+        temporal = TemporalLifter.load(path, settings)
+        if temporal.mode != mode:
+            raise ModelLoadError(f"{path}: a {temporal.mode} temporal model, set as the {mode} one")
+        if temporal.base_model_sha256 != base:
+            message = (
+                f"{path}: trained on the answers of the single-frame model with sha256 "
+                f"{temporal.base_model_sha256[:12]}, not of {settings.model_path.name} ({base[:12]})"
+            )
+            if path == bundled:
+                log.warning("%s: the %s temporal model is left out", message, mode)
+                continue
+            raise ModelLoadError(message)
+        check_temporal(temporal, lifter)
+        engines[mode] = TemporalEngine(
+            temporal,
+            max_batch=settings.max_batch,
+            max_wait_s=settings.max_wait_ms / 1000,
+            queue_size=settings.queue_size,
+        )
+    if not engines:
+        return None
+    budget = TrackBudget(settings.max_tracks, metrics.set_tracks)
+    return TemporalModels(
+        engines,
+        budget,
+        settings.stream_max_tracks,
+        settings.track_idle_s,
+        min(settings.max_temporal_poses, settings.queue_size),  # a larger request could never be queued
+    )
+
+
+def check_temporal(temporal: TemporalLifter, lifter: Lifter) -> None:
+    """The temporal model's start-up check on the single-frame answers to the known poses."""
+    points, visibility = known_poses()
+    prediction = lifter.lift(points, visibility)
+    poses = camera_poses(prediction, np.arange(len(points)))
+    keypoints = np.where(visibility[..., None], points, 0.0).astype(np.float32)
+    temporal.check_outputs(poses, keypoints, visibility.astype(np.float32))
 
 
 def known_poses() -> tuple[np.ndarray, np.ndarray]:
@@ -77,6 +135,7 @@ class Service:
     app: FastAPI
     grpc_server: GrpcServer
     http: uvicorn.Server
+    temporal: TemporalModels | None = None
     _stopping: threading.Event = field(default_factory=threading.Event)
     _grpc_stopped: threading.Event | None = None
     _delay: threading.Timer | None = None
@@ -128,6 +187,8 @@ class Service:
         if self._grpc_stopped is not None:
             self._grpc_stopped.wait(self.settings.shutdown_grace_s + 1)
         self.engine.close(self.settings.shutdown_grace_s)
+        for temporal in self.temporal.engines.values() if self.temporal is not None else ():
+            temporal.close(self.settings.shutdown_grace_s)
         log.info("stopped; requests answered: %s", answered_requests(self.metrics))
         return status
 
@@ -155,24 +216,19 @@ def build_engine(lifter: Lifter, metrics: Metrics, settings: Settings) -> Engine
     )
 
 
-def read_api_keys(settings: Settings) -> ApiKeys | None:
-    """The keys of settings.api_keys_file (None: no authentication); OSError or ValueError when the
-    file cannot be read or holds no key. Only their number is logged."""
-    if settings.api_keys_file is None:
-        return None
-    keys = ApiKeys.read(settings.api_keys_file)
-    log.info("API keys: %d from %s", len(keys), settings.api_keys_file)
-    return keys
-
-
 def build_app(
-    engine: Engine, metrics: Metrics, settings: Settings, api_keys: ApiKeys | None = None
+    engine: Engine,
+    metrics: Metrics,
+    settings: Settings,
+    temporal: TemporalModels | None = None,
+    api_keys: ApiKeys | None = None,
 ) -> FastAPI:
-    """The HTTP app on `engine` with the HTTP settings."""
+    """The HTTP app on `engine` (and the temporal models) with the HTTP settings."""
     return create_app(
         engine,
         metrics,
         limits_of(settings),
+        temporal=temporal,
         max_body_bytes=settings.max_body_bytes,
         ui=settings.ui,
         max_in_flight=settings.http_max_in_flight,
@@ -181,15 +237,21 @@ def build_app(
 
 
 def build_grpc_server(
-    engine: Engine, metrics: Metrics, settings: Settings, api_keys: ApiKeys | None = None
+    engine: Engine,
+    metrics: Metrics,
+    settings: Settings,
+    temporal: TemporalModels | None = None,
+    api_keys: ApiKeys | None = None,
 ) -> GrpcServer:
-    """The gRPC server on `engine` (bound to host:grpc_port, not started) with the gRPC settings."""
+    """The gRPC server on `engine` (and the temporal models; bound to host:grpc_port, not started)
+    with the gRPC settings."""
     return create_server(
         engine,
         metrics,
         limits_of(settings),
         f"{settings.host}:{settings.grpc_port}",
-        tls=grpc_tls(settings),
+        temporal=temporal,
+        tls=read_tls(settings.tls_cert, settings.tls_key, settings.tls_client_ca),
         api_keys=api_keys,
         workers=settings.grpc_workers,
         max_streams=settings.grpc_max_streams,
@@ -199,51 +261,18 @@ def build_grpc_server(
     )
 
 
-def grpc_tls(settings: Settings) -> GrpcTls | None:
-    """The gRPC server's TLS files as read now (None: plaintext); OSError if one cannot be read."""
-    if settings.tls_cert is None or settings.tls_key is None:
-        return None
-    ca = None if settings.tls_client_ca is None else settings.tls_client_ca.read_bytes()
-    return GrpcTls(settings.tls_cert.read_bytes(), settings.tls_key.read_bytes(), ca)
-
-
 def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
     """Load the model (unless given) and wire both servers; nothing is started yet."""
     lifter = lifter or load_lifter(settings)
     metrics = Metrics(CollectorRegistry())
     metrics.set_model(lifter.info.model_id, lifter.info.skeleton)
     engine = build_engine(lifter, metrics, settings)
-    api_keys = read_api_keys(settings)
-    app = build_app(engine, metrics, settings, api_keys)
-    grpc_server = build_grpc_server(engine, metrics, settings, api_keys)
-    return Service(settings, engine, metrics, app, grpc_server, HttpServer(http_config(app, settings)))
-
-
-def http_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
-    """uvicorn's configuration of the HTTP server: its connections guarded (service/http_protocol.py),
-    over TLS when tls_cert is set (requiring a client certificate when tls_client_ca is)."""
-    limits = ConnectionLimits(
-        header_timeout_s=settings.http_header_timeout_s,
-        max_header_bytes=settings.http_max_header_bytes,
-        body_timeout_s=settings.http_body_timeout_s,
-        body_min_rate=settings.http_body_min_rate,
-        max_connections=connection_cap(settings.http_max_connections),
-    )
-    ca = settings.tls_client_ca
-    return uvicorn.Config(
-        app,
-        host=settings.host,
-        port=settings.http_port,
-        http=guarded_protocol(limits),
-        log_level=settings.log_level,
-        access_log=settings.log_level == "debug",  # one line per request costs more than a lift
-        timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
-        lifespan="off",
-        ssl_certfile=settings.tls_cert,
-        ssl_keyfile=settings.tls_key,
-        ssl_cert_reqs=ssl.CERT_REQUIRED if ca is not None else ssl.CERT_NONE,
-        ssl_ca_certs=ca,
-    )
+    temporal = load_temporal(settings, lifter, metrics)
+    api_keys = None if settings.api_keys_file is None else ApiKeys.read(settings.api_keys_file)
+    app = build_app(engine, metrics, settings, temporal, api_keys)
+    grpc_server = build_grpc_server(engine, metrics, settings, temporal, api_keys)
+    http = HttpServer(http_config(app, settings))
+    return Service(settings, engine, metrics, app, grpc_server, http, temporal)
 
 
 def parse_settings(argv: Sequence[str] | None) -> Settings:

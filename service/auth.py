@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 # What a refused call is told, on both transports: nothing about which part was wrong.
 UNAUTHENTICATED_MESSAGE = "missing or invalid API key"
@@ -34,6 +37,7 @@ class ApiKeys:
         keys = [line for line in lines if line and not line.startswith("#")]
         if not keys:
             raise ValueError(f"{path}: no API key in the file (one per line; # starts a comment)")
+        log.info("API keys: %d from %s", len(keys), path)  # never the keys
         return cls(keys)
 
     def __len__(self) -> int:

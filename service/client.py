@@ -60,6 +60,8 @@ class LiftResult:
     model_id: str
     plausibility: float | None = None  # in [0, 1]; None when the model has no plausibility output
     warnings: tuple[str, ...] = ()  # why the answer may be wrong, e.g. the format looks mistaken
+    temporal: bool = False  # a temporal model answered (a tracked pose)
+    track_id: str | None = None  # the pose's track; None for an untracked pose
 
     @classmethod
     def pose_fields(cls) -> tuple[str, ...]:
@@ -76,14 +78,20 @@ class LiftResult:
             plausibility = get("plausibility")
         except KeyError:  # a server from before the field: the same as a model without the output
             plausibility = None
-        try:
-            warnings = tuple(str(w) for w in get("warnings"))
-        except KeyError:  # a server from before the field
-            warnings = ()
+        warnings, temporal, track_id = (_optional(get, name) for name in ("warnings", "temporal", "track_id"))
         return cls(**arrays, **flags, scale=float(get("scale")), joints=tuple(joints), model_id=model_id,
                    reprojection_error_px=float(get("reprojection_error_px")),
                    plausibility=None if plausibility is None else float(plausibility),
-                   warnings=warnings)  # fmt: skip
+                   warnings=tuple(str(w) for w in warnings or ()), temporal=bool(temporal),
+                   track_id=str(track_id) if track_id else None)  # fmt: skip
+
+
+def _optional(get: Callable[[str], Any], name: str) -> Any:
+    """A field a server from before it does not send (KeyError): None."""
+    try:
+        return get(name)
+    except KeyError:
+        return None
 
 
 def as_poses(

@@ -8,7 +8,10 @@ from typing import Literal
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "repnet-h36m.onnx"
+MODELS = Path(__file__).resolve().parent / "models"
+BUNDLED_MODEL = MODELS / "repnet-h36m.onnx"
+BUNDLED_CAUSAL = MODELS / "repnet-h36m-temporal-causal.onnx"
+BUNDLED_OFFLINE = MODELS / "repnet-h36m-temporal-offline.onnx"
 
 
 class Settings(BaseSettings):
@@ -103,7 +106,7 @@ class Settings(BaseSettings):
         description="under load, longest the batcher waits for more poses to join a batch (an idle "
         "batcher runs a request at once)",
     )
-    queue_size: int = Field(default=4096, ge=1, description="most poses waiting for a run; beyond: 503")
+    queue_size: int = Field(default=8192, ge=1, description="most poses waiting for a run; beyond: 503")
     max_request_poses: int = Field(default=1024, ge=1, description="most poses in one request")
     max_body_bytes: int = Field(
         default=4 * 1024 * 1024, ge=1024, description="largest HTTP body / gRPC message"
@@ -116,6 +119,25 @@ class Settings(BaseSettings):
     )
     max_coordinate: float = Field(default=1e6, gt=0, description="largest accepted |x| or |y| in pixels")
     stream_window: int = Field(default=256, ge=1, description="frames of one stream in flight at once")
+    temporal: bool = Field(
+        default=True,
+        description="load the temporal models (tracked poses of streams and of temporal requests); false: "
+        "every pose is lifted alone",
+    )
+    causal_model_path: Path = Field(
+        default=BUNDLED_CAUSAL, description="causal temporal model (streams, temporal: causal)"
+    )
+    offline_model_path: Path = Field(default=BUNDLED_OFFLINE, description="offline temporal model")
+    max_temporal_poses: int = Field(
+        default=6000,
+        ge=1,
+        description="most poses in one request with temporal causal or offline (and at most queue_size)",
+    )
+    stream_max_tracks: int = Field(default=64, ge=1, description="most open tracks of one LiftStream")
+    max_tracks: int = Field(default=4096, ge=1, description="most open tracks of all streams together")
+    track_idle_s: float = Field(
+        default=10.0, gt=0, description="a stream's track that gets no frame for this long is dropped"
+    )
     shutdown_grace_s: float = Field(
         default=10.0, ge=0, description="time to drain in-flight work at shutdown"
     )

@@ -1,4 +1,6 @@
-"""Engine: the dynamic batcher that coalesces ModelInputs from every transport into shared Lifter runs."""
+"""Engines: dynamic batchers that coalesce the requests of every transport into shared model runs:
+Engine for the single-frame Lifter (ModelInput -> Prediction), TemporalEngine for a TemporalLifter
+(Windows -> TemporalAnswer); both are a Batcher."""
 
 from __future__ import annotations
 
@@ -10,31 +12,41 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any, TypeVar
-
-import numpy as np
+from typing import Any, Generic, Protocol, TypeVar
 
 from service.errors import ModelNotReady, Overloaded
 from service.keypoints import ModelInput
 from service.lifter import Lifter, Prediction
 from service.metrics import Metrics
+from service.temporal import TemporalAnswer, TemporalLifter, Windows
+
+
+class Rows(Protocol):
+    """What a batcher splits and joins: N rows that slice."""
+
+    def __len__(self) -> int: ...
+
+    def slice(self, start: int, stop: int) -> Any:
+        """Rows start..stop-1."""
+
+
+In = TypeVar("In", bound=Rows)  # the input rows of a run
+Out = TypeVar("Out", bound=Rows)  # the output rows of a run
+T = TypeVar("T")
 
 
 @dataclass
-class _Chunk:
-    """At most max_batch poses of one request, waiting for a run."""
+class _Chunk(Generic[In, Out]):
+    """At most max_batch rows of one request, waiting for a run."""
 
-    keypoints_2d: np.ndarray  # (n, J, 2)
-    visible: np.ndarray  # (n, J)
+    inputs: In
     transport: str
     enqueued: float  # time.monotonic() when queued
-    future: Future[Prediction]
+    future: Future[Out]
 
     def __len__(self) -> int:
-        return int(self.keypoints_2d.shape[0])
+        return len(self.inputs)
 
-
-T = TypeVar("T")
 
 # Adapters prepare and answer requests of at most this many poses on their event loop (offload):
 # cheaper than the hop to a worker thread and back (docs/BENCHMARKS.md).
@@ -55,36 +67,36 @@ def _wake(room: asyncio.Future[None]) -> None:
         room.set_result(None)
 
 
-class Engine:
-    """One worker thread runs one Lifter on batches of queued ModelInputs; adapters get Predictions.
+class Batcher(Generic[In, Out]):
+    """One worker thread runs one model on batches of queued requests' rows; adapters get its answers.
 
     An idle batcher runs a request at once; under load (work queued during the last run) a batch
     starts when max_batch poses are queued or max_wait_s after the last run ended. Requests larger
     than max_batch are split into chunks. The queue holds at most queue_size poses: a request that
     does not fit is refused at once with Overloaded. The engine knows no reply and no wire format.
 
-    An Engine batches for one model: a service with several models would hold one Engine per model
-    (app.py builds them, adapters pick one by the request's model), each batching its own runs.
+    A batcher runs one model: a service with several models holds one per model (app.py builds
+    them, adapters pick one by the request), each batching its own runs. A subclass says how a
+    batch runs (_run) and how answers join (_join).
     """
 
     def __init__(
-        self, lifter: Lifter, metrics: Metrics | None, *, max_batch: int, max_wait_s: float, queue_size: int
+        self, metrics: Metrics | None, *, max_batch: int, max_wait_s: float, queue_size: int, name: str
     ) -> None:
         if max_batch < 1 or queue_size < 1 or max_wait_s < 0:
             raise ValueError("max_batch and queue_size must be >= 1 and max_wait_s >= 0")
-        self.lifter = lifter
         self.metrics = metrics
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
         self.queue_size = queue_size
-        self._queue: deque[_Chunk] = deque()
+        self._queue: deque[_Chunk[In, Out]] = deque()
         # Coroutines in submit_async waiting for room, woken on their own loops.
         self._room_waiters: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []
         self._queued = 0  # poses in _queue
         self._closed = False
         self._serving = True  # False once shutdown begins: readiness off, queued work still done
         self._cond = threading.Condition()
-        self._worker = threading.Thread(target=self._run, name="repnet-batcher", daemon=True)
+        self._worker = threading.Thread(target=self._work, name=f"repnet-{name}", daemon=True)
         self._worker.start()
 
     @property
@@ -96,7 +108,18 @@ class Engine:
         """Report not ready from now on; requests already arriving are still served."""
         self._serving = False
 
-    def submit(self, inputs: ModelInput, transport: str, wait_s: float = 0.0) -> list[Future[Prediction]]:
+    def _run(self, parts: list[In]) -> Out:
+        """One model run on the rows of several requests, in order (the worker thread)."""
+        raise NotImplementedError
+
+    def _join(self, parts: list[Out]) -> Out:
+        """The answers of consecutive rows as one."""
+        raise NotImplementedError
+
+    def _observe(self, answer: Out) -> None:
+        """Record what a run's answers say in the metrics (nothing by default)."""
+
+    def submit(self, inputs: In, transport: str, wait_s: float = 0.0) -> list[Future[Out]]:
         """Queue `inputs` (all or nothing); one future per chunk of at most max_batch poses.
 
         A full queue raises Overloaded at once, or after waiting up to `wait_s` for room (streams
@@ -113,9 +136,7 @@ class Engine:
                 self._cond.wait(remaining)
             return self._enqueue(chunks, len(inputs))
 
-    async def submit_async(
-        self, inputs: ModelInput, transport: str, wait_s: float = 0.0
-    ) -> list[Future[Prediction]]:
+    async def submit_async(self, inputs: In, transport: str, wait_s: float = 0.0) -> list[Future[Out]]:
         """Engine.submit for coroutines: waiting for room suspends the caller, not its event loop."""
         loop = asyncio.get_running_loop()
         chunks = self._chunks(inputs, transport)
@@ -130,51 +151,49 @@ class Engine:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(room, remaining)
 
-    async def lift_async(self, inputs: ModelInput, transport: str) -> Prediction:
-        """Queue `inputs` (Overloaded at once when the queue is full) and await their Prediction in
-        input order, for adapters on an event loop. When the caller is cancelled (a gRPC call
+    async def lift_async(self, inputs: In, transport: str, wait_s: float = 0.0) -> Out:
+        """Queue `inputs` (Overloaded when the queue stays full for wait_s) and await their answers
+        in input order, for adapters on an event loop. When the caller is cancelled (a gRPC call
         cancelled or past its deadline), every chunk of it still queued is dropped."""
-        futures = self.submit(inputs, transport)
+        futures = await self.submit_async(inputs, transport, wait_s)
         try:
-            return Prediction.join([await asyncio.wrap_future(f) for f in futures])
+            return self._join([await asyncio.wrap_future(f) for f in futures])
         except asyncio.CancelledError:
             self.drop(futures)
             raise
 
-    def drop(self, futures: list[Future[Prediction]]) -> int:
+    def drop(self, futures: list[Future[Out]]) -> int:
         """Take the chunks of `futures` that are still queued out of the queue and cancel them (a
-        chunk in a run already finishes); the number of poses dropped."""
+        chunk in a run already finishes); the number of rows dropped."""
         wanted = {id(f) for f in futures}
         with self._cond:
             dropped = [c for c in self._queue if id(c.future) in wanted]
             if not dropped:
                 return 0
             self._queue = deque(c for c in self._queue if id(c.future) not in wanted)
-            poses = sum(len(c) for c in dropped)
-            self._queued -= poses
+            rows = sum(len(c) for c in dropped)
+            self._queued -= rows
             self._set_depth()
             self._room_freed()
         for chunk in dropped:
             chunk.future.cancel()
-        return poses
+        return rows
 
-    def _chunks(self, inputs: ModelInput, transport: str) -> list[_Chunk]:
+    def join(self, parts: list[Out]) -> Out:
+        """The answers of a request's runs (its futures' results) as one."""
+        return self._join(parts)
+
+    def _chunks(self, inputs: In, transport: str) -> list[_Chunk[In, Out]]:
+        n, step = len(inputs), self.max_batch
         return [
-            _Chunk(
-                inputs.keypoints_2d[a : a + self.max_batch],
-                inputs.visible[a : a + self.max_batch],
-                transport,
-                0.0,
-                Future(),
-            )
-            for a in range(0, len(inputs), self.max_batch)
+            _Chunk(inputs.slice(a, min(a + step, n)), transport, 0.0, Future()) for a in range(0, n, step)
         ]
 
     def _must_wait(self, n: int) -> bool:
         """n poses do not fit now but would once the queue drains (call with _cond held)."""
         return self._queued + n > self.queue_size and n <= self.queue_size and not self._closed
 
-    def _enqueue(self, chunks: list[_Chunk], n: int) -> list[Future[Prediction]]:
+    def _enqueue(self, chunks: list[_Chunk[In, Out]], n: int) -> list[Future[Out]]:
         """Queue the chunks of n poses, or raise why not (call with _cond held)."""
         if self._closed:
             raise ModelNotReady("the server is shutting down and accepts no new requests")
@@ -200,10 +219,10 @@ class Engine:
                 loop.call_soon_threadsafe(_wake, room)
         self._room_waiters.clear()
 
-    def lift(self, inputs: ModelInput, transport: str) -> Prediction:
-        """Queue `inputs`, wait for their runs and return their Prediction in input order."""
+    def lift(self, inputs: In, transport: str) -> Out:
+        """Queue `inputs`, wait for their runs and return their answers in input order."""
         futures = self.submit(inputs, transport)
-        return Prediction.join([f.result() for f in futures])
+        return self._join([f.result() for f in futures])
 
     def close(self, timeout: float | None = None) -> bool:
         """Refuse new work, finish everything queued, stop the worker; False if it timed out."""
@@ -217,7 +236,7 @@ class Engine:
         if self.metrics is not None:
             self.metrics.queue_depth.set(self._queued)
 
-    def _take_batch(self) -> list[_Chunk]:
+    def _take_batch(self) -> list[_Chunk[In, Out]]:
         """Block until a batch is due, then take it from the queue; [] once closed and empty.
 
         An idle batcher runs the first request at once: waiting could only add latency to a lone
@@ -247,13 +266,13 @@ class Engine:
             self._room_freed()
         return batch
 
-    def _run(self) -> None:
+    def _work(self) -> None:
         while batch := self._take_batch():
             batch = [c for c in batch if c.future.set_running_or_notify_cancel()]
             if batch:
                 self._run_batch(batch)
 
-    def _run_batch(self, batch: list[_Chunk]) -> None:
+    def _run_batch(self, batch: list[_Chunk[In, Out]]) -> None:
         start = time.monotonic()
         if self.metrics is not None:
             for chunk in batch:
@@ -261,20 +280,60 @@ class Engine:
                     start - chunk.enqueued
                 )
         try:
-            keypoints = np.concatenate([c.keypoints_2d for c in batch])  # (B, J, 2)
-            visible = np.concatenate([c.visible for c in batch])  # (B, J)
-            prediction = self.lifter.lift(keypoints, visible)
+            answer = self._run([c.inputs for c in batch])
         except Exception as err:  # handed to every caller of the batch; each adapter logs it once
             for chunk in batch:
                 chunk.future.set_exception(err)
             return
         if self.metrics is not None:
             self.metrics.inference_seconds.observe(time.monotonic() - start)
-            self.metrics.batch_size.observe(len(prediction))
-            if prediction.plausibility is not None and not prediction.failed.any():
-                self.metrics.observe_plausibility(prediction.plausibility)
+            self.metrics.batch_size.observe(len(answer))
+            self._observe(answer)
         offset = 0
-        for chunk in batch:  # rows the model failed on are marked in the Prediction (failed)
+        for chunk in batch:  # rows the model failed on are marked in the answer (failed)
             stop = offset + len(chunk)
-            chunk.future.set_result(prediction.slice(offset, stop))
+            chunk.future.set_result(answer.slice(offset, stop))
             offset = stop
+
+
+class Engine(Batcher[ModelInput, Prediction]):
+    """The single-frame model's batcher: ModelInputs in, Predictions out."""
+
+    def __init__(
+        self, lifter: Lifter, metrics: Metrics | None, *, max_batch: int, max_wait_s: float, queue_size: int
+    ) -> None:
+        self.lifter = lifter
+        super().__init__(
+            metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size, name="batcher"
+        )
+
+    def _run(self, parts: list[ModelInput]) -> Prediction:
+        return self.lifter.run(parts)
+
+    def _join(self, parts: list[Prediction]) -> Prediction:
+        return Prediction.join(parts)
+
+    def _observe(self, answer: Prediction) -> None:
+        if self.metrics is not None and answer.plausibility is not None and not answer.failed.any():
+            self.metrics.observe_plausibility(answer.plausibility)
+
+
+class TemporalEngine(Batcher[Windows, TemporalAnswer]):
+    """A temporal model's batcher: Windows in (windows of any length: padded), TemporalAnswers out.
+    Its runs are not in the single-frame metrics (inference_seconds, batch size)."""
+
+    def __init__(self, lifter: TemporalLifter, *, max_batch: int, max_wait_s: float, queue_size: int) -> None:
+        self.lifter = lifter
+        super().__init__(
+            None,
+            max_batch=max_batch,
+            max_wait_s=max_wait_s,
+            queue_size=queue_size,
+            name=f"{lifter.mode}-batcher",
+        )
+
+    def _run(self, parts: list[Windows]) -> TemporalAnswer:
+        return self.lifter.run(Windows.join(parts, causal=self.lifter.mode == "causal"))
+
+    def _join(self, parts: list[TemporalAnswer]) -> TemporalAnswer:
+        return TemporalAnswer.join(parts)

@@ -11,7 +11,6 @@ from typing import Any
 
 import grpc
 import numpy as np
-from google.protobuf.message import DecodeError
 
 from service._proto.repnet.v1 import lifter_pb2
 from service.engine import Engine, offload
@@ -27,9 +26,20 @@ from service.errors import (
 )
 from service.keypoints import DEFAULT_FORMAT, Limits, ModelInput, PoseInput, check_threshold, prepare_request
 from service.lifter import Prediction
-from service.metrics import INVALID, OVERLOADED, Metrics, outcome_of
+from service.metrics import OVERLOADED, Metrics, outcome_of
 from service.replies import build_replies
-from service.stream import POSE_FIELD, Answer, Answers, Frame, StreamIdle, UnreadableFrame, answer_stream
+from service.stream import (
+    POSE_FIELD,
+    Answer,
+    Answers,
+    Frame,
+    Person,
+    StreamIdle,
+    UnreadableFrame,
+    answer_stream,
+)
+from service.tracking import TemporalModels
+from service.tracks import MAX_TRACK_ID, fps_violations
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +109,28 @@ def to_pose_input(
     return PoseInput(points, present, confidence, pose.format or default_format, intrinsics)
 
 
+def frame_violations(message: lifter_pb2.LiftFrame) -> list[Violation]:
+    """A frame's own rules: a pose or people, not both; people each with a track id of their own;
+    the frame rate of tracked poses."""
+    several = len(message.people) > 0
+    if several and message.HasField("pose"):
+        return [Violation("people", "give the frame's pose or its people, not both", "pose_and_people")]
+    found, seen = [], set()
+    for k, person in enumerate(message.people):
+        if not person.track_id or len(person.track_id) > MAX_TRACK_ID:
+            reason = f"every person needs a track_id of 1 to {MAX_TRACK_ID} characters"
+            found.append(Violation(f"people[{k}].track_id", reason, "track_id"))
+        elif person.track_id in seen:
+            reason = f"track {clip(person.track_id, 100)!r} comes twice in this frame"
+            found.append(Violation(f"people[{k}].track_id", reason, "track_repeated"))
+        seen.add(person.track_id)
+    if len(message.track_id) > MAX_TRACK_ID:
+        found.append(Violation("track_id", f"at most {MAX_TRACK_ID} characters", "track_id"))
+    if several or message.track_id:
+        found += fps_violations(message.fps or None, "fps")
+    return found
+
+
 def frame_error(err: LiftError) -> lifter_pb2.FrameError:
     """A stream frame's error result: the status code, message and violations Lift would give."""
     violations = err.violations if isinstance(err, InvalidKeypoints) else ()
@@ -112,21 +144,6 @@ def frame_error(err: LiftError) -> lifter_pb2.FrameError:
             for v in violations[:MAX_ERROR_ITEMS]
         ],
     )
-
-
-class UnreadableRequest:
-    """What read_lift_request gives for bytes that are not a LiftRequest."""
-
-    message = "the request cannot be decoded as a repnet.v1.LiftRequest (protobuf)"
-
-
-def read_lift_request(data: bytes) -> lifter_pb2.LiftRequest | UnreadableRequest:
-    """Lift's request deserializer: the message, or UnreadableRequest for Lift to answer
-    INVALID_ARGUMENT (an exception here would reach the client as UNKNOWN with a class name)."""
-    try:
-        return lifter_pb2.LiftRequest.FromString(data)
-    except DecodeError:
-        return UnreadableRequest()
 
 
 def proto_replies(inputs: ModelInput, prediction: Prediction) -> list[lifter_pb2.PoseResult]:
@@ -156,6 +173,7 @@ class PoseLifterServicer:
         max_unary: int,
         max_streams: int,
         stream_idle_timeout_s: float,
+        temporal: TemporalModels | None = None,
     ) -> None:
         self.engine = engine
         self.metrics = metrics
@@ -164,6 +182,7 @@ class PoseLifterServicer:
         self.max_unary = max_unary
         self.max_streams = max_streams
         self.stream_idle_timeout_s = stream_idle_timeout_s
+        self.temporal = temporal
         self.model_id = engine.lifter.info.model_id
         self.joints = list(engine.lifter.info.joint_names)
         self._unary = 0  # Lift calls in progress; both counters live on the server's one event loop
@@ -173,14 +192,8 @@ class PoseLifterServicer:
         self.metrics.finish(TRANSPORT, method, OVERLOADED, 0.0)
         await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, message)
 
-    async def Lift(
-        self, request: lifter_pb2.LiftRequest | UnreadableRequest, context: Context
-    ) -> lifter_pb2.LiftResponse:
+    async def Lift(self, request: lifter_pb2.LiftRequest, context: Context) -> lifter_pb2.LiftResponse:
         """Lift a batch of poses: one PoseResult per pose, in order, or one status for the call."""
-        if isinstance(request, UnreadableRequest):
-            self.metrics.reject(TRANSPORT, [Violation("request", request.message, "malformed")])
-            self.metrics.finish(TRANSPORT, "Lift", INVALID, 0.0)
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, request.message)
         if self._unary >= self.max_unary:
             await self._refuse(
                 context, "Lift", f"too many Lift calls in progress (limit {self.max_unary}); retry later"
@@ -243,6 +256,7 @@ class PoseLifterServicer:
             window=self.stream_window,
             idle_timeout_s=self.stream_idle_timeout_s,
             transport=TRANSPORT,
+            temporal=self.temporal,
         )
         try:
             async for results in answers:
@@ -265,19 +279,38 @@ class PoseLifterServicer:
             gauge.dec(held)  # frames read but never answered (the client went away)
 
     def _frame(self, message: lifter_pb2.LiftFrame) -> Frame:
-        """A frame read from the wire: its pose (layout and threshold checked), or why it has none."""
+        """A frame read from the wire: its pose or people (layout, threshold, tracks and fps
+        checked), or why it has none."""
         read_at = time.perf_counter()
-        try:
-            pose = to_pose_input(message.pose, message.pose.format or DEFAULT_FORMAT, None)
-        except InvalidKeypoints as err:
-            named = InvalidKeypoints([v.within(POSE_FIELD) for v in err.violations])
-            return Frame(message.frame_id, read_at, error=named)
+        frame_id, several = message.frame_id, len(message.people) > 0
         try:
             threshold = message.confidence_threshold if message.HasField("confidence_threshold") else None
             cut = check_threshold(threshold, self.limits)
+            if found := frame_violations(message):
+                raise InvalidKeypoints(found)
         except InvalidKeypoints as err:
-            return Frame(message.frame_id, read_at, error=err)
-        return Frame(message.frame_id, read_at, replace(pose, confidence_threshold=cut))
+            return Frame(frame_id, read_at, error=err)
+        fps = float(message.fps)
+        if not several:
+            try:
+                pose = to_pose_input(message.pose, message.pose.format or DEFAULT_FORMAT, None)
+            except InvalidKeypoints as err:
+                named = InvalidKeypoints([v.within(POSE_FIELD) for v in err.violations])
+                return Frame(frame_id, read_at, error=named)
+            return Frame(
+                frame_id, read_at, replace(pose, confidence_threshold=cut), None, message.track_id, fps
+            )
+        people = []
+        for k, person in enumerate(message.people):
+            field = f"people[{k}]"
+            try:
+                pose = to_pose_input(person.pose, person.pose.format or DEFAULT_FORMAT, None)
+            except InvalidKeypoints as err:
+                named = InvalidKeypoints([v.within(f"{field}.pose") for v in err.violations])
+                people.append(Person(person.track_id, f"{field}.pose", error=named))
+                continue
+            people.append(Person(person.track_id, f"{field}.pose", replace(pose, confidence_threshold=cut)))
+        return Frame(frame_id, read_at, track_id="", fps=fps, people=tuple(people))
 
     def _results(self, answered: Answers) -> list[tuple[lifter_pb2.LiftFrameResult, Answer]]:
         """A group's LiftFrameResults in frame order, each beside its answer."""
@@ -287,14 +320,20 @@ class PoseLifterServicer:
             result = lifter_pb2.LiftFrameResult(frame_id=answer.frame.frame_id, model_id=self.model_id)
             if isinstance(answer.outcome, LiftError):
                 result.error.CopyFrom(frame_error(answer.outcome))
-            else:
+            elif answer.outcome is not None:
                 result.pose.CopyFrom(poses[answer.outcome])
+            for person, outcome in zip(answer.frame.people or (), answer.people, strict=True):
+                item = result.people.add(track_id=person.track_id)
+                if isinstance(outcome, LiftError):
+                    item.error.CopyFrom(frame_error(outcome))
+                else:
+                    item.pose.CopyFrom(poses[outcome])
             out.append((result, answer))
         return out
 
     def _count(self, answer: Answer) -> None:
         """Count a frame once its result is sent: its outcome and latency, and what its error says."""
-        error = answer.outcome if isinstance(answer.outcome, LiftError) else None
+        error = answer.error
         if error is not None:
             self.metrics.count_error(TRANSPORT, error)
         seconds = time.perf_counter() - answer.frame.read_at

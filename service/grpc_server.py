@@ -8,18 +8,22 @@ import threading
 from collections.abc import Awaitable, Callable, Coroutine
 from concurrent import futures
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeAlias
 
 import grpc
+from google.protobuf.message import DecodeError
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from service._proto.repnet.v1 import lifter_pb2
 from service.auth import UNAUTHENTICATED_MESSAGE, ApiKeys
 from service.engine import Engine
-from service.grpc_api import SERVICE_NAME, TRANSPORT, PoseLifterServicer, read_lift_request
+from service.errors import Violation
+from service.grpc_api import SERVICE_NAME, TRANSPORT, PoseLifterServicer
 from service.keypoints import Limits
-from service.metrics import UNAUTHENTICATED, Metrics
+from service.metrics import INVALID, UNAUTHENTICATED, Metrics
+from service.tracking import TemporalModels
 
 log = logging.getLogger(__name__)
 Handler: TypeAlias = "grpc.RpcMethodHandler[Any, Any]"  # generic in the stubs only
@@ -134,6 +138,14 @@ class GrpcTls:
         )
 
 
+def read_tls(cert: Path | None, key: Path | None, client_ca: Path | None) -> GrpcTls | None:
+    """The TLS of PEM files as read now (None without a certificate: plaintext); OSError if one
+    cannot be read."""
+    if cert is None or key is None:
+        return None
+    return GrpcTls(cert.read_bytes(), key.read_bytes(), None if client_ca is None else client_ca.read_bytes())
+
+
 async def _deny_unary(request: object, context: grpc.aio.ServicerContext[Any, Any]) -> None:
     await context.abort(grpc.StatusCode.UNAUTHENTICATED, UNAUTHENTICATED_MESSAGE)
 
@@ -170,13 +182,38 @@ class ApiKeyInterceptor(grpc.aio.ServerInterceptor):
         return grpc.unary_unary_rpc_method_handler(_deny_unary)
 
 
+class UnreadableRequest:
+    """What read_lift_request gives for bytes that are not a LiftRequest."""
+
+    message = "the request cannot be decoded as a repnet.v1.LiftRequest (protobuf)"
+
+
+def read_lift_request(data: bytes) -> lifter_pb2.LiftRequest | UnreadableRequest:
+    """Lift's request deserializer: the message, or UnreadableRequest for the handler to answer
+    INVALID_ARGUMENT (an exception here would reach the client as UNKNOWN with a class name)."""
+    try:
+        return lifter_pb2.LiftRequest.FromString(data)
+    except DecodeError:
+        return UnreadableRequest()
+
+
 def add_servicer(servicer: PoseLifterServicer, server: grpc.aio.Server) -> None:
     """Register repnet.v1.PoseLifter as the generated add_PoseLifterServicer_to_server does, but
     with Lift's request read by read_lift_request: grpcio answers a message that fails to decode
     with UNKNOWN and a Python class name before any servicer code runs."""
+
+    async def lift(
+        request: lifter_pb2.LiftRequest | UnreadableRequest, context: grpc.aio.ServicerContext[Any, Any]
+    ) -> lifter_pb2.LiftResponse:
+        if isinstance(request, UnreadableRequest):
+            servicer.metrics.reject(TRANSPORT, [Violation("request", request.message, "malformed")])
+            servicer.metrics.finish(TRANSPORT, "Lift", INVALID, 0.0)
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, request.message)
+        return await servicer.Lift(request, context)
+
     handlers: dict[str, Handler] = {
         "Lift": grpc.unary_unary_rpc_method_handler(
-            servicer.Lift,
+            lift,
             request_deserializer=read_lift_request,
             response_serializer=lifter_pb2.LiftResponse.SerializeToString,
         ),
@@ -203,6 +240,7 @@ def create_server(
     stream_idle_timeout_s: float,
     max_message_bytes: int,
     stream_window: int,
+    temporal: TemporalModels | None = None,
 ) -> GrpcServer:
     """A gRPC server (not started) bound to `address`, with health (`.health`) and reflection.
 
@@ -225,6 +263,7 @@ def create_server(
             max_unary=workers,
             max_streams=max_streams,
             stream_idle_timeout_s=stream_idle_timeout_s,
+            temporal=temporal,
         )
         add_servicer(servicer, server)
         health_pb2_grpc.add_HealthServicer_to_server(status.servicer, server)

@@ -25,6 +25,8 @@ from service.http_middleware import (
     LoadShedMiddleware,
     SecurityHeadersMiddleware,
 )
+from service.http_models import describe_model
+from service.http_temporal import lift_temporal
 from service.keypoints import Limits, ModelInput, PoseInput, prepare_request
 from service.lifter import ModelInfo, Prediction
 from service.metrics import Metrics
@@ -33,13 +35,12 @@ from service.replies import build_replies
 from service.schemas import (
     FRAME_DOC,
     ErrorResponse,
-    FormatInfo,
     LiftRequest,
     LiftResponse,
-    LimitsInfo,
     ModelDescription,
     PoseIn,
 )
+from service.tracking import TemporalModels
 
 log = logging.getLogger(__name__)
 
@@ -120,44 +121,27 @@ def _prepare(request: LiftRequest, limits: Limits) -> ModelInput:
     return prepare_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
 
 
-def reply_of(info: ModelInfo, inputs: ModelInput, prediction: Prediction) -> LiftJSONResponse:
+def reply_of(
+    info: ModelInfo, inputs: ModelInput, prediction: Prediction, request: LiftRequest
+) -> LiftJSONResponse:
     """The 200 answer to a request; ModelOutputError when the model failed on any of its poses."""
-    poses = build_replies(inputs, prediction).check().to_json()
+    track_ids = [p.track_id for p in request.poses]
+    poses = build_replies(inputs, prediction, track_ids=track_ids).check().to_json()
     return LiftJSONResponse({"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses})
 
 
-def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
-    """What GET /v1/model says: the model, its joints and formats, the limits, its public metadata."""
-    formats = [
-        FormatInfo(
-            name=f.name,
-            description=f.description,
-            joint_names=list(f.joint_names),
-            sources=[list(s) for s in f.sources],
-        )
-        for f in FORMATS.values()
-    ]
-    return ModelDescription(
-        model_id=info.model_id,
-        skeleton=info.skeleton,
-        joints=list(info.joint_names),
-        parents=list(info.parents),
-        formats=formats,
-        limits=LimitsInfo(
-            max_request_poses=limits.max_request_poses,
-            max_body_bytes=max_body_bytes,
-            min_visible_joints=limits.min_visible_joints,
-            confidence_threshold=limits.confidence_threshold,
-            max_coordinate_px=limits.max_coordinate,
-            max_batch=engine.max_batch,
-            max_wait_ms=engine.max_wait_s * 1000,
-            queue_size=engine.queue_size,
-        ),
-        plausibility=engine.lifter.has_plausibility,
-        plausibility_calibration=info.plausibility_calibration,
-        evaluation=info.evaluation,
-        metadata=info.public_metadata,
-    )
+def add_middleware(
+    app: FastAPI, metrics: Metrics, *, max_body_bytes: int, max_in_flight: int, api_keys: ApiKeys | None
+) -> None:
+    """The middleware around every route, outermost first: reply headers, /lift metrics, API keys,
+    the body limit (while the body is read), the in-flight bound (once the body arrived)."""
+    # Each add wraps the ones before: the last added runs first.
+    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
+    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
+    if api_keys is not None:
+        app.add_middleware(ApiKeyMiddleware, keys=api_keys)
+    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)
+    app.add_middleware(SecurityHeadersMiddleware)
 
 
 def create_app(
@@ -168,7 +152,8 @@ def create_app(
     max_body_bytes: int,
     ui: bool,
     max_in_flight: int,
-    api_keys: ApiKeys | None,
+    api_keys: ApiKeys | None = None,
+    temporal: TemporalModels | None = None,
 ) -> FastAPI:
     """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
     `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
@@ -186,24 +171,27 @@ def create_app(
         docs_url=None,  # add_docs: Swagger UI from this package, not a CDN
         redoc_url=None,
     )
-    # Each add wraps the ones before: the last added runs first.
-    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
-    app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)  # while read
-    if api_keys is not None:
-        app.add_middleware(ApiKeyMiddleware, keys=api_keys)
-    app.add_middleware(LiftMetricsMiddleware, metrics=metrics)
-    app.add_middleware(SecurityHeadersMiddleware)
-
+    add_middleware(
+        app, metrics, max_body_bytes=max_body_bytes, max_in_flight=max_in_flight, api_keys=api_keys
+    )
     add_error_handlers(app, metrics)
 
     @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
     async def lift(request: LiftRequest, http: Request) -> Response:
         """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
         count = len(request.poses)
-        with metrics.parsing("http", getattr(http.state, STARTED_KEY, None)):  # since the body arrived
+        started = getattr(http.state, STARTED_KEY, None)  # since the body arrived
+        if request.temporal != "off":
+
+            def read(i: int) -> PoseInput:
+                return to_pose_input(request.poses[i], request, i)
+
+            body = await lift_temporal(request, engine, temporal, limits, metrics, started, read)
+            return LiftJSONResponse(body)
+        with metrics.parsing("http", started):
             inputs = await offload(count, _prepare, request, limits)
         prediction = await engine.lift_async(inputs, "http")
-        return await offload(count, reply_of, info, inputs, prediction)
+        return await offload(count, reply_of, info, inputs, prediction, request)
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:
@@ -219,8 +207,9 @@ def create_app(
             return JSONResponse({"detail": "shutting down"}, status_code=503)
         return JSONResponse({"status": "ready", "model_id": info.model_id})
 
-    for path, probe in (("/healthz", healthz), ("/readyz", readyz)):  # HEAD: 200 without a body
-        app.add_api_route(path, probe, methods=["HEAD"], include_in_schema=False)
+    # HEAD: 200 without a body (uvicorn writes none for HEAD)
+    app.add_api_route("/healthz", healthz, methods=["HEAD"], include_in_schema=False)
+    app.add_api_route("/readyz", readyz, methods=["HEAD"], include_in_schema=False)
 
     @app.get("/v1/model", response_model=ModelDescription, summary="Model, joints, formats and limits")
     async def model() -> ModelDescription:

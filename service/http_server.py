@@ -9,11 +9,16 @@ import errno
 import logging
 import resource
 import socket
+import ssl
 import struct
 import sys
 from collections.abc import Generator
 
 import uvicorn
+from fastapi import FastAPI
+
+from service.config import Settings
+from service.http_protocol import ConnectionLimits, guarded_protocol
 
 log = logging.getLogger(__name__)
 
@@ -159,3 +164,30 @@ class HttpServer(uvicorn.Server):
         return self.config.http_protocol_class(  # type: ignore[call-arg]
             config=self.config, server_state=self.server_state, app_state=self.lifespan.state
         )
+
+
+def http_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
+    """uvicorn's configuration of the HTTP server: its connections guarded (service/http_protocol.py),
+    over TLS when tls_cert is set (requiring a client certificate when tls_client_ca is)."""
+    limits = ConnectionLimits(
+        header_timeout_s=settings.http_header_timeout_s,
+        max_header_bytes=settings.http_max_header_bytes,
+        body_timeout_s=settings.http_body_timeout_s,
+        body_min_rate=settings.http_body_min_rate,
+        max_connections=connection_cap(settings.http_max_connections),
+    )
+    ca = settings.tls_client_ca
+    return uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.http_port,
+        http=guarded_protocol(limits),
+        log_level=settings.log_level,
+        access_log=settings.log_level == "debug",  # one line per request costs more than a lift
+        timeout_graceful_shutdown=max(1, round(settings.shutdown_grace_s)),
+        lifespan="off",
+        ssl_certfile=settings.tls_cert,
+        ssl_keyfile=settings.tls_key,
+        ssl_cert_reqs=ssl.CERT_REQUIRED if ca is not None else ssl.CERT_NONE,
+        ssl_ca_certs=ca,
+    )

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cache
 
 import numpy as np
@@ -67,6 +67,10 @@ class ModelInput:
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
+
+    def slice(self, start: int, stop: int) -> ModelInput:
+        """Poses start..stop-1 (views)."""
+        return ModelInput(*(getattr(self, f.name)[start:stop] for f in fields(self)))
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import onnxruntime as ort
@@ -167,6 +167,37 @@ def _check_contract(session: ort.InferenceSession, info: ModelInfo, path: Path) 
         )
 
 
+def open_session(path: Path, settings: Settings) -> ort.InferenceSession:
+    """An onnxruntime session of the model at `path` with the options of `settings` (threads and
+    spinning); ModelLoadError saying why the file cannot be one."""
+    if path.is_dir():
+        raise ModelLoadError(f"model path is a directory, not an ONNX file: {path}")
+    if not path.is_file():
+        raise ModelLoadError(f"model file not found: {path}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = settings.intra_op_threads  # 0: one per core
+    options.inter_op_num_threads = settings.inter_op_threads
+    spinning = "1" if settings.intra_op_spinning else "0"
+    options.add_session_config_entry("session.intra_op.allow_spinning", spinning)
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as err:  # onnxruntime raises its own untyped errors for bad files
+        raise ModelLoadError(f"cannot load model {path}: {err}") from err
+
+
+class ModelInputLike(Protocol):
+    """What Lifter.run reads of a keypoints.ModelInput (keypoints imports nothing of the lifter)."""
+
+    @property
+    def keypoints_2d(self) -> np.ndarray:
+        """(N, J, 2) px."""
+
+    @property
+    def visible(self) -> np.ndarray:
+        """(N, J) bool."""
+
+
 class Lifter:
     """Runs the RepNet ONNX model; safe to call from many threads at once."""
 
@@ -184,22 +215,7 @@ class Lifter:
         """Open the model at `path` with the session options of `settings` (threads and spinning;
         default Settings(): the service's defaults and REPNET_* variables); raise ModelLoadError
         saying what is wrong with the model."""
-        settings = Settings() if settings is None else settings
-        if path.is_dir():
-            raise ModelLoadError(f"model path is a directory, not an ONNX file: {path}")
-        if not path.is_file():
-            raise ModelLoadError(f"model file not found: {path}")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = settings.intra_op_threads  # 0: one per core
-        options.inter_op_num_threads = settings.inter_op_threads
-        spinning = "1" if settings.intra_op_spinning else "0"
-        options.add_session_config_entry("session.intra_op.allow_spinning", spinning)
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        try:
-            session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-        except Exception as err:  # onnxruntime raises its own untyped errors for bad files
-            raise ModelLoadError(f"cannot load model {path}: {err}") from err
-        lifter = cls(session, path)
+        lifter = cls(open_session(path, Settings() if settings is None else settings), path)
         log.info("loaded model %s (%s) from %s", lifter.info.model_id, lifter.info.skeleton, path)
         return lifter
 
@@ -233,6 +249,11 @@ class Lifter:
     def num_joints(self) -> int:
         """J, the number of model joints."""
         return len(self.info.joint_names)
+
+    def run(self, parts: Sequence[ModelInputLike]) -> Prediction:
+        """Lift the poses of several requests' inputs (each with keypoints_2d and visible) in one run."""
+        keypoints = np.concatenate([p.keypoints_2d for p in parts])  # (N, J, 2)
+        return self.lift(keypoints, np.concatenate([p.visible for p in parts]))
 
     def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray) -> Prediction:
         """Lift (N, J, 2) pixel keypoints with (N, J) visibility (bool or 0/1) to a Prediction.

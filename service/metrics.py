@@ -84,6 +84,12 @@ class Metrics:
             "LiftStream calls closed by the server after stream_idle_timeout_s without a frame.",
             registry=registry,
         )
+        self.open_tracks = Gauge(
+            "repnet_open_tracks", "Tracks of LiftStream calls open now.", registry=registry
+        )
+        self.track_state_bytes = Gauge(
+            "repnet_track_state_bytes", "Bytes of frames the open tracks hold now.", registry=registry
+        )
         self.model_output_errors = Counter(
             "repnet_model_output_errors",
             "Poses for which the model produced non-finite output (answered 500 / INTERNAL).",
@@ -195,3 +201,8 @@ class Metrics:
                 self.count_error(transport, error)
             outcome = tracked.outcome or outcome_of(error)
             self.finish(transport, method, outcome, time.perf_counter() - start)
+
+    def set_tracks(self, tracks: int, nbytes: int) -> None:
+        """The open tracks and the bytes they hold (tracks.TrackBudget's on_change)."""
+        self.open_tracks.set(tracks)
+        self.track_state_bytes.set(nbytes)

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from service import geometry
 from service._proto.repnet.v1 import lifter_pb2
@@ -44,6 +45,8 @@ FIELDS: tuple[ReplyField, ...] = (
     ReplyField("derived", (ANY,), bool),  # the midpoint of two detector joints
     ReplyField("plausibility", (), float, optional=True),  # in [0, 1]; models with a plausibility output
     ReplyField("warnings", (ANY,), str),  # why the answer may be wrong (service.lookalike)
+    ReplyField("temporal", (), bool),  # a temporal model answered (a tracked pose)
+    ReplyField("track_id", (), str, optional=True),  # the pose's track; absent for an untracked pose
 )
 NAMES: tuple[str, ...] = tuple(f.name for f in FIELDS)
 
@@ -97,14 +100,43 @@ class Replies:
         return [lifter_pb2.PoseResult(**{k: v[i] for k, v in lists.items()}) for i in range(len(self))]
 
 
-def build_replies(inputs: ModelInput, prediction: Prediction) -> Replies:
+@dataclass(frozen=True)
+class TemporalRows:
+    """What a temporal model answered for some poses of a request (service.tracking)."""
+
+    rows: npt.NDArray[np.int64]  # (n,) the poses, rows of the request's inputs
+    pose_camera: FloatArray  # (n, J, 3) their pose in the camera's orientation (no ray turn), mm
+    failed: BoolArray  # (n,) the model's answer is not finite
+
+    @classmethod
+    def none(cls) -> TemporalRows:
+        """No temporal answer."""
+        return cls(np.zeros(0, np.int64), np.zeros((0, 17, 3), np.float32), np.zeros(0, bool))
+
+
+def build_replies(
+    inputs: ModelInput,
+    prediction: Prediction,
+    temporal: TemporalRows | None = None,
+    track_ids: list[str | None] | None = None,
+) -> Replies:
     """Every reply field of the poses `inputs` from their `prediction`: the camera geometry
     (computed here only), the input's joint flags and the warnings. A pose whose geometry is not
-    finite (a finite but absurd model output) fails like one the model failed on."""
+    finite (a finite but absurd model output) fails like one the model failed on.
+
+    temporal -- the temporal answers of tracked poses: their pose_3d_camera, with pose_3d that pose
+    turned back by the camera rotation (so K, pose_3d and the reprojection stay one answer);
+    track_ids -- each pose's track (None: untracked)."""
     camera, pose_3d = prediction.camera, prediction.pose_3d
     points, visible = inputs.keypoints_2d, inputs.visible
+    temporal = TemporalRows.none() if temporal is None else temporal
+    failed = prediction.failed.copy()
     with np.errstate(over="ignore", invalid="ignore"):  # what is not finite fails its pose below
         rotation = geometry.camera_rotation(camera)  # (N, 3, 3)
+        if len(temporal.rows):  # pose_camera = pose_3d R^T, so pose_3d = pose_camera R
+            pose_3d = pose_3d.copy()
+            pose_3d[temporal.rows] = temporal.pose_camera @ rotation[temporal.rows]
+            failed[temporal.rows] |= temporal.failed
         reprojection = geometry.reproject(camera, pose_3d, points, visible)  # (N, J, 2) px
         error = geometry.reprojection_error(reprojection, points, visible)  # (N,) px
         pose_3d_camera = geometry.rotate_to_camera(pose_3d, camera_orientation(inputs, rotation))
@@ -121,8 +153,10 @@ def build_replies(inputs: ModelInput, prediction: Prediction) -> Replies:
         "derived": inputs.derived,
         "plausibility": prediction.plausibility,
         "warnings": format_warnings(inputs, error, prediction.plausibility),
+        "temporal": np.isin(np.arange(len(inputs)), temporal.rows),
+        "track_id": [None] * len(inputs) if track_ids is None else list(track_ids),
     }
-    return Replies(columns, prediction.failed | non_finite_rows(rotation, reprojection, error))
+    return Replies(columns, failed | non_finite_rows(rotation, reprojection, error))
 
 
 def camera_orientation(inputs: ModelInput, rotation: FloatArray) -> FloatArray:

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, Strict, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
 from service.errors import echo, encodable
 from service.formats import FORMATS
+from service.tracks import MAX_TRACK_ID
 
 # Strict: a JSON string such as "12" or a boolean is not a coordinate.
 Number = Annotated[float, Strict()]
@@ -128,6 +129,16 @@ class PoseIn(BaseModel):
     intrinsics: CameraIntrinsics | None = Field(
         None, description=INTRINSICS_DOC + " Defaults to the request's `intrinsics`."
     )
+    track_id: Annotated[str, Strict(), Field(min_length=1, max_length=MAX_TRACK_ID)] | None = Field(
+        None,
+        description="The person this pose belongs to: with `temporal` causal or offline, the poses of one "
+        "track_id are one person's clip, ordered by `frame`. Echoed in the reply.",
+    )
+    frame: Annotated[int, Strict(), Field(ge=0)] | None = Field(
+        None,
+        description="The pose's frame number in its track (needed with `track_id` and `temporal`): "
+        "frames are 1 / fps apart; a gap of up to 0.5 s is bridged, a longer one starts the track again.",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -196,6 +207,15 @@ class LiftRequest(BaseModel):
     intrinsics: CameraIntrinsics | None = Field(
         None, description="`intrinsics` of poses that do not give their own. " + INTRINSICS_DOC
     )
+    temporal: Literal["off", "causal", "offline"] = Field(
+        "off",
+        description="How tracked poses (with `track_id` and `frame`) are lifted: off, each alone; causal, "
+        "each from its track's frames up to it (as a LiftStream answers them); offline, each from the "
+        "frames around it in its whole track. Untracked poses are always lifted alone.",
+    )
+    fps: Annotated[float, Strict()] | None = Field(
+        None, description="Frames per second of the tracks, in (0, 240]; needed with `temporal`."
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -244,6 +264,11 @@ class PoseResult(BaseModel):
         'keypoints look like another format with as many joints ("format: these keypoints look like '
         'coco17, not h36m17 ..."). Empty when nothing looks wrong.',
     )
+    temporal: bool = Field(
+        description="A temporal model answered this tracked pose: `pose_3d_camera` is its answer, with "
+        "the track's bone lengths, and `pose_3d` that pose turned back by `rotation`."
+    )
+    track_id: str | None = Field(None, description="The pose's `track_id`, null for an untracked pose.")
 
 
 class LiftResponse(BaseModel):

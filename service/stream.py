@@ -7,23 +7,26 @@ import contextlib
 import logging
 from collections import deque
 from collections.abc import AsyncGenerator, AsyncIterator, Callable
-from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TypeVar
 
-from service.engine import Engine, offload
-from service.errors import InvalidKeypoints, LiftError, ModelOutputError
-from service.keypoints import Limits, PoseInput, Prepared, prepare_poses
+from service.engine import Engine, TemporalEngine, offload
+from service.errors import LiftError, ModelOutputError
+from service.frames import POSE_FIELD, Answer, Answers, Frame, Group, Person
+from service.keypoints import Limits, prepare_poses
 from service.lifter import Prediction
-from service.replies import Replies, build_replies
+
+__all__ = ["POSE_FIELD", "Answer", "Answers", "Frame", "Group", "Person", "StreamIdle", "UnreadableFrame"]
+from service.replies import build_replies
+from service.tracking import Plan, TemporalModels, TrackedRow, run_plan, stream_plan
+from service.tracks import TrackTable
 
 log = logging.getLogger(__name__)
 
 # A group that finds the batch queue full waits this long for room before its frames get an error:
 # the window already bounds what a stream holds, so a busy moment slows it down instead.
 QUEUE_WAIT_S = 5.0
-POSE_FIELD = "pose"
-R = TypeVar("R")  # what a frame's violations are named within: pose.keypoints[4]
+R = TypeVar("R")  # what a transport encodes a group's answers as
 
 
 class StreamIdle(Exception):
@@ -32,70 +35,6 @@ class StreamIdle(Exception):
 
 class UnreadableFrame(Exception):
     """A frame could not be read; every frame before it has been answered, and the stream ends."""
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One frame as the adapter read it: a pose to lift, or why it has none."""
-
-    frame_id: int
-    read_at: float  # time.perf_counter() when read
-    pose: PoseInput | None = None
-    error: LiftError | None = None  # why there is no pose (its layout or its threshold is wrong)
-
-
-@dataclass(frozen=True)
-class Answer:
-    """One frame's outcome: its row of its group's replies, or why it has none."""
-
-    frame: Frame
-    outcome: int | LiftError
-
-
-@dataclass(frozen=True)
-class Answers:
-    """A group's answers in frame order, and the replies their rows point into."""
-
-    items: list[Answer]
-    replies: Replies | None
-
-
-@dataclass
-class Group:
-    """Frames taken together: prepared in one call, lifted as one engine request, answered together."""
-
-    frames: list[Frame]
-    prepared: Prepared | None = None  # the input rules' outcome for the frames that have a pose
-    futures: list[Future[Prediction]] = field(default_factory=list)  # the runs of its valid poses
-    failure: LiftError | None = None  # why its valid poses get no reply (queue full, a failed run)
-
-    def done(self) -> bool:
-        """Every run of the group has finished (a group without runs at once)."""
-        return all(f.done() for f in self.futures)
-
-    def _outcome(self, replies: Replies | None, row: int) -> int | LiftError:
-        """A valid pose's outcome: its row of `replies`, or why its run failed."""
-        if self.failure is not None:
-            return self.failure
-        if replies is None:
-            raise ValueError("a group's valid poses are answered with replies or a failure")
-        return ModelOutputError([row]) if replies.failed[row] else row  # stand-ins are never sent
-
-    def answers(self, replies: Replies | None) -> list[Answer]:
-        """Each frame's answer, in order: why it has no pose, else its pose's violations, else why
-        its run failed, else its row of `replies` (the replies of the valid poses, in order)."""
-        violations = iter(self.prepared.violations if self.prepared is not None else ())
-        answers: list[Answer] = []
-        row = 0  # the next valid pose's row
-        for frame in self.frames:
-            if frame.error is not None:
-                answers.append(Answer(frame, frame.error))
-            elif found := next(violations):
-                answers.append(Answer(frame, InvalidKeypoints([v.within(POSE_FIELD) for v in found])))
-            else:
-                answers.append(Answer(frame, self._outcome(replies, row)))
-                row += 1
-        return answers
 
 
 class StreamState:
@@ -152,7 +91,7 @@ class StreamState:
 
 async def _start(group: Group, engine: Engine, limits: Limits, transport: str) -> None:
     """Prepare the group's poses (off the event loop when many) and queue the valid ones as one request."""
-    poses = [f.pose for f in group.frames if f.pose is not None]
+    poses = group.poses()
     if not poses:
         return
     group.prepared = await offload(len(poses), prepare_poses, poses, limits)
@@ -163,26 +102,60 @@ async def _start(group: Group, engine: Engine, limits: Limits, transport: str) -
             group.failure = err
 
 
-async def _finish(group: Group, encode: Callable[[Answers], R]) -> R:
+@dataclass(frozen=True)
+class Tracking:
+    """A stream's tracks and the causal temporal model that answers them."""
+
+    table: TrackTable
+    engine: TemporalEngine
+    transport: str
+
+
+async def _track(group: Group, prediction: Prediction, tracking: Tracking | None) -> Plan | None:
+    """The group's tracked poses pushed into their tracks, in frame order, and their causal windows
+    answered (off the event loop when many): the rows' TemporalRows and why some rows got none."""
+    if tracking is None or group.prepared is None:
+        return None
+    tracked = [
+        TrackedRow(row, person.track_id, frame.frame_id, frame.fps, person.field)
+        for frame, person, row in group.valid()
+        if person.track_id
+    ]
+    if not tracked:
+        return None
+    inputs = group.prepared.inputs
+    plan = await offload(len(tracked), stream_plan, tracking.table, tracked, inputs, prediction)
+    group.temporal = await run_plan(tracking.engine, plan, tracking.transport, QUEUE_WAIT_S)
+    return plan
+
+
+async def _finish(group: Group, encode: Callable[[Answers], R], tracking: Tracking | None = None) -> R:
     """The encoded answers of a group whose runs have finished (off the event loop when many): a
     failed run fails its frames, not the stream."""
-    prediction = None
+    prediction, errors = None, {}
     if group.futures:
         try:
             prediction = Prediction.join([f.result() for f in group.futures])
+            plan = await _track(group, prediction, tracking)
+            errors = {} if plan is None else plan.errors
+        except LiftError as err:  # the temporal model's queue full for too long, or shutting down
+            group.failure = err
         except Exception:  # one run's fault must not end the stream
             log.exception("stream frames %d..: lifting failed", group.frames[0].frame_id)
             group.failure = LiftError("internal error while lifting this frame")
-    return await offload(len(group.frames), _answer, group, prediction, encode)
+    return await offload(len(group.frames), _answer, group, prediction, errors, encode)
 
 
-def _answer(group: Group, prediction: Prediction | None, encode: Callable[[Answers], R]) -> R:
+def _answer(
+    group: Group, prediction: Prediction | None, errors: dict[int, LiftError], encode: Callable[[Answers], R]
+) -> R:
     """Build the replies of a group's valid poses and encode its answers, in one go."""
     replies = None
     if prediction is not None and group.prepared is not None:
         first = group.frames[0].frame_id
+        track_ids = [person.track_id or None for _, person, _ in group.valid()]
         try:
-            replies = build_replies(group.prepared.inputs, prediction)
+            replies = build_replies(group.prepared.inputs, prediction, group.temporal, track_ids)
         except Exception:  # one group's fault must not end the stream
             log.exception("stream frames %d..: building the replies failed", first)
             group.failure = LiftError("internal error while lifting this frame")
@@ -191,7 +164,7 @@ def _answer(group: Group, prediction: Prediction | None, encode: Callable[[Answe
                 log.error(
                     "stream frames %d..: %s", first, ModelOutputError(replies.failed.nonzero()[0].tolist())
                 )
-    return encode(Answers(group.answers(replies), replies))
+    return encode(Answers(group.answers(replies, errors), replies))
 
 
 class _Reader:
@@ -259,15 +232,22 @@ async def answer_stream(
     window: int,
     idle_timeout_s: float,
     transport: str,
+    temporal: TemporalModels | None = None,
 ) -> AsyncGenerator[R, None]:
     """Read `frames` and yield their answers group by group, in frame order (see StreamState), as
     encode(answers) gives them: the transport's results, built off the event loop with the replies.
 
     Raises StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s`, and
-    UnreadableFrame (after answering the frames before it) when `frames` fails.
+    UnreadableFrame (after answering the frames before it) when `frames` fails. With a causal
+    temporal model, tracked poses are answered from their track's frames so far; the stream's
+    tracks are freed when it ends.
     """
     reader = _Reader(frames, StreamState(window, engine.max_batch))
     state = reader.state
+    table = None if temporal is None else temporal.table()
+    tracking = (
+        None if table is None or temporal is None else Tracking(table, temporal.engines["causal"], transport)
+    )
     try:
         while True:
             reader.wake.clear()
@@ -276,7 +256,7 @@ async def answer_stream(
                     await _start(taken, engine, limits, transport)
                     reader.watch(taken)
             while (group := state.answerable()) is not None:
-                yield await _finish(group, encode)
+                yield await _finish(group, encode, tracking)
                 reader.answered(group)
             if reader.ended and not state.held:
                 if reader.unreadable is not None:
@@ -285,6 +265,8 @@ async def answer_stream(
             await reader.next_event(idle_timeout_s)
     finally:
         reader.close()
+        if table is not None:
+            table.close()
 
 
 async def _wait(event: asyncio.Event, timeout_s: float) -> bool:

@@ -49,10 +49,11 @@ def _pose_proto(points: np.ndarray, conf: np.ndarray | None, format: str) -> lif
 
 
 def proto_field(pose: lifter_pb2.PoseResult) -> Callable[[str], Any]:
-    """A field getter of one proto result for LiftResult.from_fields; unset plausibility is None."""
+    """A field getter of one proto result for LiftResult.from_fields; an unset optional field
+    (plausibility, track_id) is None."""
 
     def get(name: str) -> Any:
-        if name == "plausibility" and not pose.HasField("plausibility"):
+        if name in ("plausibility", "track_id") and not pose.HasField(name):
             return None
         return getattr(pose, name)
 

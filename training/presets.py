@@ -13,6 +13,8 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 from training.config import RepNetConfig, TrainConfig
+from training.sequences import ClipConfig, ClipNoise
+from training.temporal import TemporalConfig, TemporalTrainConfig
 
 
 @dataclass(frozen=True)
@@ -242,3 +244,55 @@ def get(name: str) -> Preset:
     if name not in PRESETS:
         raise KeyError(f"no preset {name!r}: {', '.join(PRESETS)}")
     return PRESETS[name]
+
+
+@dataclass(frozen=True)
+class TemporalPreset:
+    """A shipped temporal model pair (training.temporal_train): the single-frame model whose answers
+    they refine (a file of this repository), the synthetic clips, and one (model id, shape) per mode,
+    each trained by `train`."""
+
+    name: str
+    description: str
+    base_model: str
+    base_model_id: str
+    clips: ClipConfig
+    train: TemporalTrainConfig
+    models: tuple[tuple[str, TemporalConfig], ...]
+
+
+REPNET_H36M_TEMPORAL_V1 = TemporalPreset(
+    name="repnet-h36m-temporal-v1",
+    description="causal and offline temporal models over repnet-h36m-v6's answers, 81 frames at 50 Hz",
+    base_model="service/models/repnet-h36m.onnx",
+    base_model_id="repnet-h36m-v6",
+    clips=ClipConfig(draws=8, noise=ClipNoise(clean_prob=0.35)),
+    train=TemporalTrainConfig(steps=3000, val_every=500),
+    models=(
+        ("repnet-h36m-temporal-causal-v1", TemporalConfig(mode="causal")),
+        ("repnet-h36m-temporal-offline-v1", TemporalConfig(mode="offline")),
+    ),
+)
+TINY_TEMPORAL = TemporalPreset(
+    name="tiny-temporal",
+    description="a few steps of small temporal models (tests)",
+    base_model="service/models/repnet-h36m.onnx",
+    base_model_id="repnet-h36m-v6",
+    clips=ClipConfig(draws=1, noise=ClipNoise(clean_prob=0.5)),
+    train=TemporalTrainConfig(steps=4, batch=2, outputs=8, val_every=2, checkpoint_every=2),
+    models=(
+        ("tiny-temporal-causal", TemporalConfig(mode="causal", widths=(3, 3), channels=16, causal_fit=5)),
+        (
+            "tiny-temporal-offline",
+            TemporalConfig(mode="offline", widths=(3, 3), channels=16, smooth_sigma=1.0),
+        ),
+    ),
+)
+TEMPORAL_PRESETS: dict[str, TemporalPreset] = {p.name: p for p in (REPNET_H36M_TEMPORAL_V1, TINY_TEMPORAL)}
+
+
+def temporal(name: str) -> TemporalPreset:
+    """The temporal preset of that name (KeyError naming those there are)."""
+    if name not in TEMPORAL_PRESETS:
+        raise KeyError(f"no temporal preset {name!r}: {', '.join(TEMPORAL_PRESETS)}")
+    return TEMPORAL_PRESETS[name]

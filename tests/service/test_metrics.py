@@ -21,7 +21,7 @@ NAMES = {
     "repnet_in_flight_requests", "repnet_open_streams", "repnet_batch_queue_wait_seconds",
     "repnet_inference_seconds", "repnet_batch_size_poses", "repnet_batch_queue_poses", "repnet_model_info",
     "repnet_pose_plausibility_ratio", "repnet_request_parse_seconds", "repnet_idle_streams_closed_total",
-    "repnet_model_output_errors_total",
+    "repnet_model_output_errors_total", "repnet_open_tracks", "repnet_track_state_bytes",
 }  # fmt: skip
 
 
@@ -29,7 +29,7 @@ def test_every_metric_is_registered_with_its_unit(registry: CollectorRegistry) -
     Metrics(registry)
     names = {m.name + ("_total" if m.type == "counter" else "") for m in registry.collect()}
     assert names == NAMES
-    units = ("_total", "_seconds", "_poses", "_requests", "_streams", "_info", "_ratio")
+    units = ("_total", "_seconds", "_poses", "_requests", "_streams", "_info", "_ratio", "_tracks", "_bytes")
     assert all(n.endswith(units) for n in names)
     Metrics(CollectorRegistry())  # a second registry: no clash, nothing global
 

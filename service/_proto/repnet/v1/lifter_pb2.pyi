@@ -45,7 +45,7 @@ class LiftRequest(_message.Message):
     def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ...) -> None: ...
 
 class PoseResult(_message.Message):
-    __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings")
+    __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings", "temporal", "track_id")
     POSE_3D_FIELD_NUMBER: _ClassVar[int]
     POSE_3D_CAMERA_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
@@ -58,6 +58,8 @@ class PoseResult(_message.Message):
     DERIVED_FIELD_NUMBER: _ClassVar[int]
     PLAUSIBILITY_FIELD_NUMBER: _ClassVar[int]
     WARNINGS_FIELD_NUMBER: _ClassVar[int]
+    TEMPORAL_FIELD_NUMBER: _ClassVar[int]
+    TRACK_ID_FIELD_NUMBER: _ClassVar[int]
     pose_3d: _containers.RepeatedScalarFieldContainer[float]
     pose_3d_camera: _containers.RepeatedScalarFieldContainer[float]
     camera: _containers.RepeatedScalarFieldContainer[float]
@@ -70,7 +72,9 @@ class PoseResult(_message.Message):
     derived: _containers.RepeatedScalarFieldContainer[bool]
     plausibility: float
     warnings: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ..., plausibility: _Optional[float] = ..., warnings: _Optional[_Iterable[str]] = ...) -> None: ...
+    temporal: bool
+    track_id: str
+    def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ..., plausibility: _Optional[float] = ..., warnings: _Optional[_Iterable[str]] = ..., temporal: _Optional[bool] = ..., track_id: _Optional[str] = ...) -> None: ...
 
 class LiftResponse(_message.Message):
     __slots__ = ("model_id", "joints", "poses")
@@ -83,14 +87,38 @@ class LiftResponse(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., joints: _Optional[_Iterable[str]] = ..., poses: _Optional[_Iterable[_Union[PoseResult, _Mapping]]] = ...) -> None: ...
 
 class LiftFrame(_message.Message):
-    __slots__ = ("frame_id", "pose", "confidence_threshold")
+    __slots__ = ("frame_id", "pose", "confidence_threshold", "track_id", "fps", "people")
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
+    TRACK_ID_FIELD_NUMBER: _ClassVar[int]
+    FPS_FIELD_NUMBER: _ClassVar[int]
+    PEOPLE_FIELD_NUMBER: _ClassVar[int]
     frame_id: int
     pose: Pose2D
     confidence_threshold: float
-    def __init__(self, frame_id: _Optional[int] = ..., pose: _Optional[_Union[Pose2D, _Mapping]] = ..., confidence_threshold: _Optional[float] = ...) -> None: ...
+    track_id: str
+    fps: float
+    people: _containers.RepeatedCompositeFieldContainer[TrackedPose]
+    def __init__(self, frame_id: _Optional[int] = ..., pose: _Optional[_Union[Pose2D, _Mapping]] = ..., confidence_threshold: _Optional[float] = ..., track_id: _Optional[str] = ..., fps: _Optional[float] = ..., people: _Optional[_Iterable[_Union[TrackedPose, _Mapping]]] = ...) -> None: ...
+
+class TrackedPose(_message.Message):
+    __slots__ = ("track_id", "pose")
+    TRACK_ID_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    track_id: str
+    pose: Pose2D
+    def __init__(self, track_id: _Optional[str] = ..., pose: _Optional[_Union[Pose2D, _Mapping]] = ...) -> None: ...
+
+class PersonResult(_message.Message):
+    __slots__ = ("track_id", "pose", "error")
+    TRACK_ID_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    track_id: str
+    pose: PoseResult
+    error: FrameError
+    def __init__(self, track_id: _Optional[str] = ..., pose: _Optional[_Union[PoseResult, _Mapping]] = ..., error: _Optional[_Union[FrameError, _Mapping]] = ...) -> None: ...
 
 class FieldViolation(_message.Message):
     __slots__ = ("field", "reason", "code", "joint_name", "joint")
@@ -117,13 +145,15 @@ class FrameError(_message.Message):
     def __init__(self, code: _Optional[int] = ..., message: _Optional[str] = ..., violations: _Optional[_Iterable[_Union[FieldViolation, _Mapping]]] = ...) -> None: ...
 
 class LiftFrameResult(_message.Message):
-    __slots__ = ("frame_id", "model_id", "pose", "error")
+    __slots__ = ("frame_id", "model_id", "pose", "error", "people")
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
+    PEOPLE_FIELD_NUMBER: _ClassVar[int]
     frame_id: int
     model_id: str
     pose: PoseResult
     error: FrameError
-    def __init__(self, frame_id: _Optional[int] = ..., model_id: _Optional[str] = ..., pose: _Optional[_Union[PoseResult, _Mapping]] = ..., error: _Optional[_Union[FrameError, _Mapping]] = ...) -> None: ...
+    people: _containers.RepeatedCompositeFieldContainer[PersonResult]
+    def __init__(self, frame_id: _Optional[int] = ..., model_id: _Optional[str] = ..., pose: _Optional[_Union[PoseResult, _Mapping]] = ..., error: _Optional[_Union[FrameError, _Mapping]] = ..., people: _Optional[_Iterable[_Union[PersonResult, _Mapping]]] = ...) -> None: ...

@@ -1,0 +1,216 @@
+"""The temporal model: its onnxruntime session and contract, the windows it reads, the bone fix."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from service.config import Settings
+from service.errors import ModelLoadError
+from service.formats import MODEL_JOINTS, MODEL_PARENTS
+from service.geometry import FloatArray
+from service.lifter import non_finite_rows, open_session
+
+log = logging.getLogger(__name__)
+
+INPUTS = ("poses", "keypoints_2d", "visibility", "fps")
+OUTPUT = "pose_3d_camera"
+MODES = ("causal", "offline")
+J = len(MODEL_JOINTS)
+# The start-up check: a window of one pose repeated is answered within this of that pose (mean per
+# joint, mm); a trained model moves it a few mm (its correction), a broken one anywhere.
+STILL_TOLERANCE_MM = 100.0
+
+
+@dataclass(frozen=True)
+class Windows:
+    """N windows of one track each: K frame slots evenly spaced in time around the answered frame
+    (the last slot when causal, the middle one when offline)."""
+
+    poses: FloatArray  # (N, K, J, 3) single-frame pose_3d_camera (no ray turn), mm, root at origin
+    keypoints_2d: FloatArray  # (N, K, J, 2) px, 0 where not visible
+    visibility: FloatArray  # (N, K, J) 0 or 1
+    fps: FloatArray  # (N,) frames per second of the slots
+
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+    def slice(self, start: int, stop: int) -> Windows:
+        """Windows start..stop-1 (views)."""
+        return Windows(*(a[start:stop] for a in (self.poses, self.keypoints_2d, self.visibility, self.fps)))
+
+    @classmethod
+    def join(cls, parts: Sequence[Windows], causal: bool) -> Windows:
+        """Windows of several requests as one batch: shorter windows get their end slots repeated
+        (in front when causal, on both sides when offline), which changes no answer."""
+        if len(parts) == 1:
+            return parts[0]
+        slots = max(p.poses.shape[1] for p in parts)
+        padded = [pad_slots(p, slots, causal) for p in parts]
+        arrays = zip(*((p.poses, p.keypoints_2d, p.visibility, p.fps) for p in padded), strict=True)
+        return cls(*(np.concatenate(a) for a in arrays))
+
+
+def pad_slots(windows: Windows, slots: int, causal: bool) -> Windows:
+    """The windows with `slots` slots: end slots repeated (offline: the same number each side)."""
+    extra = slots - windows.poses.shape[1]
+    if extra == 0:
+        return windows
+    before, after = (extra, 0) if causal else (extra // 2, extra - extra // 2)
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        return np.pad(a, [(0, 0), (before, after)] + [(0, 0)] * (a.ndim - 2), mode="edge")
+
+    return Windows(pad(windows.poses), pad(windows.keypoints_2d), pad(windows.visibility), windows.fps)
+
+
+@dataclass(frozen=True)
+class Contract:
+    """What a temporal model's metadata promises (metadata entry `temporal`, JSON)."""
+
+    mode: str  # causal | offline
+    grid_fps: float  # the rate it resamples windows to
+    window: int  # T grid frames it reads
+    max_fps: float  # the highest slot rate it was trained for; faster tracks are thinned
+
+    def thinning(self, fps: float) -> int:
+        """q: a track at `fps` gives its window every q-th frame (at fps / q <= max_fps)."""
+        return max(1, math.ceil(fps / self.max_fps - 1e-9))
+
+    def slots(self, fps: float) -> int:
+        """K: the frame slots of one window at slot rate `fps` (odd when offline)."""
+        span = (self.window - 1) / self.grid_fps * fps
+        if self.mode == "causal":
+            return math.ceil(span - 1e-6) + 1
+        return 2 * math.ceil(span / 2 - 1e-6) + 1
+
+
+def read_contract(meta: dict[str, str], path: Path) -> Contract:
+    """The `temporal` metadata entry, checked; ModelLoadError saying what is wrong."""
+    if meta.get("kind") != "temporal":
+        raise ModelLoadError(f"{path}: not a temporal model (metadata kind {meta.get('kind')!r})")
+    try:
+        raw = json.loads(meta["temporal"])
+        mode, grid_fps, window, max_fps = raw["mode"], raw["grid_fps"], raw["window"], raw["max_fps"]
+        contract = Contract(str(mode), float(grid_fps), int(window), float(max_fps))
+    except (KeyError, ValueError, TypeError) as err:
+        reason = f"metadata 'temporal' must give mode, grid_fps, window and max_fps ({err})"
+        raise ModelLoadError(f"{path}: {reason}") from None
+    if contract.mode not in MODES or contract.window < 1 or contract.grid_fps <= 0 or contract.max_fps <= 0:
+        raise ModelLoadError(f"{path}: temporal contract {raw} is not a causal or offline window")
+    if json.loads(meta.get("joint_names", "[]")) != list(MODEL_JOINTS):
+        raise ModelLoadError(f"{path}: its joints are not the h36m17 joints the service lifts")
+    return contract
+
+
+class TemporalLifter:
+    """Runs a temporal ONNX model (training.temporal.TemporalGraph); safe from many threads."""
+
+    def __init__(self, session: ort.InferenceSession, path: Path) -> None:
+        self.session = session
+        self.path = path
+        inputs = [i.name for i in session.get_inputs()]
+        outputs = [o.name for o in session.get_outputs()]
+        if inputs != list(INPUTS) or outputs != [OUTPUT]:
+            raise ModelLoadError(
+                f"{path}: a temporal model has inputs {list(INPUTS)} and output {OUTPUT}, "
+                f"got {inputs} and {outputs}"
+            )
+        self.metadata = dict(session.get_modelmeta().custom_metadata_map)
+        self.contract = read_contract(self.metadata, path)
+        self.model_id = self.metadata.get("model_id") or path.stem
+        self.base_model_sha256 = self.metadata.get("base_model_sha256", "")
+
+    @classmethod
+    def load(cls, path: Path, settings: Settings | None = None) -> TemporalLifter:
+        """Open the temporal model at `path` (ModelLoadError saying what is wrong with it)."""
+        lifter = cls(open_session(path, Settings() if settings is None else settings), path)
+        log.info("loaded temporal model %s (%s) from %s", lifter.model_id, lifter.mode, path)
+        return lifter
+
+    @property
+    def mode(self) -> str:
+        """causal or offline."""
+        return self.contract.mode
+
+    @property
+    def window(self) -> int:
+        """T, grid frames in one window."""
+        return self.contract.window
+
+    def run(self, windows: Windows) -> TemporalAnswer:
+        """The answered frame's pose_3d_camera of each window; non-finite rows marked failed."""
+        feed = {
+            "poses": windows.poses.astype(np.float32, copy=False),
+            "keypoints_2d": windows.keypoints_2d.astype(np.float32, copy=False),
+            "visibility": windows.visibility.astype(np.float32, copy=False),
+            "fps": windows.fps.astype(np.float32, copy=False),
+        }
+        (pose,) = self.session.run([OUTPUT], feed)
+        failed = non_finite_rows(pose)
+        return TemporalAnswer(np.where(failed[:, None, None], 0.0, pose).astype(np.float32), failed)
+
+    def check_outputs(self, poses: np.ndarray, keypoints_2d: np.ndarray, visibility: np.ndarray) -> None:
+        """Answer windows of a person standing still at 25 and 60 fps: ModelLoadError unless the
+        answers are finite and near the single-frame poses (a broken graph loads without complaint)."""
+        for fps in (25.0, 60.0):
+            slots = self.contract.slots(fps)
+            p, k, v = (np.repeat(a[:, None], slots, axis=1) for a in (poses, keypoints_2d, visibility))
+            answer = self.run(Windows(p, k, v, np.full(len(poses), fps, np.float32)))
+            moved = np.linalg.norm(answer.pose_3d_camera - poses, axis=-1).mean(axis=1)  # (N,) mm
+            if answer.failed.any() or not (moved < STILL_TOLERANCE_MM).all():
+                raise ModelLoadError(
+                    f"{self.path}: the temporal model fails its check at {fps:g} fps: a person standing "
+                    f"still moved by {np.round(moved, 1).tolist()} mm (at most {STILL_TOLERANCE_MM:g})"
+                )
+
+
+@dataclass(frozen=True)
+class TemporalAnswer:
+    """What the temporal model answered for N windows."""
+
+    pose_3d_camera: FloatArray  # (N, J, 3) mm, root at the origin, the camera's orientation (no ray)
+    failed: np.ndarray  # (N,) not finite: a server fault for that pose
+
+    def __len__(self) -> int:
+        return int(self.failed.shape[0])
+
+    def slice(self, start: int, stop: int) -> TemporalAnswer:
+        """Answers start..stop-1 (views)."""
+        return TemporalAnswer(self.pose_3d_camera[start:stop], self.failed[start:stop])
+
+    @classmethod
+    def join(cls, parts: Sequence[TemporalAnswer]) -> TemporalAnswer:
+        """Answers of consecutive windows as one."""
+        if len(parts) == 1:
+            return parts[0]
+        poses = np.concatenate([p.pose_3d_camera for p in parts])
+        return cls(poses, np.concatenate([p.failed for p in parts]))
+
+
+BONES = tuple((p, j) for j, p in enumerate(MODEL_PARENTS) if p >= 0)  # parents come before children
+
+
+def bone_lengths(poses: np.ndarray) -> np.ndarray:
+    """(N, B) length of each bone (parent to joint) of (N, J, 3) poses."""
+    parents, children = np.array(BONES).T
+    return np.asarray(np.linalg.norm(poses[:, children] - poses[:, parents], axis=-1))
+
+
+def fix_bone_lengths(poses: np.ndarray, lengths: np.ndarray) -> FloatArray:
+    """(N, J, 3) poses with each bone scaled to (N, B) `lengths` along its own direction, from the
+    root outwards (a joint moves with its parent): one person's bones keep one length per track."""
+    out = poses.astype(np.float64).copy()
+    for b, (parent, child) in enumerate(BONES):
+        bone = poses[:, child].astype(np.float64) - poses[:, parent]
+        norm = np.linalg.norm(bone, axis=-1, keepdims=True)
+        out[:, child] = out[:, parent] + bone / np.maximum(norm, 1e-6) * lengths[:, b : b + 1]
+    fixed: FloatArray = out.astype(np.float32)
+    return fixed

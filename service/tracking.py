@@ -1,0 +1,161 @@
+"""From single-frame answers to temporal ones: the windows of tracked poses (a stream's tracks, a
+request's clips), the temporal model's run, and its answers held to the track's bone lengths."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from service import geometry
+from service.engine import TemporalEngine
+from service.errors import InvalidKeypoints, LiftError, Violation
+from service.keypoints import ModelInput
+from service.lifter import Prediction
+from service.replies import TemporalRows
+from service.temporal import BONES, Contract, Windows, fix_bone_lengths
+from service.tracks import (
+    Observation,
+    Track,
+    TrackBudget,
+    TrackTable,
+    bridged_clip,
+    offline_windows,
+    segments,
+    track_capacity,
+)
+
+
+@dataclass(frozen=True)
+class TemporalModels:
+    """The loaded temporal models (one engine per mode present) and the bounds on their tracks."""
+
+    engines: dict[str, TemporalEngine]  # "causal", "offline"
+    budget: TrackBudget  # every stream's tracks together
+    per_stream: int  # most open tracks of one stream
+    idle_s: float  # a track without a frame this long is dropped
+    max_poses: int  # most poses of one temporal request
+
+    def table(self) -> TrackTable | None:
+        """A new stream's tracks (None without a causal model: its tracked poses are lifted alone)."""
+        causal = self.engines.get("causal")
+        if causal is None:
+            return None
+        return TrackTable(causal.lifter.contract, self.per_stream, self.idle_s, self.budget)
+
+
+def camera_poses(prediction: Prediction, rows: np.ndarray) -> np.ndarray:
+    """(n, J, 3) the single-frame pose_3d of `rows` in the camera's orientation, without the ray turn:
+    what the temporal model reads."""
+    rotation = geometry.camera_rotation(prediction.camera[rows])
+    return geometry.rotate_to_camera(prediction.pose_3d[rows], rotation)
+
+
+def observations(inputs: ModelInput, prediction: Prediction, rows: np.ndarray) -> list[Observation]:
+    """The single-frame answers of `rows` as a track stores them."""
+    poses = camera_poses(prediction, rows)
+    points = np.where(inputs.visible[rows][..., None], inputs.keypoints_2d[rows], 0.0).astype(np.float32)
+    visibility = inputs.visible[rows].astype(np.float32)
+    return [Observation(p, k, v) for p, k, v in zip(poses, points, visibility, strict=True)]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a temporal run needs: one window per answered row, the bone lengths to hold it to, and
+    the rows that could not be tracked with why."""
+
+    windows: Windows | None
+    rows: np.ndarray  # (n,) rows of the request's inputs the windows answer, in window order
+    bones: np.ndarray  # (n, B)
+    errors: dict[int, LiftError]  # row -> why it gets no answer (its track's limit, its frame order)
+
+    @classmethod
+    def of(
+        cls, parts: Sequence[tuple[int, Windows, np.ndarray]], errors: dict[int, LiftError], causal: bool
+    ) -> Plan:
+        """A plan from (row, its window (N = 1), its bone lengths) in order."""
+        if not parts:
+            return cls(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), errors)
+        windows = Windows.join([w for _, w, _ in parts], causal=causal)
+        rows = np.array([r for r, _, _ in parts], np.int64)
+        return cls(windows, rows, np.stack([b for _, _, b in parts]), errors)
+
+
+@dataclass(frozen=True)
+class TrackedRow:
+    """A valid pose of a stream's frame that has a track."""
+
+    row: int  # its row of the group's inputs
+    track_id: str
+    frame: int  # its frame number
+    fps: float
+    field: str  # what its errors are named: "pose", "people[2]"
+
+
+def stream_plan(
+    table: TrackTable, tracked: Sequence[TrackedRow], inputs: ModelInput, prediction: Prediction
+) -> Plan:
+    """Push each tracked pose into its track, in order, and take its causal window (a stream's
+    group: its frames after the earlier groups')."""
+    table.expire()
+    seen = observations(inputs, prediction, np.array([t.row for t in tracked], np.int64))
+    parts: list[tuple[int, Windows, np.ndarray]] = []
+    errors: dict[int, LiftError] = {}
+    for item, observation in zip(tracked, seen, strict=True):
+        try:
+            track = table.get(item.track_id, item.fps, item.field)
+        except InvalidKeypoints as err:
+            errors[item.row] = err
+            continue
+        try:
+            track.push(item.frame, observation)
+        except ValueError as err:
+            reason = f"{err} (track {item.track_id!r})"
+            errors[item.row] = InvalidKeypoints([Violation("frame_id", reason, "frame_order")])
+            continue
+        parts.append((item.row, track.window(table.contract), track.bone_reference()))
+    return Plan.of(parts, errors, table.contract.mode == "causal")
+
+
+def clip_plan(
+    rows: np.ndarray,
+    track_ids: Sequence[str],
+    frames: np.ndarray,
+    fps: float,
+    contract: Contract,
+    inputs: ModelInput,
+    prediction: Prediction,
+) -> Plan:
+    """The windows of a whole request's tracked poses (`rows` of its inputs with their track and
+    frame): causal, each from its track's frames up to it (as a stream answers them); offline, each
+    from the frames around it in its track (bones: the mean of the segment). The contract's mode
+    says which."""
+    seen = observations(inputs, prediction, rows)
+    parts: list[tuple[int, Windows, np.ndarray]] = []
+    for track_id in dict.fromkeys(track_ids):
+        mine = np.array([k for k, t in enumerate(track_ids) if t == track_id])
+        mine = mine[np.argsort(frames[mine], kind="stable")]
+        if contract.mode == "causal":
+            track = Track(track_capacity(contract), fps)
+            for k in mine:
+                track.push(int(frames[k]), seen[k])
+                parts.append((int(rows[k]), track.window(contract), track.bone_reference()))
+            continue
+        for segment in segments(frames[mine], fps):
+            ordered = mine[segment]
+            clip, where, bones = bridged_clip(frames[ordered], [seen[k] for k in ordered], fps)
+            windows = offline_windows(clip, contract)
+            parts += [
+                (int(rows[k]), windows.slice(w, w + 1), bones) for k, w in zip(ordered, where, strict=True)
+            ]
+    order = np.argsort([row for row, _, _ in parts], kind="stable")
+    return Plan.of([parts[i] for i in order], {}, contract.mode == "causal")
+
+
+async def run_plan(engine: TemporalEngine, plan: Plan, transport: str, wait_s: float = 0.0) -> TemporalRows:
+    """The temporal model's answers to the plan's windows, held to its bone lengths."""
+    if plan.windows is None:
+        return TemporalRows.none()
+    answer = await engine.lift_async(plan.windows, transport, wait_s)
+    return TemporalRows(plan.rows, fix_bone_lengths(answer.pose_3d_camera, plan.bones), answer.failed)
