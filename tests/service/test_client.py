@@ -377,3 +377,21 @@ def test_stream_client_reports_person_errors_and_raises_for_a_frame_it_cannot_se
             next(results)
     assert first.error is not None and first.error.details[0]["code"] == "fps_missing"
     assert second.error is not None and second.error.details[0]["code"] == "track_repeated"
+
+
+def test_readme_sequence_snippet_runs_as_written(
+    live_service: LiveService, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's Python example of temporal lifting, run as it stands (addresses: the test server)."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = readme[readme.index("### Sequences: tracks and temporal lifting") :]
+    snippet = section[
+        section.index("```python\n") + len("```python\n") : section.index(
+            "\n```\n", section.index("```python")
+        )
+    ]
+    snippet = snippet.replace("http://localhost:8000", live_service.http_url)
+    snippet = snippet.replace('"localhost:50051"', repr(live_service.grpc_target))
+    exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["True a", "0 True", "1 True", "2 True", *["[('a', True), ('b', True)]"] * 3]
