@@ -12,7 +12,7 @@ see each other. So a clip of more poses than a request holds (`max_poses`) is se
 Every window the temporal model reads is then the one it reads in a single request. One thing differs:
 the service holds a track's answers to its bone lengths, the mean over the frames it was given of
 the track (offline: of the segment; causal: so far), so a cut track's bones are the mean over its part
-(within a few tenths of a millimetre on a steady clip: README, Python client and command line).
+(under a millimetre from the single request's on the test clips: tests/service/test_cli.py).
 """
 
 from __future__ import annotations

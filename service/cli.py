@@ -137,7 +137,9 @@ def run_plot(args: argparse.Namespace) -> int:
             bar.update(1)
 
     try:
-        drawn = plot_lift_file(args.input, args.output, args.index, args.person, args.fps, advance)
+        drawn = plot_lift_file(
+            args.input, args.output, args.index, args.person, args.fps, advance, args.track
+        )
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise InputFileError(str(err)) from err
     finally:
@@ -192,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "where ffmpeg is installed)")  # fmt: skip
     plot.add_argument("--index", type=int, default=0, help="which pose of the file, for an image (default 0)")
     plot.add_argument("--person", type=int, default=0, help="whose poses to animate (default 0)")
+    plot.add_argument("--track", help="animate this track's poses (the output's track_id) instead")
     plot.add_argument("--fps", type=int, default=10, help="frames per second of an animation (default 10)")
     sub.add_parser("formats", help="print how each keypoint format maps onto the model's 17 joints")
     return parser

@@ -41,7 +41,7 @@ class Tracking:
         numbers = None if frames is None else np.asarray(frames)
         if ids is not None and len(ids) != count:
             raise ValueError(f"expected {count} track_ids, one per pose, got {len(ids)}")
-        if numbers is not None and (numbers.shape != (count,) or numbers.dtype.kind not in "iu"):
+        if numbers is not None and (numbers.shape != (count,) or (count and numbers.dtype.kind not in "iu")):
             raise ValueError(
                 f"expected frames of shape ({count},) of integers, got {numbers.dtype} {numbers.shape}"
             )

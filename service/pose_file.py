@@ -36,11 +36,6 @@ class Poses:
         """How many frames the poses are of: more than one makes a sequence."""
         return len(np.unique(self.frame))
 
-    @property
-    def crowded(self) -> bool:
-        """Some frame holds several people."""
-        return bool(len(self.frame)) and int(np.unique(self.frame, return_counts=True)[1].max()) > 1
-
 
 def _pose_array(rows: Any, where: str) -> np.ndarray:
     """One pose of J rows ([x, y], [x, y, c] or null) -> (J, 3): NaN rows for null, c NaN if not given."""

@@ -466,3 +466,23 @@ def test_coco_results_are_read_by_image_with_every_person_tracked(tmp_path: Path
     left = [p["track_id"] for p in data["poses"] if p["input"]["keypoints"][11][0] < 600]
     right = [p["track_id"] for p in data["poses"] if p["input"]["keypoints"][11][0] > 600]
     assert len(set(left)) == len(set(right)) == 1 and left[0] != right[0]
+
+
+def test_plot_animates_one_track_of_a_crowded_sequence(tmp_path: Path) -> None:
+    folder, out, gif = tmp_path / "crowd", tmp_path / "out.json", tmp_path / "b.gif"
+    folder.mkdir()
+    for f in range(6):  # B is listed first in odd frames, and missing in frame 4
+        a, b = _body25(3.0 * f), _body25(700.0 - 3.0 * f)
+        people = [a] if f == 4 else ([b, a] if f % 2 else [a, b])
+        _openpose_frame(folder / f"crowd_{f:012d}_keypoints.json", people)
+    data = _lifted(["lift", str(folder), "--local", "--temporal", "causal", "-o", str(out)])
+    b_track = data["poses"][1]["track_id"]  # frame 0: A, then B
+    assert [p["frame"] for p in data["poses"] if p["track_id"] == b_track] == [0, 1, 2, 3, 5]
+    assert main(["plot", str(out), "-o", str(gif), "--track", b_track]) == EXIT_OK
+    from PIL import Image
+
+    with Image.open(gif) as image:
+        assert image.n_frames == 5
+    person_1 = [p["track_id"] for p in data["poses"] if p["person"] == 1]
+    assert len(set(person_1)) == 2  # the detector's index 1 is A in some frames and B in others
+    assert main(["plot", str(out), "-o", str(gif), "--track", "nobody"]) == EXIT_USAGE
