@@ -86,3 +86,35 @@ def corrupt_poses(poses: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     out = torch.where((kind == 1)[:, None, None], swapped, out)
     out = torch.where((kind == 2)[:, None, None], jittered, out)
     return out - out[:, skeleton.ROOT : skeleton.ROOT + 1]
+
+
+def with_detector_errors(
+    pixels: torch.Tensor,
+    visible: torch.Tensor,
+    pool: data.TrainingPool,
+    config: TrainConfig,
+    gen: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, J, 2) synthetic pixels and (N, J) visibility with a real detector's error in a
+    detector_error_prob share of them (TrainConfig); draws nothing when that share is 0."""
+    if config.detector_error_prob <= 0:
+        return pixels, visible
+    if pool.detector_errors is None or pool.detector_visible is None:
+        raise ValueError(
+            "detector_error_prob > 0 needs the pool's detector errors (training.sequences.residuals)"
+        )
+    n = pixels.shape[0]
+    check_shape(pixels, (n, skeleton.NUM_JOINTS, 2), "pixels")
+    chosen = torch.rand(n, generator=gen) < config.detector_error_prob  # (N,)
+    idx = torch.randint(0, len(pool.detector_errors), (n,), generator=gen).numpy()
+    errors = torch.from_numpy(pool.detector_errors[idx])  # (N, J, 2) in units of the pose's spread
+    seen = torch.from_numpy(pool.detector_visible[idx])  # (N, J)
+    scale = config.detector_error_min + (config.detector_error_max - config.detector_error_min) * torch.rand(
+        n, generator=gen
+    )
+    centred = pixels - pixels.mean(dim=1, keepdim=True)
+    spread = centred.pow(2).mean(dim=(1, 2)).sqrt()  # (N,) px: all joints are visible here
+    moved = pixels + (scale * spread)[:, None, None] * errors
+    pixels = torch.where(chosen[:, None, None], moved.to(pixels.dtype), pixels)
+    visible = torch.where(chosen[:, None], visible * seen.to(visible.dtype), visible)
+    return pixels, visible

@@ -106,6 +106,13 @@ class TrainConfig:
     # evenly up to its largest value; 2 and 3 keep that largest value but make most poses cleaner
     # (mean sigma a third and a quarter of it instead of a half).
     synthetic_noise_power: float = 1.0
+    # In this share of the synthetic poses, the 2D gets a real detector's error instead: the error
+    # of a random Stacked-Hourglass detection of the training frames (detection minus projected
+    # truth, in units of the pose's spread, times U(min, max)) and that detection's visibility. The
+    # errors keep their shape: a wrist on the other wrist, a knee swapped, the head top off.
+    detector_error_prob: float = 0.0
+    detector_error_min: float = 0.6
+    detector_error_max: float = 1.4
     # Share of the synthetic poses mirrored (left and right swapped) before they are seen.
     mirror_prob: float = 0.0
     # In limb_turn_prob of the synthetic poses, each forearm, upper arm, shin and thigh turns about

@@ -178,6 +178,11 @@ class TrainingPool:
     # poses_aligned before the alignment: world mm (Z up) with the pelvis at the origin; the
     # synthetic warm start projects these through random cameras.
     poses_world: np.ndarray | None = None
+    # Real detector errors for synthetic 2D (TrainConfig.detector_error_prob): (E, J, 2) Stacked-
+    # Hourglass detection minus projected truth over the pose's spread, and the detector's (E, J)
+    # visibility, of the training frames (training.sequences.residuals).
+    detector_errors: np.ndarray | None = None
+    detector_visible: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

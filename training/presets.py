@@ -281,7 +281,7 @@ TINY_TEMPORAL = TemporalPreset(
     clips=ClipConfig(draws=1, noise=ClipNoise(clean_prob=0.5)),
     train=TemporalTrainConfig(steps=4, batch=2, outputs=8, val_every=2, checkpoint_every=2),
     models=(
-        ("tiny-temporal-causal", TemporalConfig(mode="causal", widths=(3, 3), channels=16)),
+        ("tiny-temporal-causal", TemporalConfig(mode="causal", widths=(3, 3), channels=16, causal_fit=5)),
         (
             "tiny-temporal-offline",
             TemporalConfig(mode="offline", widths=(3, 3), channels=16, smooth_sigma=1.0),

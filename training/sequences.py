@@ -218,10 +218,14 @@ class ValidationClip:
     visibility: np.ndarray  # (n, J)
     fps: float
     truth: np.ndarray  # (n, J, 3)
+    # The 2D as the detector gave it: (n, D, 2) px in `source_format`'s joint order (MPII-16 for
+    # Stacked Hourglass, h36m17 for projected truth): what a client sends the service.
+    source: np.ndarray
+    source_format: str
 
 
 def validation_clips(
-    data_dir: Path, kind: str, val_fraction: float = 0.1, min_frames: int = 20
+    data_dir: Path, kind: str, val_fraction: float = 0.1, min_frames: int = 10
 ) -> list[ValidationClip]:
     """The held-out tails of the training subjects with Stacked-Hourglass detections, one clip per
     sequence and camera. kind: "sh25" the detections at their 25 Hz; "sh50" the detections and the
@@ -238,18 +242,26 @@ def validation_clips(
                 continue
             n = min(len(found), len(sequence))
             world = sequence[split:n].astype(np.float64)
+            source, source_format = found[split:n].astype(np.float64), "mpii16"
             points, seen = data.mpii_to_h36m(found[split:n])
             fps = SOURCE_HZ
             if kind == "gt25":
                 points, seen = data.project_to_pixels(world, camera), np.ones_like(seen)
+                source, source_format = points.astype(np.float64), "h36m17"
             elif kind == "sh50":
                 up = np.arange(2 * len(world) - 1) / 2.0
                 world, points = catmull_rom(world, up), catmull_rom(points.astype(np.float64), up)
+                source = catmull_rom(source, up)
                 seen, fps = np.repeat(seen[:1], len(up), axis=0), 2 * SOURCE_HZ
             elif kind != "sh25":
                 raise ValueError(f"validation clips are sh25, sh50 or gt25, got {kind!r}")
             truth = data.world_to_camera(world, camera)
             truth = truth - truth[:, skeleton.ROOT : skeleton.ROOT + 1]
             name = f"{key}/{cam_id}"
-            clips.append(ValidationClip(name, points.astype(np.float32), seen, fps, truth.astype(np.float32)))
+            clips.append(
+                ValidationClip(
+                    name, points.astype(np.float32), seen, fps, truth.astype(np.float32),
+                    source.astype(np.float32), source_format,
+                )
+            )  # fmt: skip
     return clips

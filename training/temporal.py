@@ -73,6 +73,8 @@ def initial_kernel(config: TemporalConfig) -> np.ndarray:
     """(T,) the fixed filter the learned smoothing starts from; it sums to 1."""
     t = np.arange(config.window, dtype=np.float64)
     if config.mode == "causal":
+        if not 2 <= config.causal_fit <= config.window:
+            raise ValueError(f"causal_fit must be 2..{config.window} (the window), got {config.causal_fit}")
         kernel = np.zeros(config.window)
         fit = np.arange(-config.causal_fit + 1, 1, dtype=np.float64)
         kernel[-config.causal_fit :] = np.linalg.pinv(np.vander(fit, 2, increasing=True))[0]

@@ -85,6 +85,8 @@ class ClipSet:
 
 
 def _stack(parts: list[tuple[np.ndarray, np.ndarray, int]]) -> ClipSet:
+    if not parts:
+        raise ValueError("no clips: the held-out tails are too short, or no sequence has detections")
     return ClipSet(
         np.concatenate([f for f, _, _ in parts]).astype(np.float32),
         np.concatenate([t for _, t, _ in parts]).astype(np.float32),

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from training import data, synthetic
-from training.augment import augment_visibility, corrupt_poses, sample_2d
+from training.augment import augment_visibility, corrupt_poses, sample_2d, with_detector_errors
 from training.camera import camera_scale
 from training.config import RepNetConfig, TrainConfig
 from training.losses import bone_lengths, bone_loss, camera_loss, critic_loss, pose_loss, reprojection_loss
@@ -244,7 +244,9 @@ class Trainer:
             config.limb_turn_deg,
             config.limb_turn_prob,
         )
-        visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen).to(self.device)
+        visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen)
+        pixels, visible = with_detector_errors(pixels, visible, self.pool, config, self.gen)
+        visible = visible.to(self.device)
         points = normalize_keypoints(pixels.to(self.device), visible)
         pose, camera = self.generate(points, visible)
         fit = reprojection_loss(points, visible, target, camera, config.reprojection_norm)

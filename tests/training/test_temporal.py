@@ -118,17 +118,18 @@ def test_the_tiny_temporal_preset_trains_resumes_exports_and_loads_in_the_servic
     preset = presets.temporal("tiny-temporal")
     args = ["--preset", preset.name, "--out-dir", str(tmp_path), "--data-dir", str(synthetic_h36m)]
     causal_id, causal = preset.models[0]
-    # Interrupted after its first checkpoint (step 2 of 4), then run again: it resumes.
-    real_save = torch.save
+    # Interrupted in its third step, after its first checkpoint (step 2 of 4); run again, it resumes.
+    real_terms = temporal_train.loss_terms
     calls: list[int] = []
 
-    def stop_after_first(obj: object, path: object) -> None:
-        real_save(obj, path)
+    def stop_third(answers: torch.Tensor, truth: torch.Tensor) -> dict[str, torch.Tensor]:
         calls.append(1)
-        raise KeyboardInterrupt
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_terms(answers, truth)
 
     with monkeypatch.context() as patch:
-        patch.setattr(torch, "save", stop_after_first)
+        patch.setattr(temporal_train, "loss_terms", stop_third)
         with pytest.raises(KeyboardInterrupt):
             temporal_train.main([*args, "--model", causal_id])
     assert torch.load(tmp_path / causal_id / "last.pt", weights_only=False)["step"] == 2
@@ -141,7 +142,7 @@ def test_the_tiny_temporal_preset_trains_resumes_exports_and_loads_in_the_servic
         assert {"sh25_accel", "sh50_pa_mpjpe", "gt25_bone_std"} <= set(history[-1])
         from service.temporal import TemporalLifter
 
-        lifter = TemporalLifter.load(tmp_path / f"{model_id}.onnx", 1)
+        lifter = TemporalLifter.load(tmp_path / f"{model_id}.onnx")
         assert lifter.mode == config.mode and lifter.window == config.window
         assert json.loads(lifter.metadata["lineage"])["base_model"]["path"] == "repnet-h36m.onnx"
     # the same weights as one uninterrupted run of the causal model
