@@ -49,14 +49,14 @@ def load_lifter(settings: Settings) -> Lifter:
     return lifter
 
 
-def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> TemporalModels | None:
-    """The temporal models of the settings, checked: each must be the mode its setting names, trained
-    on the answers of the loaded single-frame model (its sha256) and pass its start-up check. A
-    bundled temporal model that does not belong to another single-frame model is left out with a
-    warning; a temporal model named in the settings that does not fit stops the start."""
+def load_temporal_lifters(settings: Settings, lifter: Lifter) -> dict[str, TemporalLifter]:
+    """The temporal models of the settings by mode, checked: each must be the mode its setting names,
+    trained on the answers of the loaded single-frame model (its sha256) and pass its start-up check. A
+    bundled temporal model that is missing or belongs to another single-frame model is left out with
+    a warning; a temporal model named in the settings that does not fit stops the start."""
     if not settings.temporal:
-        return None
-    engines: dict[str, TemporalEngine] = {}
+        return {}
+    found: dict[str, TemporalLifter] = {}
     base = hashlib.sha256(settings.model_path.read_bytes()).hexdigest()
     for mode, path, bundled in (
         ("causal", settings.causal_model_path, BUNDLED_CAUSAL),
@@ -78,14 +78,25 @@ def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> Tempo
                 continue
             raise ModelLoadError(message)
         check_temporal(temporal, lifter)
-        engines[mode] = TemporalEngine(
+        found[mode] = temporal
+    return found
+
+
+def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> TemporalModels | None:
+    """The temporal models of the settings (load_temporal_lifters), each behind its own batcher, and
+    the bounds on their tracks; None without any."""
+    lifters = load_temporal_lifters(settings, lifter)
+    if not lifters:
+        return None
+    engines = {
+        mode: TemporalEngine(
             temporal,
             max_batch=settings.max_batch,
             max_wait_s=settings.max_wait_ms / 1000,
             queue_size=settings.queue_size,
         )
-    if not engines:
-        return None
+        for mode, temporal in lifters.items()
+    }
     budget = TrackBudget(settings.max_tracks, metrics.set_tracks)
     return TemporalModels(
         engines,

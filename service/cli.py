@@ -7,19 +7,28 @@ import importlib
 import json
 import math
 import os
-import re
 import sys
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import replace
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
-import numpy as np
-
-from service.client import DEFAULT_URL, LiftClient, LiftClientError, LiftResult
+from service.cli_lift import (
+    RemoteLifter,
+    batch_of,
+    choose,
+    local_lifter,
+    output_rows,
+    say,
+    tracks_of,
+    warn_about,
+)
+from service.client import DEFAULT_URL, LiftClientError
 from service.errors import ModelLoadError
 from service.formats import FORMATS, MODEL_PARENTS, format_table
+from service.lift_body import Intrinsics
 from service.pose_file import InputFileError, Poses, load_poses, read_input
+
+MAX_FPS = 240.0  # as the service takes (tracks.MAX_FPS)
 
 __all__ = ["InputFileError", "Poses", "build_parser", "load_poses", "main"]
 
@@ -27,12 +36,6 @@ __all__ = ["InputFileError", "Poses", "build_parser", "load_poses", "main"]
 # file; 3 the service could not be reached.
 EXIT_OK, EXIT_REJECTED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 T = TypeVar("T")
-Lift = Callable[[np.ndarray, "np.ndarray | None"], list[LiftResult]]
-
-
-def _shift_pose_indices(message: str, offset: int) -> str:
-    """Rename poses[i] to poses[offset + i] in a message about one chunk of the file."""
-    return re.sub(r"poses\[(\d+)\]", lambda m: f"poses[{offset + int(m.group(1))}]", message)
 
 
 def progress_bar(total: int, unit: str, file: TextIO | None = None) -> Any:
@@ -60,49 +63,6 @@ def _progress(items: Sequence[T], unit: str) -> Iterable[T]:
     return advance()
 
 
-Intrinsics = tuple[float, float, float, float]
-
-
-def _remote_lift(args: argparse.Namespace, fmt: str) -> tuple[Lift, LiftClient]:
-    client = LiftClient(args.url, timeout=args.timeout, api_key=args.api_key, ca_file=args.ca_file)
-    threshold, intrinsics = args.confidence_threshold, args.intrinsics
-
-    def lift(points: np.ndarray, conf: np.ndarray | None) -> list[LiftResult]:
-        return client.lift_batch(
-            points, format=fmt, confidence=conf, confidence_threshold=threshold, intrinsics=intrinsics
-        )
-
-    return lift, client
-
-
-def _local_lift(
-    model: Path | None, fmt: str, threshold: float | None, batch: int, intrinsics: Intrinsics | None
-) -> Lift:
-    """Lift in this process with the core the servers use: load checks, input rules, the reply."""
-    from service.app import limits_of, load_lifter
-    from service.config import Settings
-    from service.errors import LiftError
-    from service.keypoints import PoseInput, prepare_request
-    from service.replies import build_replies
-
-    settings = Settings() if model is None else Settings(model_path=model)
-    lifter = load_lifter(settings)
-    limits = replace(limits_of(settings), max_request_poses=batch)  # --batch-size poses per request
-    joints, model_id = lifter.info.joint_names, lifter.info.model_id
-
-    def lift(points: np.ndarray, conf: np.ndarray | None) -> list[LiftResult]:
-        poses = [PoseInput(p, ~np.isnan(p).any(axis=1), None if conf is None else conf[i], fmt, intrinsics)
-                 for i, p in enumerate(points)]  # fmt: skip
-        try:
-            inputs = prepare_request(len(poses), poses.__getitem__, threshold, limits)
-            replies = build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible)).check()
-        except LiftError as err:
-            raise LiftClientError(str(err), "rejected") from err
-        return [LiftResult.from_fields(d.__getitem__, joints, model_id) for d in replies.to_json()]
-
-    return lift
-
-
 def _intrinsics(text: str) -> Intrinsics:
     """--intrinsics FX,FY,CX,CY: four finite numbers, the focal lengths > 0."""
     try:
@@ -116,57 +76,6 @@ def _intrinsics(text: str) -> Intrinsics:
     return (values[0], values[1], values[2], values[3])
 
 
-def result_json(result: LiftResult, points: np.ndarray, conf: np.ndarray | None) -> dict[str, Any]:
-    """One pose of the output file: its input and every field of the service's reply. A missing
-    joint is null in both `keypoints` and `confidence`."""
-    missing = np.isnan(points).any(axis=1)  # (J,)
-    keypoints = [None if gone else p.tolist() for p, gone in zip(points, missing, strict=True)]
-    confidence = None if conf is None else [None if gone else float(c)
-                                            for c, gone in zip(conf, missing, strict=True)]  # fmt: skip
-    fields = {name: _json_value(getattr(result, name)) for name in LiftResult.pose_fields()}
-    return {"input": {"keypoints": keypoints, "confidence": confidence}, **fields}
-
-
-def _json_value(value: Any) -> Any:
-    """A LiftResult field as JSON: arrays as nested lists, tuples as lists."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return list(value) if isinstance(value, tuple) else value
-
-
-def warn_about(results: Sequence[LiftResult], poses: Poses) -> None:
-    """Say on stderr how many poses got a warning, with the first of each kind and where it was."""
-    kinds: dict[str, list[int]] = {}
-    for i, result in enumerate(results):
-        for warning in result.warnings:
-            kinds.setdefault(warning.split(" (")[0], []).append(i)
-    for kind, where in kinds.items():
-        first = where[0]
-        message = next(w for w in results[first].warnings if w.startswith(kind))
-        print(f"repnet: warning: {len(where)} of {len(results)} poses: {message} (first: poses[{first}], "
-              f"frame {poses.frame[first]}, person {poses.person[first]})", file=sys.stderr)  # fmt: skip
-
-
-def _lift_all(lift: Lift, poses: Poses, size: int) -> list[LiftResult]:
-    """Lift `poses` in requests of `size`, with a progress bar for long inputs."""
-    n = len(poses.points)
-    results: list[LiftResult] = []
-    bar = progress_bar(n, "pose")
-    try:
-        for a in range(0, n, size):
-            conf = None if poses.confidence is None else poses.confidence[a : a + size]
-            try:
-                results.extend(lift(poses.points[a : a + size], conf))
-            except LiftClientError as err:
-                raise LiftClientError(_shift_pose_indices(err.message, a), err.status, err.details) from err
-            if bar is not None:
-                bar.update(min(size, n - a))
-    finally:
-        if bar is not None:
-            bar.close()
-    return results
-
-
 def run_lift(args: argparse.Namespace) -> int:
     poses = read_input(args.input, lambda files: _progress(files, "file"))
     fmt = args.format or poses.format or "h36m17"
@@ -175,32 +84,50 @@ def run_lift(args: argparse.Namespace) -> int:
     if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
         raise InputFileError(f"{args.input}: poses have {poses.points.shape[1]} joints, format {fmt} has "
                              f"{len(FORMATS[fmt].joint_names)}; pick the format with --format")  # fmt: skip
-    if args.local:
-        lift = _local_lift(args.model, fmt, args.confidence_threshold, args.batch_size, args.intrinsics)
-        close = None
-    else:
-        lift, close = _remote_lift(args, fmt)
+    remote = (
+        None
+        if args.local
+        else RemoteLifter(args.url, args.timeout, args.batch_size, args.api_key, args.ca_file)
+    )
     try:
-        results = _lift_all(lift, poses, args.batch_size)
+        lifter = local_lifter(args.model, args.batch_size) if remote is None else remote
+        choice = choose(poses, args.temporal, args.fps, lifter.temporal_modes, say)
+        batch = batch_of(
+            poses, fmt, args.confidence_threshold, args.intrinsics, choice, tracks_of(poses, choice)
+        )
+        bar = progress_bar(len(poses.points), "pose")
+        try:
+            results = lifter.lift_batch(batch, None if bar is None else bar.update)
+        finally:
+            if bar is not None:
+                bar.close()
     finally:
-        if close is not None:
-            close.close()
-    conf = poses.confidence
-    out = {"model_id": results[0].model_id, "format": fmt, "input_joints": list(FORMATS[fmt].joint_names),
-           "joints": list(results[0].joints), "parents": list(MODEL_PARENTS),
-           "poses": [{"frame": int(poses.frame[i]), "person": int(poses.person[i]),
-                      **result_json(r, poses.points[i], None if conf is None else conf[i])}
-                     for i, r in enumerate(results)]}  # fmt: skip
+        if remote is not None:
+            remote.close()
+    out = {"model_id": results[0].model_id, "format": fmt, "temporal": choice.temporal, "fps": choice.fps,
+           "input_joints": list(FORMATS[fmt].joint_names), "joints": list(results[0].joints),
+           "parents": list(MODEL_PARENTS), "poses": output_rows(results, poses)}  # fmt: skip
     warn_about(results, poses)
     text = json.dumps(out, allow_nan=False)
-    n, frames = len(results), len(set(poses.frame.tolist()))
+    n, frames = len(results), poses.frame_count
     if args.output is None:
         print(text)
     else:
         args.output.write_text(text)
-        print(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}) -> {args.output}",
-              file=sys.stderr)  # fmt: skip
+        tracks = "" if choice.temporal == "off" else f", temporal {choice.temporal} at {choice.fps:g} fps"
+        say(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}{tracks}) -> {args.output}")
     return EXIT_OK
+
+
+def _fps(text: str) -> float:
+    """--fps: a number in (0, 240]."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value <= MAX_FPS:
+        raise argparse.ArgumentTypeError(f"expected frames per second in (0, {MAX_FPS:g}], got {text!r}")
+    return value
 
 
 def run_plot(args: argparse.Namespace) -> int:
@@ -214,7 +141,9 @@ def run_plot(args: argparse.Namespace) -> int:
             bar.update(1)
 
     try:
-        drawn = plot_lift_file(args.input, args.output, args.index, args.person, args.fps, advance)
+        drawn = plot_lift_file(
+            args.input, args.output, args.index, args.person, args.fps, advance, args.track
+        )
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise InputFileError(str(err)) from err
     finally:
@@ -251,7 +180,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="the camera's focal lengths and principal point in px, if known: pose_3d_camera "
         "is then turned along the ray to the person",
     )
-    lift.add_argument("--batch-size", type=int, default=256, help="poses per request (default 256)")
+    lift.add_argument("--temporal", choices=["off", "causal", "offline"],
+                      help="how a sequence's tracked people are lifted: off, each pose alone; causal, from "
+                      "its track's frames up to it; offline, from the frames around it (default: offline "
+                      "for a folder or a file of several frames, off for one frame)")  # fmt: skip
+    lift.add_argument("--fps", type=_fps, help="frames per second of the sequence (default: the file's, "
+                      "else 30, said on stderr)")  # fmt: skip
+    lift.add_argument("--batch-size", type=int, default=256,
+                      help="poses per request lifted alone (default 256); a temporal request holds "
+                      "as many as the service takes (max_temporal_poses)")  # fmt: skip
     lift.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
     lift.add_argument("--api-key", default=os.environ.get("REPNET_API_KEY"),
                       help="API key of a service with REPNET_API_KEYS_FILE (default: $REPNET_API_KEY; "
@@ -267,6 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "where ffmpeg is installed)")  # fmt: skip
     plot.add_argument("--index", type=int, default=0, help="which pose of the file, for an image (default 0)")
     plot.add_argument("--person", type=int, default=0, help="whose poses to animate (default 0)")
+    plot.add_argument("--track", help="animate this track's poses (the output's track_id) instead")
     plot.add_argument("--fps", type=int, default=10, help="frames per second of an animation (default 10)")
     sub.add_parser("formats", help="print how each keypoint format maps onto the model's 17 joints")
     return parser

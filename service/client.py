@@ -5,147 +5,30 @@ from __future__ import annotations
 import asyncio
 import ssl
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
-import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float32]
-BoolArray = npt.NDArray[np.bool_]
-ArrayLike = npt.ArrayLike
+from service.chunks import Part, Progress, assemble, batches, lift_parts
+from service.lift_body import (
+    Batch,
+    Tracking,
+    as_intrinsics,
+    build_request,
+    http_error,
+    parse_response,
+    temporal_parts,
+)
+from service.lift_result import ArrayLike, BoolArray, FloatArray, LiftClientError, LiftResult, as_poses
+
+__all__ = ["ArrayLike", "AsyncLiftClient", "BoolArray", "FloatArray", "LiftClient", "LiftClientError",
+           "LiftResult", "as_poses", "build_request", "http_error", "parse_response"]  # fmt: skip
 
 DEFAULT_URL = "http://localhost:8000"
 DEFAULT_BATCH = 256  # poses per request; the server's default limit is 1024
-
-
-class LiftClientError(Exception):
-    """The service refused a request or could not be reached.
-
-    `status`: the HTTP status (int) or gRPC status name (str); None when no answer came.
-    `details`: the server's per-field items (field, reason, code, ...) for rejected input.
-    """
-
-    def __init__(self, message: str, status: int | str | None = None, details: Sequence[dict[str, Any]] = ()):
-        super().__init__(message if status is None else f"{status}: {message}")
-        self.message = message
-        self.status = status
-        self.details = tuple(details)
-
-
-# The per-pose shapes of the float matrices of a reply (-1: one row per model joint); the reply's
-# fields are declared in service/replies.py, and tests/service/test_replies.py checks these against it.
-_SHAPES = {"pose_3d": (-1, 3), "pose_3d_camera": (-1, 3), "camera": (2, 3), "rotation": (3, 3),
-           "reprojection": (-1, 2)}  # fmt: skip
-
-
-@dataclass(frozen=True)
-class LiftResult:
-    """One lifted pose; joint arrays follow `joints` (the model's 17 joints)."""
-
-    pose_3d: FloatArray  # (17, 3) mm, pelvis at origin, template frame
-    pose_3d_camera: FloatArray  # (17, 3) mm, rotated into the camera's orientation
-    camera: FloatArray  # (2, 3) weak-perspective K
-    scale: float
-    rotation: FloatArray  # (3, 3)
-    reprojection: FloatArray  # (17, 2) px in the input image
-    reprojection_error_px: float
-    visible: BoolArray  # (17,) the model saw the joint
-    imputed: BoolArray  # (17,) no visible source: the model filled it in
-    derived: BoolArray  # (17,) midpoint of two detector joints
-    joints: tuple[str, ...]
-    model_id: str
-    plausibility: float | None = None  # in [0, 1]; None when the model has no plausibility output
-    warnings: tuple[str, ...] = ()  # why the answer may be wrong, e.g. the format looks mistaken
-    temporal: bool = False  # a temporal model answered (a tracked pose)
-    track_id: str | None = None  # the pose's track; None for an untracked pose
-
-    @classmethod
-    def pose_fields(cls) -> tuple[str, ...]:
-        """The names of the reply's fields a LiftResult carries, in reply order (not joints, model_id)."""
-        return tuple(f.name for f in fields(cls) if f.name not in ("joints", "model_id"))
-
-    @classmethod
-    def from_fields(cls, get: Callable[[str], Any], joints: Sequence[str], model_id: str) -> LiftResult:
-        """Build from one pose of an answer: `get(name)` gives a field as JSON lists (HTTP) or a
-        flat repeated field (gRPC)."""
-        arrays: dict[str, Any] = {k: np.asarray(get(k), np.float32).reshape(s) for k, s in _SHAPES.items()}
-        flags: dict[str, Any] = {k: np.asarray(get(k), bool) for k in ("visible", "imputed", "derived")}
-        try:
-            plausibility = get("plausibility")
-        except KeyError:  # a server from before the field: the same as a model without the output
-            plausibility = None
-        warnings, temporal, track_id = (_optional(get, name) for name in ("warnings", "temporal", "track_id"))
-        return cls(**arrays, **flags, scale=float(get("scale")), joints=tuple(joints), model_id=model_id,
-                   reprojection_error_px=float(get("reprojection_error_px")),
-                   plausibility=None if plausibility is None else float(plausibility),
-                   warnings=tuple(str(w) for w in warnings or ()), temporal=bool(temporal),
-                   track_id=str(track_id) if track_id else None)  # fmt: skip
-
-
-def _optional(get: Callable[[str], Any], name: str) -> Any:
-    """A field a server from before it does not send (KeyError): None."""
-    try:
-        return get(name)
-    except KeyError:
-        return None
-
-
-def as_poses(
-    keypoints: ArrayLike, confidence: ArrayLike | None = None
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """(N, J, 2) float points (NaN = missing joint) and (N, J) confidence or None."""
-    points = np.asarray(keypoints, dtype=np.float64)
-    if points.ndim != 3 or points.shape[-1] != 2:
-        raise ValueError(f"expected keypoints of shape (N, J, 2), got {points.shape}")
-    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64)
-    if conf is not None and conf.shape != points.shape[:2]:
-        raise ValueError(f"expected confidence of shape {points.shape[:2]}, got {conf.shape}")
-    return points, conf
-
-
-def build_request(points: np.ndarray, conf: np.ndarray | None, format: str,
-                  confidence_threshold: float | None = None,
-                  intrinsics: Sequence[float] | None = None) -> dict[str, Any]:  # fmt: skip
-    """The POST /lift body for (N, J, 2) points; a joint with a NaN coordinate becomes null.
-    intrinsics: (fx, fy, cx, cy) px of the camera, for every pose of the body."""
-    poses = []
-    for i, pose in enumerate(points):
-        item: dict[str, Any] = {"keypoints": [None if np.isnan(p).any() else p.tolist() for p in pose]}
-        if conf is not None:
-            item["confidence"] = conf[i].tolist()
-        poses.append(item)
-    body: dict[str, Any] = {"format": format, "poses": poses}
-    if confidence_threshold is not None:
-        body["confidence_threshold"] = confidence_threshold
-    if intrinsics is not None:
-        fx, fy, cx, cy = (float(v) for v in intrinsics)
-        body["intrinsics"] = {"focal_px": [fx, fy], "principal_point_px": [cx, cy]}
-    return body
-
-
-def http_error(response: httpx.Response) -> LiftClientError:
-    """The server's error answer as a LiftClientError with its message and field details."""
-    try:
-        detail = response.json().get("detail", response.text)
-    except ValueError:
-        detail = response.text or response.reason_phrase
-    if isinstance(detail, list):
-        items = [d for d in detail if isinstance(d, dict)]
-        message = "; ".join(str(d.get("message") or d.get("reason") or d) for d in items) or str(detail)
-        return LiftClientError(message, response.status_code, items)
-    return LiftClientError(str(detail), response.status_code)
-
-
-def parse_response(response: httpx.Response) -> list[LiftResult]:
-    """The results of a POST /lift answer, or LiftClientError with the server's message."""
-    if response.status_code != 200:
-        raise http_error(response)
-    body = response.json()
-    return [LiftResult.from_fields(p.__getitem__, body["joints"], body["model_id"]) for p in body["poses"]]
 
 
 def connection_options(api_key: str | None, ca_file: str | Path | None) -> dict[str, Any]:
@@ -166,14 +49,20 @@ class _HttpBase:
         self.url, self.timeout, self.retries, self.backoff = url, timeout, retries, backoff
         self.batch_size = batch_size
 
-    def _bodies(self, keypoints: ArrayLike, format: str, confidence: ArrayLike | None,
-                confidence_threshold: float | None,
-                intrinsics: Sequence[float] | None) -> list[dict[str, Any]]:  # fmt: skip
+    def _batch(self, keypoints: ArrayLike, format: str, confidence: ArrayLike | None,
+               confidence_threshold: float | None, intrinsics: Sequence[float] | None, temporal: str,
+               fps: float | None, track_ids: Sequence[str | None] | None,
+               frames: ArrayLike | None) -> Batch:  # fmt: skip
         points, conf = as_poses(keypoints, confidence)
-        parts = [slice(a, a + self.batch_size) for a in range(0, len(points), self.batch_size)]
-        return [build_request(points[p], None if conf is None else conf[p], format, confidence_threshold,
-                              intrinsics)
-                for p in parts]  # fmt: skip
+        tracking = Tracking.of(len(points), temporal, fps, track_ids, frames)
+        return Batch(points, conf, format, confidence_threshold, as_intrinsics(intrinsics), tracking)
+
+    def _parts(self, batch: Batch, model: dict[str, Any] | None) -> list[Part]:
+        """Requests of batch_size poses, or of a temporal clip within the service's limits (`model`:
+        GET /v1/model)."""
+        if model is None or not len(batch.points):
+            return batches(len(batch.points), self.batch_size)
+        return temporal_parts(batch.points, batch.conf, batch.tracking, model)
 
     def _delay(self, response: httpx.Response | None, attempt: int) -> float | None:
         """Seconds before the next try (Retry-After, else exponential), None to give up."""
@@ -251,11 +140,27 @@ class LiftClient(_HttpBase):
                                intrinsics=intrinsics)[0]  # fmt: skip
 
     def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
-                   confidence_threshold: float | None = None,
-                   intrinsics: Sequence[float] | None = None) -> list[LiftResult]:  # fmt: skip
-        """Lift (N, J, 2) poses in requests of at most `batch_size`; results in input order."""
-        bodies = self._bodies(keypoints, format, confidence, confidence_threshold, intrinsics)
-        return [r for body in bodies for r in parse_response(self._send("POST", "/lift", body))]
+                   confidence_threshold: float | None = None, intrinsics: Sequence[float] | None = None,
+                   temporal: str = "off", fps: float | None = None,
+                   track_ids: Sequence[str | None] | None = None, frames: ArrayLike | None = None,
+                   progress: Progress | None = None) -> list[LiftResult]:  # fmt: skip
+        """Lift (N, J, 2) poses in requests of at most `batch_size`; results in input order.
+
+        temporal -- "off" (each pose alone), "causal" or "offline": each tracked pose is lifted from
+        its track's frames (up to it, or around it) at `fps`; track_ids (N,) gives each pose's track
+        (None: lifted alone) and frames (N,) their frame numbers. A clip of more poses than the
+        service's max_temporal_poses (GET /v1/model) is sent as overlapping requests, each with the
+        frames its windows read, answered as one request would be (service.chunks).
+        progress(n) -- told after each request how many poses it answered.
+        """
+        batch = self._batch(keypoints, format, confidence, confidence_threshold, intrinsics, temporal, fps,
+                            track_ids, frames)  # fmt: skip
+        parts = self._parts(batch, None if temporal == "off" else self.model())
+
+        def lift(part: Part) -> list[LiftResult]:
+            return parse_response(self._send("POST", "/lift", batch.body(part)), part)
+
+        return lift_parts(len(batch.points), parts, lift, progress)
 
     def model(self) -> dict[str, Any]:
         """GET /v1/model: joints, formats, limits and the model's metadata."""
@@ -323,16 +228,32 @@ class AsyncLiftClient(_HttpBase):
         return results[0]
 
     async def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17",
-                         confidence: ArrayLike | None = None,
-                         confidence_threshold: float | None = None,
-                         intrinsics: Sequence[float] | None = None) -> list[LiftResult]:  # fmt: skip
-        """Lift (N, J, 2) poses in requests of at most `batch_size`, `max_concurrency` at a time."""
-        bodies = self._bodies(keypoints, format, confidence, confidence_threshold, intrinsics)
+                         confidence: ArrayLike | None = None, confidence_threshold: float | None = None,
+                         intrinsics: Sequence[float] | None = None, temporal: str = "off",
+                         fps: float | None = None, track_ids: Sequence[str | None] | None = None,
+                         frames: ArrayLike | None = None,
+                         progress: Progress | None = None) -> list[LiftResult]:  # fmt: skip
+        """Lift (N, J, 2) poses in requests of at most `batch_size`, `max_concurrency` at a time;
+        temporal clips as LiftClient.lift_batch sends them."""
+        batch = self._batch(keypoints, format, confidence, confidence_threshold, intrinsics, temporal, fps,
+                            track_ids, frames)  # fmt: skip
+        parts = self._parts(batch, None if temporal == "off" else await self.model())
         slots = asyncio.Semaphore(self.max_concurrency)
 
-        async def post(body: dict[str, Any]) -> httpx.Response:
+        async def post(part: Part) -> list[LiftResult]:
             async with slots:
-                return await self._send("POST", "/lift", body)
+                results = parse_response(await self._send("POST", "/lift", batch.body(part)), part)
+            if progress is not None:
+                progress(int(part.keep.sum()))
+            return results
 
-        responses = await asyncio.gather(*(post(b) for b in bodies))
-        return [r for response in responses for r in parse_response(response)]
+        answers = await asyncio.gather(*(post(p) for p in parts))
+        return assemble(len(batch.points), parts, answers)
+
+    async def model(self) -> dict[str, Any]:
+        """GET /v1/model: joints, formats, limits, temporal models and the model's metadata."""
+        response = await self._send("GET", "/v1/model")
+        if response.status_code != 200:
+            raise http_error(response)
+        result: dict[str, Any] = response.json()
+        return result

@@ -25,7 +25,7 @@ from service.http_middleware import (
     LoadShedMiddleware,
     SecurityHeadersMiddleware,
 )
-from service.http_models import describe_model
+from service.http_models import ModelDescription, describe_model
 from service.http_temporal import lift_temporal
 from service.keypoints import Limits, ModelInput, PoseInput, prepare_request
 from service.lifter import ModelInfo, Prediction
@@ -37,7 +37,6 @@ from service.schemas import (
     ErrorResponse,
     LiftRequest,
     LiftResponse,
-    ModelDescription,
     PoseIn,
 )
 from service.tracking import TemporalModels
@@ -213,7 +212,7 @@ def create_app(
 
     @app.get("/v1/model", response_model=ModelDescription, summary="Model, joints, formats and limits")
     async def model() -> ModelDescription:
-        return describe_model(info, limits, engine, max_body_bytes)
+        return describe_model(info, limits, engine, max_body_bytes, temporal)
 
     @app.get("/metrics", summary="Prometheus metrics", response_class=Response)
     async def prometheus() -> Response:

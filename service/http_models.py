@@ -1,15 +1,108 @@
-"""What GET /v1/model says: the model, its joints and formats, the limits, its public metadata."""
+"""What GET /v1/model says: its schema (the model, its joints and formats, the limits, the loaded
+temporal models' contracts, its public metadata) and how it is filled in."""
 
 from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, Field
 
 from service.engine import Engine
 from service.formats import FORMATS
 from service.keypoints import Limits
 from service.lifter import ModelInfo
-from service.schemas import FormatInfo, LimitsInfo, ModelDescription
+from service.schemas import FRAME_DOC
+from service.tracking import TemporalModels
 
 
-def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_bytes: int) -> ModelDescription:
+class FormatInfo(BaseModel):
+    """A keypoint format of GET /v1/model: its joints and how they map onto the model's."""
+
+    name: str
+    description: str
+    joint_names: list[str] = Field(description="The format's joints in the detector's order.")
+    sources: list[list[int]] = Field(
+        description="Per model joint: the format joints it comes from (none: imputed; two: their midpoint)."
+    )
+
+
+class LimitsInfo(BaseModel):
+    """The input limits and batching settings of GET /v1/model."""
+
+    max_request_poses: int
+    max_body_bytes: int
+    min_visible_joints: int
+    confidence_threshold: float
+    max_coordinate_px: float
+    max_batch: int
+    max_wait_ms: float
+    queue_size: int
+    max_temporal_poses: int | None = Field(
+        None,
+        description="Most poses in one request with `temporal` causal or offline "
+        "(REPNET_MAX_TEMPORAL_POSES, at most queue_size); null when no temporal model is loaded.",
+    )
+
+
+class TemporalModelInfo(BaseModel):
+    """A loaded temporal model's contract (its ONNX metadata `temporal`): what a client needs to
+    split a clip longer than one request into parts that are answered as the whole clip would be."""
+
+    mode: str = Field(description="causal (the answer for a frame reads it and the frames before) "
+                      "or offline (a window centred on the frame).")  # fmt: skip
+    window: int = Field(description="T: the frames of one window on the model's time grid.")
+    grid_fps: float = Field(description="The rate of the model's time grid: a window spans "
+                            "(window - 1) / grid_fps seconds.")  # fmt: skip
+    max_fps: float = Field(description="Tracks faster than this are read every q-th frame, "
+                           "q = ceil(fps / max_fps).")  # fmt: skip
+    model_id: str
+
+
+class ModelDescription(BaseModel):
+    """What `GET /v1/model` returns."""
+
+    model_id: str
+    skeleton: str
+    joints: list[str]
+    parents: list[int]
+    coordinate_contract: str = FRAME_DOC
+    formats: list[FormatInfo]
+    limits: LimitsInfo
+    temporal: list[TemporalModelInfo] = Field(
+        default_factory=list,
+        description="The temporal models this service loaded (one per mode), for requests with "
+        "`temporal` causal or offline; empty: tracked poses are lifted alone.",
+    )
+    plausibility: bool = Field(False, description="The model gives each pose a `plausibility`.")
+    plausibility_calibration: dict[str, Any] | None = Field(
+        None, description="How the plausibility was calibrated (ONNX metadata `plausibility_calibration`)."
+    )
+    evaluation: dict[str, Any] = Field(description="Evaluation figures embedded in the model.")
+    metadata: dict[str, str] = Field(
+        description="Every ONNX metadata entry, with paths of the machine that built the model cut "
+        "to their runs/ folder or file name (runs/s5_r2_limbs/last.pt)."
+    )
+
+
+def temporal_models(temporal: TemporalModels | None) -> list[TemporalModelInfo]:
+    """The contract of each loaded temporal model, causal first."""
+    engines = {} if temporal is None else temporal.engines
+    found = []
+    for mode in sorted(engines):
+        lifter = engines[mode].lifter
+        c = lifter.contract
+        found.append(TemporalModelInfo(mode=c.mode, window=c.window, grid_fps=c.grid_fps,
+                                       max_fps=c.max_fps, model_id=lifter.model_id))  # fmt: skip
+    return found
+
+
+def describe_model(
+    info: ModelInfo,
+    limits: Limits,
+    engine: Engine,
+    max_body_bytes: int,
+    temporal: TemporalModels | None = None,
+) -> ModelDescription:
     """What GET /v1/model says: the model, its joints and formats, the limits, its public metadata."""
     formats = [
         FormatInfo(
@@ -35,7 +128,9 @@ def describe_model(info: ModelInfo, limits: Limits, engine: Engine, max_body_byt
             max_batch=engine.max_batch,
             max_wait_ms=engine.max_wait_s * 1000,
             queue_size=engine.queue_size,
+            max_temporal_poses=None if temporal is None else temporal.max_poses,
         ),
+        temporal=temporal_models(temporal),
         plausibility=engine.lifter.has_plausibility,
         plausibility_calibration=info.plausibility_calibration,
         evaluation=info.evaluation,

@@ -15,8 +15,7 @@ from service.lifter import ModelInfo, Prediction
 from service.metrics import Metrics
 from service.replies import TemporalRows, build_replies
 from service.schemas import LiftRequest
-from service.tracking import Plan, TemporalModels, clip_plan, run_plan
-from service.tracks import fps_violations
+from service.tracking import Plan, TemporalModels, clip_plan, clip_violations, run_plan
 
 TRANSPORT = "http"
 
@@ -28,20 +27,8 @@ def track_violations(request: LiftRequest, temporal: TemporalModels | None) -> l
     if engine is None:
         reason = f"this service has no {request.temporal} temporal model (REPNET_TEMPORAL); send temporal off"
         return [Violation("temporal", reason, "no_temporal_model")]
-    found = fps_violations(request.fps, "fps")
-    seen: dict[tuple[str, int], int] = {}
-    for i, pose in enumerate(request.poses):
-        if pose.track_id is None:
-            continue
-        if pose.frame is None:
-            reason = "a tracked pose needs its frame number with temporal causal or offline"
-            found.append(Violation("frame", reason, "frame_missing", pose=i).within(f"poses[{i}]"))
-            continue
-        first = seen.setdefault((pose.track_id, pose.frame), i)
-        if first != i:
-            reason = f"frame {pose.frame} of this track is also poses[{first}]"
-            found.append(Violation("frame", reason, "frame_repeated", pose=i).within(f"poses[{i}]"))
-    return found
+    track_ids = [pose.track_id for pose in request.poses]
+    return clip_violations(track_ids, [pose.frame for pose in request.poses], request.fps)
 
 
 Read = Callable[[int], PoseInput]  # pose i of the request in its wire-independent form

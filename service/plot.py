@@ -173,10 +173,11 @@ ANIMATIONS = (".gif", ".mp4")
 
 
 def plot_lift_file(path: Path, output: Path, index: int = 0, person: int = 0, fps: int = 10,
-                   progress: Callable[[int, int], None] | None = None) -> int:  # fmt: skip
+                   progress: Callable[[int, int], None] | None = None,
+                   track: str | None = None) -> int:  # fmt: skip
     """Plot pose `index` of a `repnet lift` output file, or, when `output` is a .gif or .mp4, animate
-    the poses of `person` frame by frame. Returns the number of poses drawn. Raises ValueError on
-    a malformed file."""
+    the poses of `person` (or, given, of `track`: one tracked person) frame by frame. Returns the
+    number of poses drawn. Raises ValueError on a malformed file."""
     data = json.loads(path.read_text())
     poses = data.get("poses") if isinstance(data, dict) else None
     if not isinstance(poses, list) or data.get("format") not in FORMATS:
@@ -188,10 +189,15 @@ def plot_lift_file(path: Path, output: Path, index: int = 0, person: int = 0, fp
         return np.array([[np.nan, np.nan] if p is None else p for p in rows], dtype=float)
 
     if output.suffix in ANIMATIONS:
-        chosen = [(i, p) for i, p in enumerate(poses) if p.get("person", 0) == person]
+        if track is None:
+            chosen = [(i, p) for i, p in enumerate(poses) if p.get("person", 0) == person]
+            who = f"person {person}"
+        else:
+            chosen = [(i, p) for i, p in enumerate(poses) if p.get("track_id") == track]
+            who = f"track {track}"
         if not chosen:
-            raise ValueError(f"{path}: no pose of person {person}")
-        frames = [(keypoints(p), p, f"frame {p.get('frame', i)}, person {person}") for i, p in chosen]
+            raise ValueError(f"{path}: no pose of {who}")
+        frames = [(keypoints(p), p, f"frame {p.get('frame', i)}, {who}") for i, p in chosen]
         animate_poses(output, data["format"], frames, model_id, fps, progress)
         return len(frames)
     if not -len(poses) <= index < len(poses):

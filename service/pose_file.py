@@ -28,6 +28,13 @@ class Poses:
     format: str | None  # the format the file names, if any
     frame: np.ndarray  # (N,) int: the frame of each pose (file number, else its index in the file)
     person: np.ndarray  # (N,) int: the pose's index among the people of its frame
+    fps: float | None = None  # the frame rate the file gives (`fps`), if it does
+    track_id: tuple[str | None, ...] | None = None  # the tracks the file gives (a POST /lift body's)
+
+    @property
+    def frame_count(self) -> int:
+        """How many frames the poses are of: more than one makes a sequence."""
+        return len(np.unique(self.frame))
 
 
 def _pose_array(rows: Any, where: str) -> np.ndarray:
@@ -70,26 +77,106 @@ def _openpose_format(people: Sequence[np.ndarray]) -> str | None:
     return "body25" if people and len(people[0]) == 25 else None
 
 
+def _fps(data: Any) -> float | None:
+    """The frame rate a file gives (`fps`), if it does."""
+    fps = data.get("fps") if isinstance(data, dict) else None
+    if fps is None:
+        return None
+    if not isinstance(fps, int | float) or isinstance(fps, bool) or not 0 < fps < float("inf"):
+        raise InputFileError(f"fps: expected a number > 0, got {fps!r}")
+    return float(fps)
+
+
+def _openpose_frames(frames: Sequence[Any]) -> Poses:
+    """OpenPose frames in one list, each frame's people numbered by the frame's index."""
+    people = [(f, k, p) for f, frame in enumerate(frames) for k, p in enumerate(_openpose_people(frame))]
+    poses = _stack([p for _, _, p in people], None, _openpose_format([p for _, _, p in people]), "frames")
+    return replace(
+        poses, frame=np.array([f for f, _, _ in people]), person=np.array([k for _, k, _ in people])
+    )
+
+
+def _lift_body(data: dict[str, Any]) -> Poses:
+    """A POST /lift body, with the tracks and frame numbers its poses give."""
+    items = data["poses"] if isinstance(data["poses"], list) else []
+    arrays = [_pose_array(p.get("keypoints") if isinstance(p, dict) else None, f"poses[{i}].keypoints")
+              for i, p in enumerate(items)]  # fmt: skip
+    for pose, item in zip(arrays, items, strict=True):
+        if isinstance(item, dict) and item.get("confidence") is not None:
+            pose[:, 2] = np.asarray(item["confidence"], dtype=np.float64)
+    poses = replace(_stack(arrays, None, data.get("format"), "poses"), fps=_fps(data))
+    tracks = [str(p["track_id"]) if p.get("track_id") is not None else None for p in items]
+    if not any(t is not None for t in tracks):
+        return poses
+    frames = [p.get("frame") for p in items]
+    if not all(isinstance(f, int) and f >= 0 for f, t in zip(frames, tracks, strict=True) if t is not None):
+        raise InputFileError("poses: every pose with a track_id needs its frame number (an integer >= 0)")
+    numbers = np.array([f if isinstance(f, int) else i for i, f in enumerate(frames)])
+    return replace(poses, frame=numbers, track_id=tuple(tracks))
+
+
+def _image_frames(ids: Sequence[Any]) -> np.ndarray:
+    """Frame numbers of COCO image ids: an integer id is its frame, a text id the last number in it;
+    else the ids in order of appearance."""
+    numbers = [
+        i if isinstance(i, int) else (frame_number(Path(i)) if isinstance(i, str) else None) for i in ids
+    ]
+    if all(n is not None for n in numbers):
+        return np.array(numbers, dtype=np.int64)
+    return np.unique([str(i) for i in ids], return_inverse=True)[1].astype(np.int64)
+
+
+def _coco(items: Sequence[Any], where: str) -> Poses:
+    """COCO keypoint results ([{image_id, keypoints: [x, y, score, ...]}]) or annotations (a third
+    value 0, 1 or 2 flags a joint; 0 is missing), ordered by image; a joint with 0 is missing."""
+    found = [a for a in items if isinstance(a, dict) and isinstance(a.get("keypoints"), list)]
+    if not found:
+        raise InputFileError(f"{where}: no keypoints")
+    rows = [np.asarray(a["keypoints"], dtype=np.float64).reshape(-1, 3) for a in found]
+    flags = all(np.isin(r[:, 2], (0, 1, 2)).all() for r in rows)
+    poses = []
+    for r in rows:
+        pose = np.where(r[:, 2:] > 0, r, np.nan)  # (K, 3) a joint with 0 is missing
+        if flags:  # flags are no confidence
+            pose[:, 2] = np.nan
+        poses.append(pose)
+    frames = _image_frames([a.get("image_id", k) for k, a in enumerate(found)])
+    order = np.argsort(frames, kind="stable")
+    stacked = _stack([poses[k] for k in order], None, "coco17" if len(rows[0]) == 17 else None, where)
+    person = np.zeros(len(order), np.int64)
+    for k in range(1, len(order)):
+        person[k] = person[k - 1] + 1 if frames[order[k]] == frames[order[k - 1]] else 0
+    return replace(stacked, frame=frames[order], person=person)
+
+
+def _is_coco(data: Any) -> bool:
+    return isinstance(data, list) and bool(data) and all(
+        isinstance(a, dict) and isinstance(a.get("keypoints"), list)
+        and all(isinstance(v, int | float) for v in a["keypoints"]) for a in data
+    )  # fmt: skip
+
+
 def _read_json(data: Any) -> Poses:
     if isinstance(data, dict) and "people" in data:  # one OpenPose frame: every person a pose
         people = _openpose_people(data)
         poses = _stack(people, None, _openpose_format(people), "people")
         return replace(poses, frame=np.zeros(len(people), int), person=np.arange(len(people)))
+    if isinstance(data, list) and data and all(isinstance(f, dict) and "people" in f for f in data):
+        return _openpose_frames(data)
+    if _is_coco(data):  # detector results
+        return _coco(data, "results")
+    if isinstance(data, dict) and isinstance(data.get("annotations"), list):
+        return _coco(data["annotations"], "annotations")
     if isinstance(data, dict) and "poses" in data:  # the POST /lift body
-        items = data["poses"] if isinstance(data["poses"], list) else []
-        arrays = [_pose_array(p.get("keypoints") if isinstance(p, dict) else None, f"poses[{i}].keypoints")
-                  for i, p in enumerate(items)]  # fmt: skip
-        for pose, item in zip(arrays, items, strict=True):
-            if isinstance(item, dict) and item.get("confidence") is not None:
-                pose[:, 2] = np.asarray(item["confidence"], dtype=np.float64)
-        return _stack(arrays, None, data.get("format"), "poses")
+        return _lift_body(data)
     body = data if isinstance(data, dict) else {"keypoints": data}
     keypoints, fmt = body.get("keypoints"), body.get("format")
     many = isinstance(keypoints, list) and bool(keypoints) and isinstance(keypoints[0], list) and \
         any(isinstance(row, list) for row in keypoints[0])  # fmt: skip
     rows: list[Any] = keypoints if many and isinstance(keypoints, list) else [keypoints]
-    return _stack([_pose_array(r, f"keypoints[{i}]") for i, r in enumerate(rows)], body.get("confidence"),
-                  fmt, "keypoints")  # fmt: skip
+    poses = _stack([_pose_array(r, f"keypoints[{i}]") for i, r in enumerate(rows)], body.get("confidence"),
+                   fmt, "keypoints")  # fmt: skip
+    return replace(poses, fps=_fps(body))
 
 
 def frame_number(path: Path) -> int | None:
@@ -109,11 +196,12 @@ def load_poses(path: Path) -> Poses:
                 keypoints = np.asarray(npz["keypoints"], dtype=np.float64)
                 conf = npz["confidence"] if "confidence" in npz else None
                 fmt = npz["format"] if "format" in npz else None
+                fps = float(npz["fps"]) if "fps" in npz else None
             keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
             if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3):
                 raise InputFileError(f"expected keypoints (N, J, 2) or (N, J, 3), got {keypoints.shape}")
             padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
-            return _stack(list(padded), conf, fmt, str(path))
+            return replace(_stack(list(padded), conf, fmt, str(path)), fps=_fps({"fps": fps}))
         if path.suffix == ".json":
             data = json.loads(path.read_text())
             poses = _read_json(data)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -12,29 +12,55 @@ import grpc
 import numpy as np
 
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.client import ArrayLike, LiftClientError, LiftResult, as_poses
 from service.formats import MODEL_JOINTS
+from service.lift_result import ArrayLike, LiftClientError, LiftResult, as_poses
 
 DEFAULT_TARGET = "localhost:50051"
 
 
 @dataclass(frozen=True)
-class Frame:
-    """One stream frame: (J, 2) keypoints (NaN = missing) with optional (J,) confidence."""
+class Person:
+    """One tracked person of a frame with several: (J, 2) keypoints (NaN = missing), its track."""
 
+    track_id: str  # the same person keeps the same id from frame to frame
     keypoints: ArrayLike
     confidence: ArrayLike | None = None
-    frame_id: int | None = None  # default: the frame's position in the stream
     format: str | None = None  # default: the stream's format
 
 
 @dataclass(frozen=True)
+class Frame:
+    """One stream frame: (J, 2) keypoints (NaN = missing) with optional (J,) confidence, or several
+    tracked `people`. A pose with a `track_id` (and every person) is answered by the causal temporal
+    model from its track's frames so far; the frame_id is then its frame number in time."""
+
+    keypoints: ArrayLike | None = None
+    confidence: ArrayLike | None = None
+    frame_id: int | None = None  # default: the frame's position in the stream
+    format: str | None = None  # default: the stream's format
+    track_id: str = ""  # empty: the pose is lifted alone
+    people: Sequence[Person] = ()  # instead of keypoints: several people, each with its track
+    fps: float | None = None  # frames per second of tracked poses; default: the stream's
+
+
+@dataclass(frozen=True)
+class PersonResult:
+    """The answer for one person of a frame, in the frame's order: its result or its error."""
+
+    track_id: str
+    result: LiftResult | None
+    error: LiftClientError | None
+
+
+@dataclass(frozen=True)
 class FrameResult:
-    """The answer to one frame: its result, or the error it got (the stream goes on)."""
+    """The answer to one frame: its result, or the error it got (the stream goes on); for a frame of
+    several people, each one's (`people`)."""
 
     frame_id: int
     result: LiftResult | None
     error: LiftClientError | None
+    people: tuple[PersonResult, ...] = ()
 
 
 _STATUS_NAMES = {code.value[0]: code.name for code in grpc.StatusCode}
@@ -58,6 +84,58 @@ def proto_field(pose: lifter_pb2.PoseResult) -> Callable[[str], Any]:
         return getattr(pose, name)
 
     return get
+
+
+def _frame_message(i: int, frame: ArrayLike | Frame, format: str, threshold: float | None,
+                   fps: float | None) -> lifter_pb2.LiftFrame:  # fmt: skip
+    """The LiftFrame of frame i of a stream; ValueError on keypoints of the wrong shape."""
+    f = frame if isinstance(frame, Frame) else Frame(frame)
+    message = lifter_pb2.LiftFrame(frame_id=i if f.frame_id is None else f.frame_id, track_id=f.track_id,
+                                   confidence_threshold=threshold)  # fmt: skip
+    rate = f.fps if f.fps is not None else fps
+    if rate is not None and (f.track_id or f.people):
+        message.fps = rate
+    if f.people:
+        for person in f.people:
+            pose = _pose_proto(*_one_pose(person.keypoints, person.confidence), person.format or format)
+            message.people.add(track_id=person.track_id, pose=pose)
+    elif f.keypoints is not None:
+        message.pose.CopyFrom(_pose_proto(*_one_pose(f.keypoints, f.confidence), f.format or format))
+    else:
+        raise ValueError("a frame needs keypoints or people")
+    return message
+
+
+def _one_pose(keypoints: ArrayLike, confidence: ArrayLike | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(J, 2) points and (J,) confidence of one pose; ValueError on other shapes."""
+    conf = None if confidence is None else np.asarray(confidence)[None]
+    points, checked = as_poses(np.asarray(keypoints)[None], conf)
+    return points[0], None if checked is None else checked[0]
+
+
+def _error(e: lifter_pb2.FrameError) -> LiftClientError:
+    details = [{"field": v.field, "reason": v.reason, "code": v.code, "joint_name": v.joint_name}
+               for v in e.violations]  # fmt: skip
+    return LiftClientError(e.message, _STATUS_NAMES.get(e.code, str(e.code)), details)
+
+
+def _frame_result(answer: lifter_pb2.LiftFrameResult) -> FrameResult:
+    """A LiftFrameResult read: the pose, or the frame's error, and each person's."""
+    people = []
+    for person in answer.people:
+        if person.WhichOneof("result") == "pose":
+            found = LiftResult.from_fields(proto_field(person.pose), MODEL_JOINTS, answer.model_id)
+            people.append(PersonResult(person.track_id, found, None))
+        else:
+            people.append(PersonResult(person.track_id, None, _error(person.error)))
+    kind = answer.WhichOneof("result")
+    result = (
+        LiftResult.from_fields(proto_field(answer.pose), MODEL_JOINTS, answer.model_id)
+        if kind == "pose"
+        else None
+    )
+    error = _error(answer.error) if kind == "error" else None
+    return FrameResult(answer.frame_id, result, error, tuple(people))
 
 
 def _rpc_error(err: grpc.RpcError) -> LiftClientError:
@@ -103,39 +181,36 @@ class StreamClient:
         self._channel.close()
 
     def stream(self, frames: Iterable[ArrayLike | Frame], *, format: str = "h36m17",
-               confidence_threshold: float | None = None) -> Generator[FrameResult, None, None]:  # fmt: skip
+               confidence_threshold: float | None = None,
+               fps: float | None = None) -> Generator[FrameResult, None, None]:  # fmt: skip
         """Send frames as they come and yield one FrameResult per frame, in order.
 
-        A bad frame yields a FrameResult with `error` set; a failed call raises LiftClientError.
-        Frame results carry the model's joint names (LiftFrameResult has none on the wire).
+        A bad frame yields a FrameResult with `error` set (a person's: in `people`); a failed call
+        raises LiftClientError, and so does a frame that cannot be sent (after the results of the
+        frames before it). `fps`: the frame rate of tracked poses (Frame.track_id, Frame.people)
+        that do not give their own. Frame results carry the model's joint names (LiftFrameResult has
+        none on the wire).
         """
+        unsent: list[LiftClientError] = []
 
         def requests() -> Iterator[lifter_pb2.LiftFrame]:
-            for i, frame in enumerate(frames):
-                f = frame if isinstance(frame, Frame) else Frame(frame)
-                points = np.asarray(f.keypoints, dtype=np.float64)
-                conf = None if f.confidence is None else np.asarray(f.confidence, dtype=np.float64)
-                pose = _pose_proto(points, conf, f.format or format)
-                frame_id = i if f.frame_id is None else f.frame_id
-                yield lifter_pb2.LiftFrame(frame_id=frame_id, pose=pose,
-                                           confidence_threshold=confidence_threshold)  # fmt: skip
+            i = 0
+            try:
+                for i, frame in enumerate(frames):
+                    yield _frame_message(i, frame, format, confidence_threshold, fps)
+            except Exception as err:  # gRPC would swallow it on its own thread: raised below
+                unsent.append(LiftClientError(f"frame {i} cannot be sent: {err}"))
 
         call = self._stub.LiftStream(requests(), timeout=self.timeout, metadata=self._metadata)
         try:
             for answer in call:
-                if answer.WhichOneof("result") == "pose":
-                    result = LiftResult.from_fields(proto_field(answer.pose), MODEL_JOINTS, answer.model_id)
-                    yield FrameResult(answer.frame_id, result, None)
-                    continue
-                e = answer.error
-                details = [{"field": v.field, "reason": v.reason, "code": v.code, "joint_name": v.joint_name}
-                           for v in e.violations]  # fmt: skip
-                error = LiftClientError(e.message, _STATUS_NAMES.get(e.code, str(e.code)), details)
-                yield FrameResult(answer.frame_id, None, error)
+                yield _frame_result(answer)
         except grpc.RpcError as err:
             raise _rpc_error(err) from err
         finally:
             call.cancel()  # a no-op once the call ended; stops it when the caller breaks off early
+        if unsent:
+            raise unsent[0]
 
     def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
                    confidence_threshold: float | None = None) -> list[LiftResult]:  # fmt: skip

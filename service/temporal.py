@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +12,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.config import Settings
+from service.contract import MODES, Contract
 from service.errors import ModelLoadError
 from service.formats import MODEL_JOINTS, MODEL_PARENTS
 from service.geometry import FloatArray
@@ -22,7 +22,6 @@ log = logging.getLogger(__name__)
 
 INPUTS = ("poses", "keypoints_2d", "visibility", "fps")
 OUTPUT = "pose_3d_camera"
-MODES = ("causal", "offline")
 J = len(MODEL_JOINTS)
 # The start-up check: a window of one pose repeated is answered within this of that pose (mean per
 # joint, mm); a trained model moves it a few mm (its correction), a broken one anywhere.
@@ -69,27 +68,6 @@ def pad_slots(windows: Windows, slots: int, causal: bool) -> Windows:
         return np.pad(a, [(0, 0), (before, after)] + [(0, 0)] * (a.ndim - 2), mode="edge")
 
     return Windows(pad(windows.poses), pad(windows.keypoints_2d), pad(windows.visibility), windows.fps)
-
-
-@dataclass(frozen=True)
-class Contract:
-    """What a temporal model's metadata promises (metadata entry `temporal`, JSON)."""
-
-    mode: str  # causal | offline
-    grid_fps: float  # the rate it resamples windows to
-    window: int  # T grid frames it reads
-    max_fps: float  # the highest slot rate it was trained for; faster tracks are thinned
-
-    def thinning(self, fps: float) -> int:
-        """q: a track at `fps` gives its window every q-th frame (at fps / q <= max_fps)."""
-        return max(1, math.ceil(fps / self.max_fps - 1e-9))
-
-    def slots(self, fps: float) -> int:
-        """K: the frame slots of one window at slot rate `fps` (odd when offline)."""
-        span = (self.window - 1) / self.grid_fps * fps
-        if self.mode == "causal":
-            return math.ceil(span - 1e-6) + 1
-        return 2 * math.ceil(span / 2 - 1e-6) + 1
 
 
 def read_contract(meta: dict[str, str], path: Path) -> Contract:

@@ -9,18 +9,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from service import geometry
+from service.contract import Contract
 from service.engine import TemporalEngine
 from service.errors import InvalidKeypoints, LiftError, Violation
 from service.keypoints import ModelInput
 from service.lifter import Prediction
 from service.replies import TemporalRows
-from service.temporal import BONES, Contract, Windows, fix_bone_lengths
+from service.temporal import BONES, TemporalAnswer, Windows, fix_bone_lengths
 from service.tracks import (
     Observation,
     Track,
     TrackBudget,
     TrackTable,
     bridged_clip,
+    fps_violations,
     offline_windows,
     segments,
     track_capacity,
@@ -153,9 +155,35 @@ def clip_plan(
     return Plan.of([parts[i] for i in order], {}, contract.mode == "causal")
 
 
-async def run_plan(engine: TemporalEngine, plan: Plan, transport: str, wait_s: float = 0.0) -> TemporalRows:
+def answer_rows(plan: Plan, answer: TemporalAnswer) -> TemporalRows:
     """The temporal model's answers to the plan's windows, held to its bone lengths."""
+    return TemporalRows(plan.rows, fix_bone_lengths(answer.pose_3d_camera, plan.bones), answer.failed)
+
+
+async def run_plan(engine: TemporalEngine, plan: Plan, transport: str, wait_s: float = 0.0) -> TemporalRows:
+    """The temporal model's answers to the plan's windows (queued on `engine`), held to its bone lengths."""
     if plan.windows is None:
         return TemporalRows.none()
-    answer = await engine.lift_async(plan.windows, transport, wait_s)
-    return TemporalRows(plan.rows, fix_bone_lengths(answer.pose_3d_camera, plan.bones), answer.failed)
+    return answer_rows(plan, await engine.lift_async(plan.windows, transport, wait_s))
+
+
+def clip_violations(
+    track_ids: Sequence[str | None], frames: Sequence[int | None], fps: float | None
+) -> list[Violation]:
+    """The rules of a clip of tracked poses (pose i: its track, None when untracked, and its frame
+    number): the frame rate is given and in range, each tracked pose has a frame number, and no frame
+    of a track comes twice. Fields are named within poses[i]."""
+    found = fps_violations(fps, "fps")
+    seen: dict[tuple[str, int], int] = {}
+    for i, (track_id, frame) in enumerate(zip(track_ids, frames, strict=True)):
+        if track_id is None:
+            continue
+        if frame is None:
+            reason = "a tracked pose needs its frame number with temporal causal or offline"
+            found.append(Violation("frame", reason, "frame_missing", pose=i).within(f"poses[{i}]"))
+            continue
+        first = seen.setdefault((track_id, frame), i)
+        if first != i:
+            reason = f"frame {frame} of this track is also poses[{first}]"
+            found.append(Violation("frame", reason, "frame_repeated", pose=i).within(f"poses[{i}]"))
+    return found

@@ -9,7 +9,7 @@ spaced in time; a longer gap restarts the track (its window and bone lengths sta
 A causal window (Track.window) holds the newest frame and the K - 1 before it, the oldest
 repeated while the track is younger than that; an offline window (offline_windows) is centred on
 its frame over a whole clip, the clip's ends repeated. A track faster than the model's max_fps
-gives every q-th frame (temporal.Contract.thinning). Its bone lengths are the running mean of the
+gives every q-th frame (contract.Contract.thinning). Its bone lengths are the running mean of the
 single-frame answers' (temporal.fix_bone_lengths holds the temporal answer to them).
 """
 
@@ -21,8 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.contract import Contract
 from service.errors import InvalidKeypoints, Violation
-from service.temporal import BONES, Contract, J, Windows, bone_lengths
+from service.temporal import BONES, J, Windows, bone_lengths
 
 MAX_GAP_S = 0.5  # the longest gap a track bridges; a longer one restarts it
 MAX_FPS = 240.0  # the highest frame rate a track may declare

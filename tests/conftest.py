@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -9,6 +10,7 @@ import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import grpc
 import numpy as np
@@ -21,7 +23,7 @@ with warnings.catch_warnings():  # starlette's note about httpx2 is not ours to 
 
 from service._proto.repnet.v1 import lifter_pb2_grpc
 from service.app import build_app, build_grpc_server, limits_of
-from service.config import BUNDLED_MODEL, Settings
+from service.config import BUNDLED_MODEL, BUNDLED_OFFLINE, Settings
 from service.engine import Engine
 from service.grpc_server import Health
 from service.keypoints import Limits, PoseInput, prepare_poses
@@ -198,12 +200,11 @@ class LiveService:
     grpc_target: str
 
 
-@pytest.fixture(scope="module")
-def live_service(lifter: Lifter) -> Iterator[LiveService]:
-    """`python -m service` in-process: uvicorn and gRPC on free localhost ports (for clients)."""
+@contextlib.contextmanager
+def running_service(settings: Settings, lifter: Lifter) -> Iterator[LiveService]:
+    """`python -m service` in-process with `settings`: uvicorn and gRPC on their ports (0: free ones)."""
     from service.app import build_service
 
-    settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1, shutdown_grace_s=1)
     service = build_service(settings, lifter)
     thread = threading.Thread(target=service.run, name="live-service", daemon=True)
     thread.start()
@@ -213,6 +214,43 @@ def live_service(lifter: Lifter) -> Iterator[LiveService]:
             raise RuntimeError("the live service did not start")
         time.sleep(0.02)
     port = service.http.servers[0].sockets[0].getsockname()[1]
-    yield LiveService(f"http://127.0.0.1:{port}", f"127.0.0.1:{service.grpc_server.port}")
-    service.begin_shutdown()
-    thread.join(timeout=15)
+    try:
+        yield LiveService(f"http://{settings.host}:{port}", f"{settings.host}:{service.grpc_server.port}")
+    finally:
+        service.begin_shutdown()
+        thread.join(timeout=15)
+
+
+def live_settings(**changes: Any) -> Settings:
+    """The settings of a live test service: localhost, free ports, one onnxruntime thread."""
+    return Settings(
+        host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1, shutdown_grace_s=1, **changes
+    )
+
+
+@pytest.fixture(scope="module")
+def live_service(lifter: Lifter) -> Iterator[LiveService]:
+    """`python -m service` in-process: uvicorn and gRPC on free localhost ports (for clients)."""
+    with running_service(live_settings(), lifter) as service:
+        yield service
+
+
+# A temporal request of the small service holds this many poses: a longer clip is cut (service.chunks).
+SMALL_TEMPORAL_POSES = 120
+
+
+@pytest.fixture(scope="module")
+def small_service(lifter: Lifter) -> Iterator[LiveService]:
+    """A live service whose temporal requests hold SMALL_TEMPORAL_POSES poses."""
+    with running_service(live_settings(max_temporal_poses=SMALL_TEMPORAL_POSES), lifter) as service:
+        yield service
+
+
+# The temporal modes the bundled models give: offline once its model is in service/models/.
+TEMPORAL_MODES = [
+    "causal",
+    pytest.param(
+        "offline",
+        marks=pytest.mark.skipif(not BUNDLED_OFFLINE.is_file(), reason=f"no {BUNDLED_OFFLINE.name}"),
+    ),
+]

@@ -1,12 +1,21 @@
 // The page: read an input, POST it to /lift (same origin only), show the answer, step through frames.
 // Every value from a file or the API reaches the document through textContent, never as HTML.
 
+import { chooseMode, liftRequests } from "./lift.js";
 import { InputError, parseFiles, parseJson, parseText } from "./parse.js";
+import { assignTracks } from "./track.js";
 import { View3D, draw2d, sideOf } from "./view.js";
 
 const $ = (id) => document.getElementById(id);
-const SLOTS = ["example", "file", "paste", "format", "threshold"];
-const state = { model: null, formats: {}, examples: [], frames: [], results: [], index: 0, timer: null, lifts: 0, last: null };
+const SLOTS = ["example", "file", "paste", "format", "threshold", "temporal", "rate"];
+const DEFAULT_FPS = 30;  // a sequence's frame rate when neither the input nor the page gives one
+// poses: what was sent, results: their answers, tracks: each pose's track, frames: the input's frame
+// numbers in order, byFrame: frame number -> its poses, shown: the track the player follows ("": the
+// first person of each frame).
+const state = {
+  model: null, formats: {}, examples: [], poses: [], results: [], tracks: null, frames: [], byFrame: new Map(),
+  shown: "", temporal: "off", index: 0, timer: null, lifts: 0, last: null,
+};
 const view3d = new View3D($("view3d"));
 
 function text(id, value) {
@@ -29,16 +38,20 @@ function addError(slot, message) {
 function slotOf(field, source) {
   if (field === "format" || /\.format$/.test(field)) return "format";
   if (field === "confidence_threshold") return "threshold";
+  if (field === "temporal") return "temporal";
+  if (field === "fps") return "rate";
   return source;
 }
 
-function showApiError(status, detail, first, source) {
+// send: the input's position of each pose of the request, to say where a pose the API names is.
+function showApiError(status, detail, send, frames, source) {
   if (!Array.isArray(detail)) {
     addError(source, `${status}: ${typeof detail === "string" ? detail : JSON.stringify(detail)}`);
     return;
   }
   for (const item of detail) {
-    const where = first > 0 && Number.isInteger(item.pose) ? ` (frame ${first + item.pose + 1})` : "";
+    const at = Number.isInteger(item.pose) ? send[item.pose] : undefined;
+    const where = at !== undefined && at !== item.pose ? ` (pose ${at + 1} of the input, frame ${frames[at]})` : "";
     addError(slotOf(String(item.field ?? ""), source), `${item.message ?? item.reason ?? JSON.stringify(item)}${where}`);
   }
 }
@@ -61,42 +74,53 @@ function tooLarge(bytes, what) {
   return bytes > limit ? `${what} has ${bytes} bytes, more than the ${limit}-byte limit of a /lift body` : null;
 }
 
-// Requests of at most max_request_poses poses and max_body_bytes bytes, in frame order.
-function* requests(poses, extra) {
-  const limits = state.model.limits;
-  let start = 0;
-  while (start < poses.length) {
-    let size = Math.min(limits.max_request_poses, 256, poses.length - start);
-    let body = JSON.stringify({ ...extra, poses: poses.slice(start, start + size) });
-    while (new Blob([body]).size > limits.max_body_bytes && size > 1) {
-      size = Math.ceil(size / 2);
-      body = JSON.stringify({ ...extra, poses: poses.slice(start, start + size) });
-    }
-    yield { first: start, count: size, body };
-    start += size;
-  }
+// The frame rate of a lift: the page's field (as typed, for the API to judge), else the input's, else
+// DEFAULT_FPS ({fps, note}).
+function frameRate(parsed, mode) {
+  const typed = $("rate").value.trim();
+  if (typed) return { fps: Number.isFinite(Number(typed)) ? Number(typed) : typed, note: "" };
+  if (parsed.fps || mode === "off") return { fps: parsed.fps ?? null, note: "" };
+  return { fps: DEFAULT_FPS, note: `assuming ${DEFAULT_FPS} fps` };
 }
 
-async function lift(parsed, source) {
-  clearErrors();
-  pause();
+// The lifts of `parsed` and what they are sent with: its poses, their tracks, the temporal mode.
+function plan(parsed) {
   const chosen = $("format").value;
   const thresholdText = $("threshold").value.trim();
   const threshold = thresholdText === "" ? parsed.threshold
     : (Number.isFinite(Number(thresholdText)) ? Number(thresholdText) : thresholdText);
   const extra = { format: chosen || parsed.format || "h36m17" };
   if (threshold !== undefined && threshold !== null) extra.confidence_threshold = threshold;
-  const frames = parsed.poses.map((p) => (p && chosen && typeof p === "object" ? { ...p, format: undefined } : p));
-  const sent = frames.map((p, i) => [p, i]).filter(([p]) => p !== null);
-  const batches = parsed.body ? [{ first: 0, count: 0, body: JSON.stringify({ ...parsed.body, ...extra }) }]
-    : [...requests(sent.map(([p]) => p), extra)];
+  const poses = parsed.poses.map((p) => (p && chosen && typeof p === "object" ? { ...p, format: undefined } : p));
+  const sequence = parsed.allFrames.length > 1;
+  const { mode, note } = chooseMode($("temporal").value || parsed.temporal || "", sequence, state.model);
+  const rate = frameRate(parsed, mode);
+  const tracking = parsed.trackIds === null && (sequence || mode !== "off");
+  const numeric = typeof rate.fps === "number" && rate.fps > 0 ? rate.fps : DEFAULT_FPS;
+  const tracks = tracking ? assignTracks(parsed.frames, poses, numeric).map(String) : parsed.trackIds;
+  const notes = [note, mode === "off" ? "" : rate.note].filter(Boolean);
+  return { poses, extra, mode, fps: rate.fps, tracks, notes };
+}
+
+async function lift(parsed, source) {
+  clearErrors();
+  pause();
+  const { poses, extra, mode, fps, tracks, notes } = plan(parsed);
+  let batches;
+  try {
+    batches = parsed.body ? [{ send: [], keep: [], body: JSON.stringify({ ...parsed.body, ...extra }) }]
+      : liftRequests(poses, tracks, parsed.frames, { mode, fps }, extra, state.model);
+  } catch (err) {
+    addError(source, err.message);
+    return;
+  }
   if (!batches.length) {
     addError(source, "no pose to lift");
     return;
   }
   text("status", "lifting…");
   document.body.dataset.busy = "true";
-  const results = new Array(frames.length).fill(null);
+  const results = new Array(poses.length).fill(null);
   const warnings = [];
   try {
     for (const batch of batches) {
@@ -108,14 +132,14 @@ async function lift(parsed, source) {
       const response = await fetch("/lift", { method: "POST", headers: { "content-type": "application/json" }, body: batch.body });
       const reply = await response.json().catch(() => ({ detail: response.statusText }));
       if (!response.ok) {
-        showApiError(response.status, reply.detail, batch.first, source);
+        showApiError(response.status, reply.detail, batch.send, parsed.frames, source);
         text("status", `the service answered ${response.status}`);
         return;
       }
-      if (Array.isArray(reply.warnings)) warnings.push(...reply.warnings);
       reply.poses.forEach((pose, k) => {
+        if (!batch.keep[k]) return;  // context of a cut track: another request answers it
         if (Array.isArray(pose.warnings)) warnings.push(...pose.warnings);
-        results[sent[batch.first + k][1]] = { ...pose, model_id: reply.model_id };
+        results[batch.send[k]] = { ...pose, model_id: reply.model_id };
       });
     }
   } catch (err) {
@@ -125,15 +149,56 @@ async function lift(parsed, source) {
     document.body.dataset.busy = "false";
   }
   showWarnings(warnings);
-  state.frames = frames.map((p) => (p ? { ...p, format: p.format || extra.format } : null));
-  state.results = results;
-  state.lifts += 1;
+  show(parsed, poses.map((p) => ({ ...p, format: p.format || extra.format })), results, tracks, mode);
   const lifted = results.filter(Boolean).length;
-  text("status", `lifted ${lifted} pose${lifted === 1 ? "" : "s"} in ${batches.length} request${batches.length === 1 ? "" : "s"} (${parsed.note})`);
-  $("player").hidden = frames.length < 2;
-  $("frame").max = String(Math.max(frames.length - 1, 0));
-  render(0);
+  const how = mode === "off" ? "each pose alone" : `temporal ${mode} at ${fps} fps`;
+  const counted = tracks ? `, ${new Set(tracks.filter((t) => t !== null)).size} track(s)` : "";
+  const said = [parsed.note, ...notes].join("; ");
+  text("status", `lifted ${lifted} pose${lifted === 1 ? "" : "s"} in ${batches.length} request${batches.length === 1 ? "" : "s"}, ${how}${counted} (${said})`);
+  if (mode !== "off" && typeof fps === "number") $("fps").value = String(Math.round(fps));
+  state.lifts += 1;
+  document.body.dataset.temporal = mode;
   document.body.dataset.lifts = String(state.lifts);
+}
+
+// Keep a lift's answers for the player: its frames, the tracks to follow, the first frame shown.
+function show(parsed, poses, results, tracks, mode) {
+  state.poses = poses;
+  state.results = results;
+  state.tracks = tracks;
+  state.temporal = mode;
+  state.frames = parsed.allFrames;
+  state.byFrame = new Map(state.frames.map((f) => [f, []]));
+  parsed.frames.forEach((f, i) => state.byFrame.get(f).push(i));
+  for (const list of state.byFrame.values()) list.sort((a, b) => parsed.people[a] - parsed.people[b]);
+  const counts = new Map();
+  for (const t of tracks ?? []) if (t !== null) counts.set(t, (counts.get(t) ?? 0) + 1);
+  const crowded = [...state.byFrame.values()].some((list) => list.length > 1);
+  const longest = [...counts].sort((a, b) => b[1] - a[1])[0];
+  state.shown = crowded && longest ? longest[0] : "";
+  const options = [["", "the first person of each frame"], ...[...counts].map(([t, n]) => [t, `track ${t} (${n} frame${n === 1 ? "" : "s"})`])];
+  const most = Math.max(0, ...[...state.byFrame.values()].map((list) => list.length));
+  if (!counts.size) for (let k = 1; k < most; k += 1) options.push([`#${k}`, `person ${k + 1} of each frame`]);
+  $("track").replaceChildren(...options.map(([value, label]) => {
+    const option = document.createElement("option");
+    option.value = value;
+    option.textContent = label;
+    return option;
+  }));
+  $("track").value = state.shown;
+  const several = counts.size ? counts.size > 1 : most > 1;  // someone else to show
+  $("track-field").hidden = !several;
+  $("player").hidden = state.frames.length < 2 && !several;
+  $("frame").max = String(Math.max(state.frames.length - 1, 0));
+  render(0);
+}
+
+// The pose the player shows in a frame: the followed track's, or the frame's k-th person ("#k";
+// "": the first).
+function poseAt(index) {
+  const list = state.byFrame.get(state.frames[index]) ?? [];
+  if (state.shown === "" || state.shown.startsWith("#")) return list[Number(state.shown.slice(1))] ?? null;
+  return list.find((i) => state.tracks?.[i] === state.shown) ?? null;
 }
 
 // The input's model joints (the mean of each joint's visible sources) and its other detector points.
@@ -158,7 +223,8 @@ function jointList(flags) {
 
 function render(index) {
   state.index = index;
-  const [frame, result] = [state.frames[index], state.results[index]];
+  const at = poseAt(index);
+  const [frame, result] = at === null ? [null, null] : [state.poses[at], state.results[at]];
   $("frame").value = String(index);
   text("frame-label", `frame ${index + 1} / ${state.frames.length}`);
   const { parents } = state.model;
@@ -166,8 +232,9 @@ function render(index) {
   if (!result) {
     draw2d($("view2d"), null);
     view3d.setPose(null);
-    for (const id of ["num-scale", "num-rotation", "num-error", "num-plausibility", "num-imputed", "num-derived"]) text(id, "—");
-    text("num-model", "no person in this frame");
+    for (const id of ["num-scale", "num-rotation", "num-error", "num-plausibility", "num-imputed", "num-derived", "num-track"]) text(id, "—");
+    const who = state.shown.startsWith("#") ? `person ${Number(state.shown.slice(1)) + 1}` : `track ${state.shown}`;
+    text("num-model", state.shown === "" ? "no person in this frame" : `${who} is not in this frame`);
     return;
   }
   const { input, detector } = inputPoints(frame, result);
@@ -182,6 +249,8 @@ function render(index) {
     : `${p.toFixed(3)} (more plausible than ${Math.round(100 * p)} % of real poses)`);
   text("num-imputed", jointList(result.imputed));
   text("num-derived", jointList(result.derived));
+  const track = result.track_id === null || result.track_id === undefined ? "none" : result.track_id;
+  text("num-track", `${track}, ${result.temporal ? `temporal ${state.temporal}` : "lifted alone"}`);
 }
 
 function step(delta) {
@@ -242,8 +311,7 @@ function liftPaste() {
 function liftExample() {
   const example = state.examples[Number($("example").value)];
   if (!example) return;
-  if (example.fps) $("fps").value = String(example.fps);
-  run("example", async () => parseJson(example.data));
+  run("example", async () => ({ ...parseJson(example.data), fps: example.fps ?? null }));
 }
 
 async function start() {
@@ -256,7 +324,8 @@ async function start() {
     $("format").append(option);
   }
   const m = state.model;
-  text("model-line", `model ${m.model_id} (${m.skeleton}), ${m.joints.length} joints; plausibility: ${m.plausibility ? "given" : "not given by this model"}`);
+  const temporal = (m.temporal ?? []).map((t) => t.mode).join(" and ") || "none";
+  text("model-line", `model ${m.model_id} (${m.skeleton}), ${m.joints.length} joints; plausibility: ${m.plausibility ? "given" : "not given by this model"}; temporal models: ${temporal}`);
   state.examples = await (await fetch("/ui/examples.json")).json();
   state.examples.forEach((example, i) => {
     const option = document.createElement("option");
@@ -265,7 +334,7 @@ async function start() {
     $("example").append(option);
   });
   $("example").addEventListener("change", liftExample);
-  for (const id of ["format", "threshold"]) {  // lift the last input again with the new setting
+  for (const id of ["format", "threshold", "temporal", "rate"]) {  // lift the last input again with the new setting
     $(id).addEventListener("change", () => { if (state.last) lift(state.last.parsed, state.last.source); });
   }
   $("file").addEventListener("change", liftFiles);
@@ -274,6 +343,7 @@ async function start() {
   $("next").addEventListener("click", () => { pause(); step(1); });
   $("play").addEventListener("click", play);
   $("fps").addEventListener("change", () => { if (state.timer) { pause(); play(); } });
+  $("track").addEventListener("change", () => { state.shown = $("track").value; render(state.index); });
   $("frame").addEventListener("input", () => { pause(); render(Number($("frame").value)); });
   for (const name of ["front", "side", "camera"]) $(`view-${name}`).addEventListener("click", () => view3d.setView(name));
   view3d.draw();

@@ -1,8 +1,10 @@
 // Input files and pasted text -> poses for POST /lift. Values pass through as they are: the service,
 // not the page, judges them and words the error. Only the layout of each file kind is read here.
 //
-// parse*() return {poses, format, threshold, note}: poses has one entry per frame, a /lift pose
-// object ({keypoints, confidence?, format?}) or null for a frame without a person.
+// parse*() return {poses, frames, people, allFrames, trackIds, fps, temporal, format, threshold, note}:
+// poses are /lift pose objects ({keypoints, confidence?, format?}); frames[i] is pose i's frame number
+// and people[i] its index in that frame; allFrames every frame number of the input in order (a frame
+// may have no person); trackIds (per pose), fps and temporal what the input gives, else null.
 
 export class InputError extends Error {}
 
@@ -43,32 +45,76 @@ function poseFromTriples(flat, format, cIsFlag) {
   return withFormat(pose, format);
 }
 
-function openPoseFrame(frame, person) {
-  const people = Array.isArray(frame.people) ? frame.people : [];
-  const chosen = people[Math.min(person, people.length - 1)];
-  if (!chosen) return { pose: null, count: 0 };
-  const flat = chosen.pose_keypoints_2d;
-  const format = Array.isArray(flat) && flat.length === 75 ? "body25" : null;
-  return { pose: poseFromTriples(flat, format, false), count: people.length };
+// Fill in what an input does not give: each pose its own frame, nothing tracked.
+function withFrames(parsed) {
+  const frames = parsed.frames ?? parsed.poses.map((_, i) => i);
+  return {
+    trackIds: null, fps: null, temporal: null, people: parsed.poses.map(() => 0),
+    allFrames: [...new Set(frames)].sort((a, b) => a - b), ...parsed, frames,
+  };
 }
 
-function openPoseFrames(frames, person) {
-  const read = frames.map((f) => openPoseFrame(f, person));
-  const crowded = read.filter((r) => r.count > 1).length;
-  const empty = read.filter((r) => r.count === 0).length;
+// OpenPose frames: every person of every frame; numbers: each frame's number.
+function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
+  const poses = [];
+  const at = [];
+  const people = [];
+  frames.forEach((frame, f) => {
+    const found = Array.isArray(frame.people) ? frame.people : [];
+    found.forEach((person, k) => {
+      const flat = person.pose_keypoints_2d;
+      poses.push(poseFromTriples(flat, Array.isArray(flat) && flat.length === 75 ? "body25" : null, false));
+      at.push(numbers[f]);
+      people.push(k);
+    });
+  });
+  const crowded = frames.filter((f) => Array.isArray(f.people) && f.people.length > 1).length;
+  const empty = frames.filter((f) => !Array.isArray(f.people) || !f.people.length).length;
   const notes = [`OpenPose: ${frames.length} frame${frames.length === 1 ? "" : "s"}`];
-  if (crowded) notes.push(`${crowded} with several people: person ${person + 1} shown`);
+  if (crowded) notes.push(`${crowded} with several people`);
   if (empty) notes.push(`${empty} without a person`);
-  return { poses: read.map((r) => r.pose), format: "body25", note: notes.join(", ") };
+  return withFrames({ poses, frames: at, people, allFrames: [...new Set(numbers)].sort((a, b) => a - b), format: "body25", note: notes.join(", ") });
+}
+
+// COCO image ids as frame numbers: an integer id is its frame, a text id the last number in it;
+// else the ids in order (service/pose_file.py).
+function imageFrames(ids) {
+  const numbers = ids.map((id) => (Number.isInteger(id) ? id : (typeof id === "string" ? lastNumber(id) : null)));
+  if (numbers.every((n) => n !== null)) return numbers;
+  const order = [...new Set(ids.map(String))].sort();
+  return ids.map((id) => order.indexOf(String(id)));
+}
+
+// The last run of digits in a name (OpenPose: video_000000000012_keypoints.json), or null.
+export function lastNumber(name) {
+  const digits = String(name).replace(/\.[^.]*$/, "").match(/\d+/g);
+  return digits ? Number(digits[digits.length - 1]) : null;
 }
 
 function cocoPoses(items, note) {
   const triples = items.filter((a) => a && Array.isArray(a.keypoints));
-  triples.sort((a, b) => (a.image_id ?? 0) - (b.image_id ?? 0) || (a.id ?? 0) - (b.id ?? 0));
+  const frameOf = imageFrames(triples.map((a, k) => a.image_id ?? k));
+  const order = triples.map((a, k) => [frameOf[k], k]).sort((x, y) => x[0] - y[0] || x[1] - y[1]).map((x) => x[1]);
   // Ground-truth files flag each joint 0 (not labelled), 1 or 2; detector results give a score.
   const flags = triples.every((a) => a.keypoints.every((v, i) => i % 3 !== 2 || [0, 1, 2].includes(v)));
-  const poses = triples.map((a) => poseFromTriples(a.keypoints, "coco17", flags));
-  return { poses, format: "coco17", note: `${note}: ${poses.length} poses` };
+  const poses = order.map((k) => poseFromTriples(triples[k].keypoints, "coco17", flags));
+  const frames = order.map((k) => frameOf[k]);
+  const people = frames.map((f, i) => frames.slice(0, i).filter((g) => g === f).length);
+  return withFrames({ poses, frames, people, format: "coco17", note: `${note}: ${poses.length} poses` });
+}
+
+// The tracks, frame numbers and temporal fields a POST /lift body or repnet lift output gives.
+function givenTracks(items, poses) {
+  const trackIds = items.map((p) => (p && typeof p === "object" && p.track_id !== undefined ? p.track_id : null));
+  if (!trackIds.some((t) => t !== null)) return { poses };
+  const frames = items.map((p, i) => (Number.isInteger(p?.frame) ? p.frame : i));
+  const bare = poses.map((p) => {
+    const pose = { ...p };
+    delete pose.track_id;
+    delete pose.frame;
+    return pose;
+  });
+  return { poses: bare, trackIds, frames };
 }
 
 // Is `v` a list of poses (each a list of rows) rather than one pose?
@@ -77,31 +123,39 @@ function isPoseList(v) {
     v[0].some((row) => Array.isArray(row));
 }
 
-export function parseJson(data, person = 0) {
+const rate = (data) => (typeof data?.fps === "number" && data.fps > 0 ? data.fps : null);
+
+export function parseJson(data) {
   if (Array.isArray(data) && data.length && data.every((f) => f && typeof f === "object" && "people" in f)) {
-    return openPoseFrames(data, person);
+    return openPoseFrames(data);
   }
   if (data && typeof data === "object" && !Array.isArray(data)) {
-    if ("people" in data) return openPoseFrames([data], person);
+    if ("people" in data) return openPoseFrames([data]);
     if (Array.isArray(data.annotations)) return cocoPoses(data.annotations, "COCO annotations");
     if (Array.isArray(data.poses) && data.poses.some((p) => p && typeof p === "object" && "input" in p)) {
       const poses = data.poses.map((p) => withFormat({ ...(p.input ?? {}) }, null));
       for (const pose of poses) if (pose.confidence === null) delete pose.confidence;
-      return { poses, format: data.format ?? null, note: `repnet lift output: ${poses.length} poses` };
+      const given = givenTracks(data.poses, poses);
+      const people = data.poses.map((p) => (Number.isInteger(p?.person) ? p.person : 0));
+      const temporal = typeof data.temporal === "string" ? data.temporal : null;
+      return withFrames({ ...given, people, fps: rate(data), temporal, format: data.format ?? null, note: `repnet lift output: ${poses.length} poses` });
     }
     if ("poses" in data) {  // a POST /lift body, sent as it is
       // A body whose poses are not a list goes to the service whole, for it to say what is wrong.
       const body = Array.isArray(data.poses) ? null : data;
-      return { poses: body ? [] : data.poses, format: data.format ?? null, threshold: data.confidence_threshold, body, note: "POST /lift body" };
+      const given = body ? { poses: [] } : givenTracks(data.poses, data.poses);
+      const temporal = typeof data.temporal === "string" ? data.temporal : null;
+      return withFrames({ ...given, fps: rate(data), temporal, format: data.format ?? null, threshold: data.confidence_threshold, body, note: "POST /lift body" });
     }
     if ("keypoints" in data) {
       if (isPoseList(data.keypoints)) {
         const poses = data.keypoints.map((rows) => poseFromRows(rows));
-        return { poses, format: data.format ?? null, note: `${poses.length} poses` };
+        return withFrames({ poses, fps: rate(data), format: data.format ?? null, note: `${poses.length} poses` });
       }
       const pose = { ...data };
       delete pose.confidence_threshold;
-      return { poses: [pose], format: null, threshold: data.confidence_threshold, note: "one pose" };
+      delete pose.fps;
+      return withFrames({ poses: [pose], format: null, threshold: data.confidence_threshold, note: "one pose" });
     }
   }
   if (Array.isArray(data) && data.length && data.every((a) => a && typeof a === "object" && Array.isArray(a.keypoints) && a.keypoints.every(isNumber))) {
@@ -109,26 +163,27 @@ export function parseJson(data, person = 0) {
   }
   if (isPoseList(data)) {
     const poses = data.map((rows) => poseFromRows(rows));
-    return { poses, format: null, note: `${poses.length} poses` };
+    return withFrames({ poses, format: null, note: `${poses.length} poses` });
   }
   if (Array.isArray(data) && data.length && data.some((r) => isRow(r) || r === null)) {
-    return { poses: [poseFromRows(data)], format: null, note: "one pose" };
+    return withFrames({ poses: [poseFromRows(data)], format: null, note: "one pose" });
   }
   throw new InputError("expected a pose ([[x, y], …]), a list of poses, a POST /lift body, OpenPose, COCO keypoint or repnet lift JSON");
 }
 
-export function parseText(text, person = 0) {
+export function parseText(text) {
   let data;
   try {
     data = JSON.parse(text);
   } catch (err) {
     throw new InputError(`not JSON: ${err.message}`);
   }
-  return parseJson(data, person);
+  return parseJson(data);
 }
 
-// Several OpenPose files are the frames of one video, in file-name order (OpenPose numbers them).
-export async function parseFiles(files, person = 0) {
+// Several OpenPose files are the frames of one video, numbered by the last number in their names
+// (OpenPose numbers them), else in file-name order.
+export async function parseFiles(files) {
   const sorted = [...files].sort((a, b) => a.name.localeCompare(b.name, undefined, { numeric: true }));
   if (sorted.length === 1 && sorted[0].name.toLowerCase().endsWith(".npz")) {
     return parseNpz(new Uint8Array(await sorted[0].arrayBuffer()));
@@ -142,13 +197,14 @@ export async function parseFiles(files, person = 0) {
     } catch (err) {
       throw new InputError(`${file.name}: not JSON: ${err.message}`);
     }
-    if (sorted.length === 1) return parseJson(data, person);
+    if (sorted.length === 1) return parseJson(data);
     if (!data || typeof data !== "object" || !("people" in data)) {
       throw new InputError(`${file.name}: several files must each be one OpenPose frame (with "people")`);
     }
     frames.push(data);
   }
-  return openPoseFrames(frames, person);
+  const numbers = sorted.map((f) => lastNumber(f.name));
+  return openPoseFrames(frames, numbers.every((n) => n !== null) ? numbers : undefined);
 }
 
 // ---- NPZ: a zip archive (stored or deflated, zip64 sizes as numpy writes them) of .npy arrays ----
@@ -247,5 +303,6 @@ export async function parseNpz(bytes) {
     if (confidence) pose.confidence = confidence.slice(p * j, (p + 1) * j);
     poses.push(pose);
   }
-  return { poses, format, note: `NPZ: ${n} poses` };
+  const fps = entries.fps ? readNpy(entries.fps, "fps").values[0] : null;
+  return withFrames({ poses, fps, format, note: `NPZ: ${n} poses` });
 }

@@ -8,14 +8,15 @@ import shutil
 import socket
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from service import cli
 from service.cli import EXIT_OK, EXIT_REJECTED, EXIT_UNREACHABLE, EXIT_USAGE, load_poses, main, progress_bar
-from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
-from tests.conftest import POSE_2D, POSE_3D, LiveService, project
+from service.formats import FORMATS, MODEL_JOINTS, MODEL_PARENTS, from_model_joints
+from tests.conftest import POSE_2D, POSE_3D, SMALL_TEMPORAL_POSES, TEMPORAL_MODES, LiveService, project
 
 
 def _coco_file(tmp_path: Path, n: int = 3) -> Path:
@@ -294,8 +295,11 @@ def test_lift_reports_progress_over_files_and_poses(tmp_path: Path, monkeypatch:
     monkeypatch.setattr(cli, "progress_bar", Bar)
     folder, out = _openpose_folder(tmp_path), tmp_path / "out.json"
     args = ["lift", str(folder), "--local", "--batch-size", "2", "-o", str(out)]
-    assert main(args) == EXIT_OK
+    assert main([*args, "--temporal", "off"]) == EXIT_OK
     assert bars == [(3, "file", [1, 1, 1]), (3, "pose", [2, 1])]
+    bars.clear()
+    assert main([*args, "--temporal", "causal"]) == EXIT_OK  # one request holds the whole clip
+    assert bars == [(3, "file", [1, 1, 1]), (3, "pose", [3])]
 
 
 def test_plot_of_a_sequence_writes_an_animated_gif(
@@ -325,3 +329,160 @@ def test_plot_to_mp4_without_ffmpeg_says_so(tmp_path: Path, capsys: pytest.Captu
 def test_an_empty_folder_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["lift", str(tmp_path), "--local"]) == EXIT_USAGE
     assert "no .json files" in capsys.readouterr().err
+
+
+# ---- sequences: the temporal mode, the frame rate, tracks, clips cut into requests ----
+
+
+def _walkers(tmp_path: Path, frames: int = 200) -> Path:
+    """An OpenPose folder: person A walks the whole clip; person B, further right, is not found in 10
+    frames (a gap the service bridges); the detector lists them in either order."""
+    folder = tmp_path / "walk"
+    folder.mkdir()
+    rng = np.random.default_rng(3)
+    for f in range(frames):
+        a = _body25(1.5 * f) + rng.normal(0, 2.0, (25, 2))
+        b = _body25(700.0 - 1.0 * f) + rng.normal(0, 2.0, (25, 2))
+        people = [a] if 80 <= f < 90 else ([b, a] if f % 4 == 1 else [a, b])
+        _openpose_frame(folder / f"walk_{f:012d}_keypoints.json", people)
+    return folder
+
+
+def _lifted(args: list[str]) -> dict[str, Any]:
+    out = Path(args[args.index("-o") + 1])
+    assert main(args) == EXIT_OK
+    return dict(json.loads(out.read_text()))
+
+
+def _by_person(data: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    """The output's poses by track, each track named by where its person starts (left or right)."""
+    tracks: dict[str, list[dict[str, Any]]] = {}
+    for pose in data["poses"]:
+        tracks.setdefault(pose["track_id"], []).append(pose)
+    return {("A" if poses[0]["input"]["keypoints"][8][0] < 700 else "B"): poses for poses in tracks.values()}
+
+
+def test_a_sequence_is_lifted_temporally_by_default_and_one_frame_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _lifted(["lift", str(_h36m_npz(tmp_path, 30)), "--local", "-o", str(tmp_path / "seq.json")])
+    err = capsys.readouterr().err
+    assert data["temporal"] in ("offline", "causal") and data["fps"] == 30.0
+    assert "assuming 30 fps" in err
+    if data["temporal"] == "causal":  # until the offline model ships
+        assert "no offline temporal model here: lifting the sequence with temporal causal" in err
+    assert all(p["temporal"] and p["track_id"] == "0" for p in data["poses"])
+    one = tmp_path / "one.json"
+    one.write_text(json.dumps(POSE_2D.tolist()))
+    single = _lifted(["lift", str(one), "--local", "-o", str(tmp_path / "single.json")])
+    assert single["temporal"] == "off" and single["fps"] is None
+    assert single["poses"][0]["track_id"] is None and not single["poses"][0]["temporal"]
+    assert "assuming" not in capsys.readouterr().err
+
+
+def test_the_files_frame_rate_and_tracks_are_used(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "poses.npz"
+    np.savez(path, keypoints=np.stack([project(POSE_3D, 2.0 * i) for i in range(12)]), fps=np.array(25.0))
+    data = _lifted(["lift", str(path), "--local", "--temporal", "causal", "-o", str(tmp_path / "a.json")])
+    assert data["fps"] == 25.0 and "assuming" not in capsys.readouterr().err
+    body = {"format": "h36m17", "fps": 50, "poses": [
+        {"keypoints": project(POSE_3D, 2.0 * f).tolist(), "track_id": t, "frame": f}
+        for f in range(6) for t in ("x", "y")]}  # fmt: skip
+    path = tmp_path / "body.json"
+    path.write_text(json.dumps(body))
+    data = _lifted(["lift", str(path), "--local", "--temporal", "causal", "-o", str(tmp_path / "b.json")])
+    assert data["fps"] == 50.0 and [p["track_id"] for p in data["poses"]] == ["x", "y"] * 6
+    assert [p["frame"] for p in data["poses"]] == [f for f in range(6) for _ in "xy"]
+    with pytest.raises(SystemExit) as info:
+        main(["lift", str(path), "--local", "--fps", "0"])
+    assert info.value.code == EXIT_USAGE
+    assert "--fps: expected frames per second in (0, 240]" in capsys.readouterr().err
+
+
+def test_without_temporal_models_a_sequence_falls_back_and_an_asked_mode_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("REPNET_TEMPORAL", "false")
+    npz = _h36m_npz(tmp_path, 5)
+    data = _lifted(["lift", str(npz), "--local", "-o", str(tmp_path / "out.json")])
+    assert data["temporal"] == "off" and not any(p["temporal"] for p in data["poses"])
+    assert "lifting the sequence with temporal off" in capsys.readouterr().err
+    assert main(["lift", str(npz), "--local", "--temporal", "causal"]) == EXIT_REJECTED
+    assert "no causal temporal model is loaded" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("mode", TEMPORAL_MODES)
+def test_the_windowed_cli_equals_one_request(
+    tmp_path: Path,
+    live_service: LiveService,
+    small_service: LiveService,
+    monkeypatch: pytest.MonkeyPatch,
+    mode: str,
+) -> None:
+    """A 200-frame clip of two people, cut into requests of 120 poses (the service's and --local's
+    REPNET_MAX_TEMPORAL_POSES), answers as one request: through the service and in this process."""
+    folder = str(_walkers(tmp_path))
+    base = ["lift", folder, "--temporal", mode, "--fps", "30", "-o"]
+    one = _lifted([*base, str(tmp_path / "one.json"), "--url", live_service.http_url])
+    cut = _lifted([*base, str(tmp_path / "cut.json"), "--url", small_service.http_url])
+    local_one = _lifted([*base, str(tmp_path / "local_one.json"), "--local"])
+    monkeypatch.setenv("REPNET_MAX_TEMPORAL_POSES", str(SMALL_TEMPORAL_POSES))
+    local_cut = _lifted([*base, str(tmp_path / "local_cut.json"), "--local"])
+    tracks = _by_person(one)
+    assert len({p["track_id"] for p in one["poses"]}) == 2  # B keeps its track over its gap
+    assert sorted(tracks) == ["A", "B"] and len(tracks["A"]) == 200 and len(tracks["B"]) == 190
+    for data in (cut, local_one, local_cut):
+        assert [p["track_id"] for p in data["poses"]] == [p["track_id"] for p in one["poses"]]
+        got = _by_person(data)
+        for person in ("A", "B"):
+            want = np.array([p["pose_3d_camera"] for p in tracks[person]])
+            have = np.array([p["pose_3d_camera"] for p in got[person]])
+            np.testing.assert_allclose(_directions(have), _directions(want), atol=2e-4)  # the same windows
+            np.testing.assert_allclose(have, want, atol=3.0)  # bone lengths: the mean over a part
+
+
+def _directions(poses: np.ndarray) -> np.ndarray:
+    bones = poses[:, 1:] - poses[:, list(MODEL_PARENTS[1:])]
+    return np.asarray(bones / np.linalg.norm(bones, axis=-1, keepdims=True))
+
+
+def test_coco_results_are_read_by_image_with_every_person_tracked(tmp_path: Path) -> None:
+    results = []
+    for image in (7, 8, 9):
+        for shift in (0.0, 600.0) if image != 8 else (600.0, 0.0):
+            points, found = from_model_joints(FORMATS["coco17"], (POSE_2D + [shift + image, 0.0])[None])
+            triples = np.concatenate(
+                [np.nan_to_num(points[0]), np.where(found[0], 0.8, 0.0)[:, None]], axis=1
+            )
+            results.append(
+                {"image_id": image, "category_id": 1, "keypoints": triples.ravel().tolist(), "score": 0.9}
+            )
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(list(reversed(results))))
+    poses = load_poses(path)
+    assert poses.format == "coco17" and poses.frame.tolist() == [7, 7, 8, 8, 9, 9]
+    assert poses.person.tolist() == [0, 1] * 3 and poses.confidence is not None
+    data = _lifted(["lift", str(path), "--local", "--temporal", "causal", "-o", str(tmp_path / "out.json")])
+    left = [p["track_id"] for p in data["poses"] if p["input"]["keypoints"][11][0] < 600]
+    right = [p["track_id"] for p in data["poses"] if p["input"]["keypoints"][11][0] > 600]
+    assert len(set(left)) == len(set(right)) == 1 and left[0] != right[0]
+
+
+def test_plot_animates_one_track_of_a_crowded_sequence(tmp_path: Path) -> None:
+    folder, out, gif = tmp_path / "crowd", tmp_path / "out.json", tmp_path / "b.gif"
+    folder.mkdir()
+    for f in range(6):  # B is listed first in odd frames, and missing in frame 4
+        a, b = _body25(3.0 * f), _body25(700.0 - 3.0 * f)
+        people = [a] if f == 4 else ([b, a] if f % 2 else [a, b])
+        _openpose_frame(folder / f"crowd_{f:012d}_keypoints.json", people)
+    data = _lifted(["lift", str(folder), "--local", "--temporal", "causal", "-o", str(out)])
+    b_track = data["poses"][1]["track_id"]  # frame 0: A, then B
+    assert [p["frame"] for p in data["poses"] if p["track_id"] == b_track] == [0, 1, 2, 3, 5]
+    assert main(["plot", str(out), "-o", str(gif), "--track", b_track]) == EXIT_OK
+    from PIL import Image
+
+    with Image.open(gif) as image:
+        assert image.n_frames == 5
+    person_1 = [p["track_id"] for p in data["poses"] if p["person"] == 1]
+    assert len(set(person_1)) == 2  # the detector's index 1 is A in some frames and B in others
+    assert main(["plot", str(out), "-o", str(gif), "--track", "nobody"]) == EXIT_USAGE

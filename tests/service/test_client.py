@@ -16,8 +16,9 @@ import pytest
 from service.client import AsyncLiftClient, LiftClient, LiftClientError, LiftResult
 from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
 from service.lifter import Lifter
-from service.stream_client import Frame, StreamClient
-from tests.conftest import POSE_2D, LiveService, reply_of
+from service.stream_client import Frame, Person, StreamClient
+from tests.conftest import POSE_2D, SMALL_TEMPORAL_POSES, TEMPORAL_MODES, LiveService, reply_of
+from tests.service.test_temporal import clip
 
 
 def _poses(n: int) -> np.ndarray:
@@ -217,3 +218,180 @@ def test_readme_client_snippet_runs_as_written(
     assert [int(f) for f, _ in frames] == list(range(10))
     wrists = [np.array(values.split(), float) for _, values in frames]
     assert all(np.linalg.norm(w) > 100 for w in wrists)  # mm from the pelvis: not joint 0
+
+
+# ---- temporal: tracked poses, clips cut into requests, streams of tracked people ----
+
+PARENTS = [-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15]
+
+
+def two_people(frames: int = 260) -> tuple[np.ndarray, list[str | None], np.ndarray]:
+    """A long track "a" with gaps (one too long to bridge), a short track "b" and an untracked pose:
+    (N, 17, 2) px, each pose's track and frame number."""
+    a, b = clip(frames, 3.0, seed=5), clip(40, 3.0, seed=6, turn=-0.8) + [180.0, 0.0]
+    kept = np.ones(frames, bool)
+    kept[[30, 31, 32, 100, 101, 102, 103]] = False  # bridged gaps
+    kept[150:175] = False  # a gap of 25 frames at 30 fps: the track starts again
+    frames_a = np.flatnonzero(kept)
+    points = np.concatenate([a[kept], b, POSE_2D[None]])
+    tracks = ["a"] * len(frames_a) + ["b"] * len(b) + [None]
+    return points, tracks, np.concatenate([frames_a, np.arange(len(b)), [0]])
+
+
+def bones(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 16, 3) unit bone directions and (n, 16) lengths of (n, 17, 3) poses."""
+    vectors = poses[:, 1:] - poses[:, PARENTS[1:]]
+    lengths = np.linalg.norm(vectors, axis=-1)
+    return vectors / lengths[..., None], lengths
+
+
+@pytest.mark.parametrize("mode", TEMPORAL_MODES)
+def test_a_clip_longer_than_a_request_is_answered_as_one_request(
+    live_service: LiveService, small_service: LiveService, mode: str
+) -> None:
+    points, tracks, frames = two_people()
+    args = {"temporal": mode, "fps": 30.0, "track_ids": tracks, "frames": frames}
+    sizes: dict[str, list[int]] = {"one": [], "cut": []}
+    with LiftClient(live_service.http_url) as client:
+        one = client.lift_batch(points, **args, progress=sizes["one"].append)
+    with LiftClient(small_service.http_url) as client:
+        assert client.model()["limits"]["max_temporal_poses"] == SMALL_TEMPORAL_POSES
+        cut = client.lift_batch(points, **args, progress=sizes["cut"].append)
+    assert sizes["one"] == [len(points)] and len(sizes["cut"]) >= 3 and sum(sizes["cut"]) == len(points)
+    assert [r.track_id for r in cut] == tracks and [r.temporal for r in cut] == [
+        t is not None for t in tracks
+    ]
+    a, b = (
+        np.array([r.pose_3d_camera for r, t in zip(rs, tracks, strict=True) if t == "a"]) for rs in (one, cut)
+    )
+    # Every window the model read is the one of the single request: each bone points the same way.
+    np.testing.assert_allclose(bones(b)[0], bones(a)[0], atol=2e-4)
+    # A cut track's bone lengths are the mean over its part, not over the whole track (chunks.py).
+    np.testing.assert_allclose(bones(b)[1], bones(a)[1], atol=1.5)
+    np.testing.assert_allclose(b, a, atol=3.0)
+    for r1, r2, track in zip(one, cut, tracks, strict=True):
+        if track != "a":  # a track that fits in a request is sent whole: the same answer
+            np.testing.assert_allclose(r2.pose_3d_camera, r1.pose_3d_camera, atol=1e-3)
+            np.testing.assert_allclose(r2.pose_3d, r1.pose_3d, atol=1e-3)
+
+
+def test_cutting_without_context_would_change_the_answers(small_service: LiveService) -> None:
+    """The check above can fail: the same parts sent without their context frames read other windows."""
+    points, tracks, frames = two_people()
+    args = {"temporal": "causal", "fps": 30.0}
+    with LiftClient(small_service.http_url) as client:
+        whole = client.lift_batch(points[:100], track_ids=tracks[:100], frames=frames[:100], **args)
+        alone = client.lift_batch(points[60:100], track_ids=tracks[60:100], frames=frames[60:100], **args)
+    directions = [bones(np.array([r.pose_3d_camera for r in rs]))[0] for rs in (whole[60:100], alone)]
+    assert np.abs(directions[0] - directions[1]).max() > 0.01
+
+
+def test_temporal_errors_name_the_callers_pose_and_misuse_is_refused(
+    small_service: LiveService, live_service: LiveService
+) -> None:
+    points, tracks, frames = two_people()
+    points[230] = 100.0  # every joint at one point, in the third request
+    with LiftClient(small_service.http_url) as client, pytest.raises(LiftClientError) as info:
+        client.lift_batch(points, temporal="causal", fps=30.0, track_ids=tracks, frames=frames)
+    assert info.value.status == 422 and "poses[230].keypoints" in info.value.message
+    assert info.value.details[0]["pose"] == 230
+    with LiftClient(live_service.http_url) as client:
+        with pytest.raises(ValueError, match="needs fps, track_ids and frames"):
+            client.lift_batch(points[:3], temporal="causal", track_ids=["a"] * 3, frames=[0, 1, 2])
+        with pytest.raises(ValueError, match="expected 3 track_ids"):
+            client.lift_batch(points[:3], temporal="off", track_ids=["a"] * 2)
+        with pytest.raises(LiftClientError) as info:  # the service's own rule: fps in (0, 240]
+            client.lift_batch(points[:3], temporal="causal", fps=500.0, track_ids=["a"] * 3, frames=[0, 1, 2])
+        assert info.value.status == 422 and info.value.details[0]["code"] == "fps_range"
+
+
+def test_a_mode_the_service_has_no_model_for_is_a_422_before_sending() -> None:
+    model = {"limits": {"max_temporal_poses": 100, "max_body_bytes": 1 << 20}, "temporal": []}
+    seen: list[str] = []
+
+    def handle(request: httpx.Request) -> httpx.Response:
+        seen.append(request.url.path)
+        return httpx.Response(200, json=model)
+
+    with LiftClient("http://test", transport=httpx.MockTransport(handle)) as client:
+        with pytest.raises(LiftClientError) as info:
+            client.lift_batch(_poses(3), temporal="offline", fps=25.0, track_ids=["a"] * 3, frames=[0, 1, 2])
+    assert info.value.status == 422 and info.value.details[0]["code"] == "no_temporal_model"
+    assert seen == ["/v1/model"]  # no /lift was sent
+
+
+def test_async_client_cuts_a_clip_as_the_sync_one(small_service: LiveService) -> None:
+    points, tracks, frames = two_people(180)
+    args = {"temporal": "causal", "fps": 30.0, "track_ids": tracks, "frames": frames}
+
+    async def run() -> list[LiftResult]:
+        async with AsyncLiftClient(small_service.http_url, max_concurrency=2) as client:
+            return await client.lift_batch(points, **args)
+
+    with LiftClient(small_service.http_url) as client:
+        expected = client.lift_batch(points, **args)
+    for got, want in zip(asyncio.run(run()), expected, strict=True):
+        np.testing.assert_allclose(got.pose_3d_camera, want.pose_3d_camera, atol=1e-3)
+        assert got.track_id == want.track_id
+
+
+def test_stream_client_sends_tracks_and_people_and_reads_their_results(
+    live_service: LiveService,
+) -> None:
+    a, b = clip(12, 2.0, seed=7), clip(12, 2.0, seed=8) + [200.0, 0.0]
+    with StreamClient(live_service.grpc_target, timeout=30) as client:
+        alone = list(client.stream((Frame(p, track_id="a") for p in a), fps=30.0))
+        crowd = list(
+            client.stream(
+                [
+                    Frame(people=[Person("b", b[f]), Person("a", a[f])], frame_id=f, fps=30.0)
+                    for f in range(12)
+                ]
+            )
+        )
+        with LiftClient(live_service.http_url) as http:
+            causal = http.lift_batch(
+                a, temporal="causal", fps=30.0, track_ids=["a"] * 12, frames=np.arange(12)
+            )
+    assert all(r.result is not None and r.result.temporal and r.result.track_id == "a" for r in alone)
+    assert [[p.track_id for p in r.people] for r in crowd] == [["b", "a"]] * 12
+    for one, many, http_result in zip(alone, crowd, causal, strict=True):
+        assert one.result is not None and many.people[1].result is not None
+        np.testing.assert_allclose(many.people[1].result.pose_3d_camera, one.result.pose_3d_camera, atol=1e-2)
+        np.testing.assert_allclose(one.result.pose_3d_camera, http_result.pose_3d_camera, atol=1e-2)
+
+
+def test_stream_client_reports_person_errors_and_raises_for_a_frame_it_cannot_send(
+    live_service: LiveService,
+) -> None:
+    with StreamClient(live_service.grpc_target, timeout=30) as client:
+        results = client.stream(
+            [
+                Frame(POSE_2D, track_id="a"),  # no fps: the frame's error
+                Frame(people=[Person("a", POSE_2D), Person("a", POSE_2D)], fps=30.0),  # a track twice
+                Frame(np.zeros((17, 3))),  # the wrong shape: cannot be sent
+            ]
+        )
+        first, second = next(results), next(results)
+        with pytest.raises(LiftClientError, match=r"frame 2 cannot be sent: expected keypoints of shape"):
+            next(results)
+    assert first.error is not None and first.error.details[0]["code"] == "fps_missing"
+    assert second.error is not None and second.error.details[0]["code"] == "track_repeated"
+
+
+def test_readme_sequence_snippet_runs_as_written(
+    live_service: LiveService, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's Python example of temporal lifting, run as it stands (addresses: the test server)."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = readme[readme.index("### Sequences: tracks and temporal lifting") :]
+    snippet = section[
+        section.index("```python\n") + len("```python\n") : section.index(
+            "\n```\n", section.index("```python")
+        )
+    ]
+    snippet = snippet.replace("http://localhost:8000", live_service.http_url)
+    snippet = snippet.replace('"localhost:50051"', repr(live_service.grpc_target))
+    exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["True a", "0 True", "1 True", "2 True", *["[('a', True), ('b', True)]"] * 3]

@@ -19,6 +19,12 @@ MUST_NOT_IMPORT = {
     "stream": {"grpc", "grpc_api", "fastapi"},
     "formats": {"keypoints", "lookalike", "replies"},
     "cli": {"http_api", "grpc_api", "http_middleware"},  # --local lifts with the core, not an adapter
+    "cli_lift": {"http_api", "http_temporal", "grpc_api", "http_middleware"},
+    "local_lift": {"http_api", "http_temporal", "grpc_api", "http_middleware", "fastapi", "grpc"},
+    # what the clients share: no server, no onnxruntime
+    "contract": {"onnxruntime", "grpc", "fastapi", "httpx"},
+    "chunks": {"onnxruntime", "grpc", "fastapi", "httpx"},
+    "lift_result": {"onnxruntime", "grpc", "fastapi", "httpx"},
 }
 
 

@@ -137,6 +137,7 @@ def _ready(url: str, process: subprocess.Popen[bytes]) -> bool:
 def test_shutdown_reports_not_serving_and_finishes_in_flight_requests(gated: GatedLifter) -> None:
     settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, shutdown_grace_s=10)
     service = build_service(settings, gated)
+    gated.entered.clear()  # the temporal models' start-up check ran the model: wait for the request's run
     exit_status: list[int] = []
     runner = threading.Thread(target=lambda: exit_status.append(service.run()))
     runner.start()

@@ -9,7 +9,6 @@ import math
 import os
 import re
 import shutil
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,12 +20,15 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import build_app
+from service.client import LiftClient
 from service.config import Settings
 from service.engine import Engine
+from service.formats import FORMATS
 from service.lifter import Lifter
 from service.metrics import Metrics
 from service.page import ASSETS, CSP, STATIC_DIR
-from tests.conftest import load_model
+from service.tracker import assign_tracks
+from tests.conftest import TEMPORAL_MODES, live_settings, load_model, running_service
 from tests.service.page_examples import EXAMPLES_PATH, build_examples, detector_pose
 
 SHOTS = Path(__file__).resolve().parents[2] / "runs" / "page"
@@ -81,25 +83,10 @@ def test_bundled_examples_are_current() -> None:
 
 
 @contextlib.contextmanager
-def serving(lifter: Lifter) -> Iterator[str]:
+def serving(lifter: Lifter, **changes: Any) -> Iterator[str]:
     """The service as `python -m service` runs it, with a small body limit for the upload test."""
-    from service.app import build_service
-
-    settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1,
-                        shutdown_grace_s=1, max_body_bytes=BODY_LIMIT)  # fmt: skip
-    service = build_service(settings, lifter)
-    thread = threading.Thread(target=service.run, name="page-service", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not service.http.started:
-        if time.monotonic() > deadline or not thread.is_alive():
-            raise RuntimeError("the service did not start")
-        time.sleep(0.02)
-    try:
-        yield f"http://127.0.0.1:{service.http.servers[0].sockets[0].getsockname()[1]}"
-    finally:
-        service.begin_shutdown()
-        thread.join(timeout=15)
+    with running_service(live_settings(max_body_bytes=BODY_LIMIT, **changes), lifter) as service:
+        yield service.http_url
 
 
 @pytest.fixture(scope="module")
@@ -153,8 +140,8 @@ def lifts(driver: Any) -> int:
     return int(driver.execute_script("return Number(document.body.dataset.lifts || 0)"))
 
 
-def wait_lift(driver: Any, before: int) -> None:
-    wait_for(driver, f"return Number(document.body.dataset.lifts || 0) > {before}")
+def wait_lift(driver: Any, before: int, timeout: float = 15) -> None:
+    wait_for(driver, f"return Number(document.body.dataset.lifts || 0) > {before}", timeout)
 
 
 def text_of(driver: Any, element_id: str) -> str:
@@ -220,6 +207,26 @@ def lift_api(url: str, body: Any) -> dict[str, Any]:
     reply = httpx.post(f"{url}/lift", json=body, timeout=10)
     assert reply.status_code == 200, reply.text
     return dict(reply.json())
+
+
+def page_mode(driver: Any) -> str:
+    """The temporal mode the page lifted with (offline by default for a sequence, else causal until
+    the offline model ships)."""
+    return str(driver.execute_script("return document.body.dataset.temporal"))
+
+
+def tracked(body: dict[str, Any], frames: list[int], mode: str, fps: float) -> dict[str, Any]:
+    """`body` as the page sends a sequence: each pose with its track (service.tracker, which the page's
+    track.js follows) and frame number, with `temporal` and `fps`."""
+    points = np.array(
+        [[[np.nan, np.nan] if r is None else r[:2] for r in p["keypoints"]] for p in body["poses"]]
+    )
+    tracks = assign_tracks(np.array(frames), points, fps)
+    poses = [
+        {**p, "track_id": str(t), "frame": f}
+        for p, t, f in zip(body["poses"], tracks.tolist(), frames, strict=True)
+    ]
+    return {**body, "poses": poses, "temporal": mode, "fps": fps}
 
 
 def test_page_lifts_an_example_draws_it_and_shows_the_api_numbers(driver: Any, page_url: str) -> None:
@@ -320,8 +327,10 @@ def test_openpose_frames_upload_and_the_player_steps_through_them(
          "confidence": np.array(p["pose_keypoints_2d"]).reshape(-1, 3)[:, 2].tolist()}
         for p in body["poses"]
     ]  # fmt: skip
-    reply = lift_api(page_url, body)
+    reply = lift_api(page_url, tracked(body, list(range(len(yaws))), page_mode(driver), 30.0))
+    assert all(p["temporal"] and p["track_id"] == "0" for p in reply["poses"])
     assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
+    assert text_of(driver, "num-track") == f"0, temporal {page_mode(driver)}"
     first = pixels(driver, "view3d")["hash"]
     driver.find_element(By.ID, "next").click()
     assert text_of(driver, "frame-label") == f"frame 2 / {len(yaws)}"
@@ -356,7 +365,7 @@ def test_npz_upload_is_read_as_the_cli_reads_it(driver: Any, page_url: str, tmp_
             {"keypoints": [None if np.isnan(p).any() else p.tolist() for p in pose]} for pose in points
         ],
     }
-    reply = lift_api(page_url, body)
+    reply = lift_api(page_url, tracked(body, [0, 1, 2], page_mode(driver), 30.0))
     driver.find_element(By.ID, "next").click()
     assert text_of(driver, "frame-label") == "frame 2 / 3"
     assert_numbers_match(shown_numbers(driver), reply["poses"][1], reply["joints"])
@@ -431,7 +440,9 @@ def test_page_shows_the_plausibility_of_a_model_that_has_it(driver: Any, tmp_pat
         body = {"format": "body25", "poses": [
             {"keypoints": np.array(f["people"][0]["pose_keypoints_2d"]).reshape(-1, 3)[:, :2].tolist()}
             for f in frames]}  # fmt: skip
-        reply = lift_api(url, body)
+        reply = lift_api(
+            url, tracked(body, list(range(len(frames))), page_mode(driver), 12.0)
+        )  # the example's fps
         assert driver.execute_script("return document.getElementById('fps').value") == "12"
         for index in (0, 9):
             driver.execute_script("const s = document.getElementById('frame'); s.value = arguments[0];"
@@ -478,3 +489,238 @@ def test_cli_output_and_coco_annotations_files_are_read(driver: Any, page_url: s
     reply = lift_api(page_url, {"format": "coco17", "poses": [{"keypoints": keypoints}]})
     assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
     assert "left_wrist" in text_of(driver, "num-imputed")
+
+
+# ---- sequences: tracks, the temporal control, clips cut into requests ----
+
+TRACK_JS = """
+const done = arguments[arguments.length - 1];
+import("/ui/track.js").then((m) => done({
+  tracks: arguments[0].map((c) => m.assignTracks(c.frames, c.poses, c.fps)),
+  parts: arguments[1].map((c) => m.splitClip(c.tracks, c.frames, c.reach, c.most)),
+  reach: arguments[2].map((c) => m.reach(c.contract, c.fps)),
+})).catch((err) => done({error: String(err)}));
+"""
+
+
+def crowd(frames: int, seed: int = 0) -> list[list[np.ndarray]]:
+    """Per frame the BODY_25 poses of two people walking past each other: B missing in frames 40-44,
+    a newcomer C far right from frame 60, the detector's order shuffled."""
+    rng = np.random.default_rng(seed)
+    found = []
+    for f in range(frames):
+        a = detector_pose("body25", 2.0 * f) + [2.0 * f, 0.0] + rng.normal(0, 1.5, (25, 2))
+        b = detector_pose("body25", -2.0 * f) + [500.0 - 2.0 * f, 0.0] + rng.normal(0, 1.5, (25, 2))
+        c = detector_pose("body25", 90.0) + [1500.0, 0.0]
+        people = [a] + ([] if 40 <= f < 45 else [b]) + ([c] if f >= 60 else [])
+        found.append([people[k] for k in rng.permutation(len(people))])
+    return found
+
+
+def test_the_pages_tracker_and_cuts_follow_the_services_rules(driver: Any, page_url: str) -> None:
+    from service.chunks import split_clip
+    from service.contract import Contract
+
+    open_page(driver, page_url)
+    clips = []
+    for fps, frames in ((30.0, 80), (25.0, 50)):  # 25 fps: the gap rounds half to even (12.5 -> 12)
+        people = crowd(frames, seed=int(fps))
+        numbers = [f for f, found in enumerate(people) for _ in found]
+        poses = [p for found in people for p in found]
+        if fps == 25.0:  # a gap of 13 frames ends a track at 25 fps
+            keep = [k for k, f in enumerate(numbers) if not 20 <= f < 33]
+            numbers, poses = [numbers[k] for k in keep], [poses[k] for k in keep]
+        clips.append((numbers, poses, fps))
+    rows = [
+        {"frames": n, "fps": fps, "poses": [{"keypoints": p.tolist()} for p in poses]}
+        for n, poses, fps in clips
+    ]
+    rng = np.random.default_rng(4)
+    cuts = []
+    for reach, most in (((48, 0), 60), ((24, 24), 55), ((0, 0), 7)):
+        tracks = [None if k % 17 == 0 else f"t{k % 3}" for k in range(240)]
+        frames = [int(f) for f in rng.integers(0, 400, 240)]
+        frames = [f for f in dict.fromkeys(frames)][:200]  # one pose per frame and track is enough here
+        cuts.append({"tracks": tracks[: len(frames)], "frames": frames, "reach": list(reach), "most": most})
+    contracts = [Contract(m, 50.0, 81, 60.0) for m in ("causal", "offline")] + [
+        Contract("offline", 25.0, 27, 30.0)
+    ]
+    reaches = [
+        {"contract": c.__dict__, "fps": fps} for c in contracts for fps in (12.0, 25.0, 30.0, 59.94, 100.0)
+    ]
+    got = driver.execute_async_script(TRACK_JS, rows, cuts, reaches)
+    assert "error" not in got, got
+    for (numbers, poses, fps), tracks in zip(clips, got["tracks"], strict=True):
+        expected = assign_tracks(np.array(numbers), np.stack(poses), fps)
+        assert tracks == expected.tolist()
+        assert len(set(tracks)) >= 3
+    for cut, parts in zip(cuts, got["parts"], strict=True):
+        expected = split_clip(cut["tracks"], np.array(cut["frames"]), tuple(cut["reach"]), cut["most"])
+        assert [p["send"] for p in parts] == [e.send.tolist() for e in expected]
+        assert [p["keep"] for p in parts] == [e.keep.tolist() for e in expected]
+    for entry, value in zip(reaches, got["reach"], strict=True):
+        assert tuple(value) == Contract(**entry["contract"]).reach(entry["fps"]), entry
+
+
+def openpose_crowd(tmp_path: Path, people: list[list[np.ndarray]]) -> list[Path]:
+    paths = []
+    for f, found in enumerate(people):
+        flat = [np.concatenate([p, np.full((25, 1), 0.9)], axis=1).ravel().tolist() for p in found]
+        path = tmp_path / f"crowd_{f:012d}_keypoints.json"
+        path.write_text(json.dumps({"version": 1.3, "people": [{"pose_keypoints_2d": k} for k in flat]}))
+        paths.append(path)
+    return paths
+
+
+def test_a_crowded_sequence_longer_than_a_request_is_tracked_cut_and_followed(
+    driver: Any, lifter: Lifter, tmp_path: Path
+) -> None:
+    """100 frames of three people, in requests of at most 60 poses: the page's answers are those the
+    Python client gets from the same cuts (which answer as one request: test_client, test_cli)."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    people = crowd(100)
+    paths = openpose_crowd(tmp_path, people)
+    with serving(lifter, max_temporal_poses=60) as url:
+        open_page(driver, url)
+        before = lifts(driver)
+        driver.find_element(By.ID, "file").send_keys("\n".join(str(p) for p in paths))
+        wait_lift(driver, before, timeout=60)
+        mode = page_mode(driver)
+        requests = int(re.search(r"in (\d+) requests", text_of(driver, "status")).group(1))  # type: ignore[union-attr]
+        assert requests >= 4, text_of(driver, "status")
+        numbers = [f for f, found in enumerate(people) for _ in found]
+        poses = [p for found in people for p in found]
+        tracks = [str(t) for t in assign_tracks(np.array(numbers), np.stack(poses), 30.0).tolist()]
+        confidence = np.full((len(poses), 25), 0.9)
+        with LiftClient(url) as client:
+            results = client.lift_batch(np.stack(poses), format="body25", confidence=confidence,
+                                        temporal=mode, fps=30.0, track_ids=tracks,
+                                        frames=np.array(numbers))  # fmt: skip
+        joints = list(results[0].joints)
+        longest = max(set(tracks), key=tracks.count)
+        assert driver.find_element(By.ID, "track").is_displayed()
+        assert (
+            Select(driver.find_element(By.ID, "track")).first_selected_option.get_attribute("value")
+            == longest
+        )
+
+        def check(frame: int, track: str) -> None:
+            go_to(driver, frame)
+            k = next(
+                i for i, (f, t) in enumerate(zip(numbers, tracks, strict=True)) if f == frame and t == track
+            )
+            reply = {
+                name: getattr(results[k], name) for name in ("scale", "reprojection_error_px", "plausibility")
+            }
+            reply.update(
+                {n: np.asarray(getattr(results[k], n)).tolist() for n in ("rotation", "imputed", "derived")}
+            )
+            assert_numbers_match(shown_numbers(driver), reply, joints)
+            assert text_of(driver, "num-track") == f"{track}, temporal {mode}"
+
+        for frame in (0, 50, 99):
+            check(frame, longest)
+        driver.save_screenshot(str(SHOTS / "crowd-track-frame100.png"))
+        pelvis = FORMATS["body25"].joint_names.index("mid_hip")
+        in_30 = [k for k, f in enumerate(numbers) if f == 30]
+        b_track = tracks[
+            min(in_30, key=lambda k: abs(poses[k][pelvis, 0] - (512 + 500 - 60)))
+        ]  # B walks left
+        assert b_track != longest
+        Select(driver.find_element(By.ID, "track")).select_by_value(b_track)
+        check(30, b_track)
+        go_to(driver, 42)  # B is not found in frames 40-44
+        assert text_of(driver, "num-model") == f"track {b_track} is not in this frame"
+        driver.save_screenshot(str(SHOTS / "crowd-track-missing.png"))
+
+
+def go_to(driver: Any, index: int) -> None:
+    driver.execute_script("const s = document.getElementById('frame'); s.value = arguments[0];"
+                          "s.dispatchEvent(new Event('input'));", str(index))  # fmt: skip
+
+
+@pytest.mark.parametrize("mode", ["off", *TEMPORAL_MODES])
+def test_the_temporal_control_and_the_frame_rate_lift_the_sequence_again(
+    driver: Any, page_url: str, tmp_path: Path, mode: str
+) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    yaws = [float(y) for y in range(-40, 41, 5)]
+    paths = openpose_frames(tmp_path, yaws)
+    open_page(driver, page_url)
+    before = lifts(driver)
+    driver.find_element(By.ID, "file").send_keys("\n".join(str(p) for p in paths))
+    wait_lift(driver, before)
+    before = lifts(driver)
+    Select(driver.find_element(By.ID, "temporal")).select_by_value(mode)
+    wait_lift(driver, before)
+    before = lifts(driver)
+    driver.execute_script("const r = document.getElementById('rate'); r.value = '50';"
+                          "r.dispatchEvent(new Event('change'));")  # fmt: skip
+    wait_lift(driver, before)
+    assert page_mode(driver) == mode
+    frames = [json.loads(p.read_text())["people"][0]["pose_keypoints_2d"] for p in paths]
+    rows = [np.array(f).reshape(-1, 3) for f in frames]
+    body = {
+        "format": "body25",
+        "poses": [{"keypoints": r[:, :2].tolist(), "confidence": r[:, 2].tolist()} for r in rows],
+    }
+    sent = tracked(body, list(range(len(frames))), mode, 50.0)
+    if mode == "off":
+        sent = {**sent, "temporal": "off"}
+    reply = lift_api(page_url, sent)
+    go_to(driver, 8)
+    assert_numbers_match(shown_numbers(driver), reply["poses"][8], reply["joints"])
+    assert f"{'each pose alone' if mode == 'off' else f'temporal {mode} at 50 fps'}" in text_of(
+        driver, "status"
+    )
+    driver.save_screenshot(str(SHOTS / f"temporal-{mode}.png"))
+
+
+def test_a_mode_the_service_lacks_is_refused_next_to_the_control(
+    driver: Any, lifter: Lifter, tmp_path: Path
+) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    paths = openpose_frames(tmp_path, [0.0, 5.0, 10.0])
+    with serving(lifter, temporal=False) as url:  # no temporal model: a sequence falls back to off
+        open_page(driver, url)
+        assert text_of(driver, "model-line").endswith("temporal models: none")
+        before = lifts(driver)
+        driver.find_element(By.ID, "file").send_keys("\n".join(str(p) for p in paths))
+        wait_lift(driver, before)
+        assert page_mode(driver) == "off" and "no offline temporal model on this service" in text_of(
+            driver, "status"
+        )
+        Select(driver.find_element(By.ID, "temporal")).select_by_value("causal")
+        wait_for(driver, "return document.getElementById('temporal-error').textContent.length > 0")
+        assert "this service has no causal temporal model" in text_of(driver, "temporal-error")
+        driver.save_screenshot(str(SHOTS / "temporal-missing-model.png"))
+
+
+def test_several_people_of_one_image_are_each_shown(driver: Any, page_url: str) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    people = [detector_pose("coco17", 10.0), detector_pose("coco17", -30.0) + [700.0, 0.0]]
+    triples = [np.concatenate([p, np.full((17, 1), 0.8)], axis=1).ravel().tolist() for p in people]
+    results = [{"image_id": 5, "category_id": 1, "score": 0.9, "keypoints": t} for t in triples]
+    open_page(driver, page_url)
+    before = lifts(driver)
+    driver.execute_script("document.getElementById('paste').value = arguments[0]", json.dumps(results))
+    driver.find_element(By.ID, "lift-paste").click()
+    wait_lift(driver, before)
+    assert page_mode(driver) == "off"  # one frame
+    body = {
+        "format": "coco17",
+        "poses": [{"keypoints": p.tolist(), "confidence": [0.8] * 17} for p in people],
+    }
+    reply = lift_api(page_url, body)
+    assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
+    Select(driver.find_element(By.ID, "track")).select_by_visible_text("person 2 of each frame")
+    assert_numbers_match(shown_numbers(driver), reply["poses"][1], reply["joints"])
+    assert text_of(driver, "num-track") == "none, lifted alone"

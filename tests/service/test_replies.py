@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import client, geometry
+from service import client, geometry, lift_result
 from service._proto.repnet.v1 import lifter_pb2
 from service.app import limits_of
 from service.cli import EXIT_OK, main
@@ -44,7 +44,7 @@ def test_every_carrier_of_the_reply_has_exactly_the_declared_fields(tmp_path: Pa
     assert [f.name for f in lifter_pb2.PoseResult.DESCRIPTOR.fields] == list(NAMES)
     assert client.LiftResult.pose_fields() == NAMES
     matrices = {f.name: f.shape for f in FIELDS if f.kind is float and len(f.shape) == 2}
-    assert client._SHAPES == matrices
+    assert lift_result._SHAPES == matrices
     path, out = tmp_path / "poses.json", tmp_path / "out.json"
     path.write_text(json.dumps({"keypoints": POSE_2D.tolist()}))
     assert main(["lift", str(path), "--local", "-o", str(out)]) == EXIT_OK

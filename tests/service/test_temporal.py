@@ -235,3 +235,18 @@ def test_a_streams_tracks_are_freed_when_it_ends(temporal: Temporal) -> None:
     assert temporal.models.budget.open == 0
     assert temporal.metrics.registry.get_sample_value("repnet_open_tracks") == 0
     assert temporal.metrics.registry.get_sample_value("repnet_track_state_bytes") == 0
+
+
+def test_the_model_description_lists_the_temporal_models_and_their_limit(temporal: Temporal) -> None:
+    described = temporal.client.get("/v1/model").json()
+    causal = temporal.models.engines["causal"].lifter
+    assert described["limits"]["max_temporal_poses"] == temporal.models.max_poses
+    entry = next(e for e in described["temporal"] if e["mode"] == "causal")
+    assert entry == {"mode": "causal", "window": causal.contract.window, "grid_fps": causal.contract.grid_fps,
+                     "max_fps": causal.contract.max_fps, "model_id": causal.model_id}  # fmt: skip
+    assert [e["mode"] for e in described["temporal"]] == sorted(temporal.models.engines)
+
+
+def test_a_service_without_temporal_models_describes_none(client: TestClient) -> None:
+    described = client.get("/v1/model").json()
+    assert described["temporal"] == [] and described["limits"]["max_temporal_poses"] is None

@@ -1,0 +1,40 @@
+"""A temporal model's contract: its window in time, causal or centred, and what it reads of a track
+at a given frame rate (pure arithmetic, no onnxruntime: the clients use it too)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+MODES = ("causal", "offline")
+
+
+@dataclass(frozen=True)
+class Contract:
+    """What a temporal model's metadata promises (metadata entry `temporal`, JSON)."""
+
+    mode: str  # causal | offline
+    grid_fps: float  # the rate it resamples windows to
+    window: int  # T grid frames it reads
+    max_fps: float  # the highest slot rate it was trained for; faster tracks are thinned
+
+    def thinning(self, fps: float) -> int:
+        """q: a track at `fps` gives its window every q-th frame (at fps / q <= max_fps)."""
+        return max(1, math.ceil(fps / self.max_fps - 1e-9))
+
+    def slots(self, fps: float) -> int:
+        """K: the frame slots of one window at slot rate `fps` (odd when offline)."""
+        span = (self.window - 1) / self.grid_fps * fps
+        if self.mode == "causal":
+            return math.ceil(span - 1e-6) + 1
+        return 2 * math.ceil(span / 2 - 1e-6) + 1
+
+    def reach(self, fps: float) -> tuple[int, int]:
+        """(before, after): how many frames before and after a frame its window reads, for a track
+        at `fps` (tracks.Track.window, tracks.offline_windows): the context a part of a longer clip
+        needs on each side to be answered as the whole clip would be."""
+        q = self.thinning(fps)
+        slots = self.slots(fps / q)
+        if self.mode == "causal":
+            return q * (slots - 1), 0
+        return q * (slots // 2), q * (slots // 2)
