@@ -56,7 +56,7 @@ def test_a_cancelled_lift_takes_every_queued_chunk_out_of_the_queue(
 
 
 class SlowLifter(Lifter):
-    """The real lifter, 30 ms slower per run, counting the poses it computes."""
+    """The real lifter, 200 ms slower per run, counting the poses it computes."""
 
     def __init__(self, inner: Lifter) -> None:
         super().__init__(inner.session, inner.path)
@@ -64,7 +64,7 @@ class SlowLifter(Lifter):
         self.lock = threading.Lock()
 
     def lift(self, keypoints_2d: np.ndarray, visibility: np.ndarray):  # type: ignore[no-untyped-def]
-        time.sleep(0.03)
+        time.sleep(0.2)
         with self.lock:
             self.poses += int(keypoints_2d.shape[0])
         return super().lift(keypoints_2d, visibility)
@@ -85,8 +85,10 @@ def test_lifts_past_their_deadline_are_dropped_and_counted_as_cancelled(
     target, metrics, slow = slow_service
     calls, poses = 40, 1024
     request = lifter_pb2.LiftRequest(poses=[lifter_pb2.Pose2D(keypoints=POSE_2D.ravel().tolist())] * poses)
-    codes = expire_lifts(target, request, calls, 0.02)
-    time.sleep(1.5)  # what is still queued would run now, and the handlers have ended
+    # 250 ms: long enough for the handlers to start even on a loaded machine (the probe uses the
+    # attack's 20 ms), short beside the 40 x 4 runs of 200 ms the calls would need.
+    codes = expire_lifts(target, request, calls, 0.25)
+    time.sleep(2.0)  # what is still queued would run now, and the handlers have ended
 
     def counted(outcome: str) -> float:
         labels = {"transport": "grpc", "method": "Lift", "outcome": outcome}
