@@ -26,7 +26,8 @@ from prometheus_client import CollectorRegistry
 from service.app import build_app, build_engine, load_lifter, load_temporal
 from service.config import BUNDLED_CAUSAL, BUNDLED_OFFLINE, Settings
 from service.metrics import Metrics
-from training import data, metrics, sequences
+from training import data, sequences
+from training.temporal_data import figures
 
 MODES = ("off", "causal", "offline")
 KINDS = ("sh25", "sh50", "gt25")
@@ -43,22 +44,6 @@ def clip_request(clip: sequences.ValidationClip, mode: str) -> dict[str, Any]:
         for f, frame in enumerate(clip.source)
     ]
     return {"poses": poses, "format": clip.source_format, "temporal": mode, "fps": clip.fps}
-
-
-def figures(answers: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
-    """The set's figures from (answers, truth) per clip, mm."""
-    accel = np.concatenate([metrics.acceleration_error(a, t) for a, t in answers])
-    velocity = np.concatenate([metrics.velocity_error(a, t) for a, t in answers])
-    poses, truth = np.concatenate([a for a, _ in answers]), np.concatenate([t for _, t in answers])
-    return {
-        "accel": float(accel.mean()),
-        "mpjve": float(velocity.mean()),
-        "pa_mpjpe": metrics.pa_mpjpe(poses, truth),
-        "mpjpe": metrics.mpjpe(poses, truth),
-        "bone_std": float(np.mean([metrics.limb_length_std(a).mean() for a, _ in answers])),
-        "frames": int(len(poses)),
-        "clips": len(answers),
-    }
 
 
 def run(settings: Settings, data_dir: Path, kinds: tuple[str, ...], modes: tuple[str, ...]) -> dict[str, Any]:

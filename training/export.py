@@ -81,12 +81,29 @@ def export_onnx(
     N is dynamic. mirror_average: the graph averages each answer with that of the mirrored
     input (LiftingGraph), one generator run on 2N rows.
     """
-    import onnx
-
     graph = LiftingGraph(generator.eval(), plausibility, mirror_average).eval()
     j = generator.config.num_joints
     example = (torch.randn(2, j, 2) * 100 + 500, torch.ones(2, j))
     outputs = ["pose_3d", "camera"] + (["plausibility"] if plausibility is not None else [])
+    inputs = ["keypoints_2d", "visibility"]
+    axes = {name: {0: "N"} for name in [*inputs, *outputs]}
+    doc = "RepNet 2D-to-3D human pose lifting (Wandt & Rosenhahn, CVPR 2019)"
+    write_onnx(graph, example, path, (inputs, outputs, axes), doc, metadata)
+
+
+def write_onnx(
+    graph: torch.nn.Module,
+    example: tuple[torch.Tensor, ...],
+    path: Path,
+    names: tuple[list[str], list[str], dict[str, dict[int, str]]],
+    doc: str,
+    metadata: dict[str, str],
+) -> None:
+    """Export `graph` at `path` as the service reads models: opset OPSET, IR <= IR_VERSION, the
+    given input and output names and dynamic axes, a doc string and custom metadata, checked."""
+    import onnx
+
+    inputs, outputs, axes = names
     path.parent.mkdir(parents=True, exist_ok=True)
     with torch.no_grad(), warnings.catch_warnings():
         # The TorchScript exporter is deprecated but gives a plain, small opset-17 graph.
@@ -95,16 +112,16 @@ def export_onnx(
             graph,
             example,
             str(path),
-            input_names=["keypoints_2d", "visibility"],
+            input_names=inputs,
             output_names=outputs,
-            dynamic_axes={name: {0: "N"} for name in ["keypoints_2d", "visibility", *outputs]},
+            dynamic_axes=axes,
             opset_version=OPSET,
             dynamo=False,
         )
     model = onnx.load(str(path))
     model.ir_version = min(model.ir_version, IR_VERSION)
     model.producer_name = "repnet"
-    model.doc_string = "RepNet 2D-to-3D human pose lifting (Wandt & Rosenhahn, CVPR 2019)"
+    model.doc_string = doc
     del model.metadata_props[:]
     for key, value in metadata.items():
         model.metadata_props.add(key=key, value=value)

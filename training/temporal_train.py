@@ -15,7 +15,6 @@ import logging
 import math
 import sys
 import time
-import warnings
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ import numpy as np
 import torch
 
 from training import lineage, presets, skeleton
-from training.export import IR_VERSION, LICENCE, OPSET
+from training.export import LICENCE, write_onnx
 from training.temporal import (
     GRID_FPS,
     TemporalConfig,
@@ -151,32 +150,15 @@ def export_temporal(
     """Write the TemporalGraph to `path` (inputs poses, keypoints_2d, visibility, fps; output
     pose_3d_camera; N and K dynamic) with its contract in the metadata; returns the largest
     torch-onnxruntime difference (mm) over windows at 25, 30, 50 and 60 fps."""
-    import onnx
     import onnxruntime as ort
 
     graph = TemporalGraph(net.eval()).eval()
     config = net.config
-    k = slots_needed(config, MAX_FPS)
-    example = _example(3, k, 30.0)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    example = _example(3, slots_needed(config, MAX_FPS), 30.0)
     inputs = ["poses", "keypoints_2d", "visibility", "fps"]
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(
-            graph,
-            example,
-            str(path),
-            input_names=inputs,
-            output_names=["pose_3d_camera"],
-            dynamic_axes={"poses": {0: "N", 1: "K"}, "keypoints_2d": {0: "N", 1: "K"},
-                          "visibility": {0: "N", 1: "K"}, "fps": {0: "N"}, "pose_3d_camera": {0: "N"}},
-            opset_version=OPSET,
-            dynamo=False,
-        )  # fmt: skip
-    model = onnx.load(str(path))
-    model.ir_version = min(model.ir_version, IR_VERSION)
-    model.producer_name = "repnet"
-    model.doc_string = "RepNet temporal model: a window of one person's frames -> the pose of one frame"
+    windows = {0: "N", 1: "K"}
+    axes = {"poses": windows, "keypoints_2d": windows, "visibility": windows, "fps": {0: "N"},
+            "pose_3d_camera": {0: "N"}}  # fmt: skip
     contract = {
         "mode": config.mode,
         "grid_fps": GRID_FPS,
@@ -198,11 +180,8 @@ def export_temporal(
         "licence": LICENCE,
         **extra,
     }
-    del model.metadata_props[:]
-    for key, value in metadata.items():
-        model.metadata_props.add(key=key, value=value)
-    onnx.checker.check_model(model)
-    onnx.save(model, str(path))
+    doc = "RepNet temporal model: a window of one person's frames -> the pose of one frame"
+    write_onnx(graph, example, path, (inputs, ["pose_3d_camera"], axes), doc, metadata)
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     worst = 0.0
     for fps in (25.0, 30.0, 50.0, 60.0):
