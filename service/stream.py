@@ -42,8 +42,10 @@ class StreamState:
 
     At most `window` frames are held from read to answer (the reader waits for room: backpressure).
     Frames are taken only while none of the stream's groups waits for a run, so the frames that
-    arrive during a run become the next groups (at most `max_group` frames each): the cost per frame
-    stays small, and one stream fills batches instead of waiting for each frame's run.
+    arrive during a run become the next groups (at most `max_group` poses each, a frame with more
+    people a group of its own): the cost per frame stays small, and one stream fills batches
+    instead of waiting for each frame's run. Counting poses, not frames, keeps every group within
+    the batch queue, however many people its frames carry.
     """
 
     def __init__(self, window: int, max_group: int) -> None:
@@ -71,9 +73,21 @@ class StreamState:
         return bool(self.inbox) and (not self.groups or self.groups[-1].done())
 
     def take(self) -> list[Group]:
-        """Every frame read so far, as the next groups (queued behind the earlier ones)."""
+        """Every frame read so far, as the next groups of at most max_group poses (queued behind the
+        earlier ones)."""
         frames, self.inbox = self.inbox, []
-        groups = [Group(frames[a : a + self.max_group]) for a in range(0, len(frames), self.max_group)]
+        groups: list[Group] = []
+        taken: list[Frame] = []
+        poses = 0
+        for frame in frames:
+            count = len(frame.persons())
+            if taken and poses + count > self.max_group:
+                groups.append(Group(taken))
+                taken, poses = [], 0
+            taken.append(frame)
+            poses += count
+        if taken:
+            groups.append(Group(taken))
         self.groups.extend(groups)
         return groups
 

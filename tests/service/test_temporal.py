@@ -235,3 +235,11 @@ def test_a_streams_tracks_are_freed_when_it_ends(temporal: Temporal) -> None:
     assert temporal.models.budget.open == 0
     assert temporal.metrics.registry.get_sample_value("repnet_open_tracks") == 0
     assert temporal.metrics.registry.get_sample_value("repnet_track_state_bytes") == 0
+
+
+def test_a_frame_holds_at_most_a_requests_poses_of_people(temporal: Temporal) -> None:
+    pose = lifter_pb2.Pose2D(keypoints=clip(1, 0.0)[0].ravel().tolist())
+    people = [lifter_pb2.TrackedPose(track_id=f"p{k}", pose=pose) for k in range(1025)]  # the limit: 1024
+    (result,) = temporal.stub.LiftStream(iter([lifter_pb2.LiftFrame(frame_id=0, fps=30, people=people)]))
+    assert result.error.code == grpc.StatusCode.INVALID_ARGUMENT.value[0] and not result.people
+    assert [(v.field, v.code) for v in result.error.violations] == [("people", "too_many_people")]
