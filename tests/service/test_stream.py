@@ -25,6 +25,7 @@ from service.stream import (
     StreamIdle,
     StreamState,
     UnreadableFrame,
+    _Reader,
     answer_stream,
 )
 from tests.conftest import POSE_2D, GatedLifter
@@ -259,6 +260,31 @@ def test_a_stream_without_frames_is_closed_as_idle(engine: Engine, limits: Limit
     with pytest.raises(StreamIdle, match="no frame for 0.1 s"):
         asyncio.run(scenario())
     assert time.monotonic() - start < 5
+
+
+def test_ticks_do_not_count_as_frames_for_the_idle_timeout() -> None:
+    """A stream that wakes every tick (to drop its idle tracks) is still closed idle_timeout_s after
+    its last frame, not a tick later each time."""
+
+    async def silent() -> AsyncIterator[Frame]:
+        await asyncio.Event().wait()
+        yield frame(0)
+
+    async def scenario() -> tuple[int, float, BaseException | None]:
+        reader = _Reader(silent(), StreamState(window=4, max_group=4))
+        ticks, start = 0, time.monotonic()
+        try:
+            while ticks < 100:
+                await reader.next_event(0.5, tick_s=0.1)
+                ticks += 1
+        except StreamIdle as err:
+            return ticks, time.monotonic() - start, err
+        finally:
+            reader.close()
+        return ticks, time.monotonic() - start, None
+
+    ticks, waited, closed = asyncio.run(scenario())
+    assert isinstance(closed, StreamIdle) and ticks >= 3 and 0.45 < waited < 2.0
 
 
 def test_frames_the_engine_refuses_get_its_error_and_the_stream_goes_on(
