@@ -89,7 +89,7 @@ def clip_windows(lifter: Lifter, contract: Contract, count: int, fps: float = FP
     visible = np.ones(points.shape[:2], bool)
     prediction = lifter.lift(points, visible)
     poses = camera_poses(prediction, np.arange(count))
-    track = Track(track_capacity(contract), fps)
+    track = Track(track_capacity(contract, fps), fps)
     windows = []
     for frame in range(count):
         track.push(frame, Observation(poses[frame], points[frame], np.ones(17, np.float32)))

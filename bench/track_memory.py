@@ -39,6 +39,7 @@ from bench.grpc_load import OPTIONS
 from bench.server import ServiceProcess, rss_bytes
 from bench.stats import machine, report
 from bench.tracked import (
+    FPS,
     Crowd,
     Lane,
     expect_people,
@@ -188,7 +189,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--tracks", type=lambda t: [int(v) for v in t.split(",")], default=[100, 1000])
     parser.add_argument("--streams", type=int, default=16, help="streams the tracks are spread over")
     parser.add_argument("--frames-per-track", type=int, default=0, help="0: a track's ring capacity")
-    parser.add_argument("--warmup-tracks", type=int, default=16)
+    parser.add_argument("--warmup-tracks", type=int, default=63, help="tracks of the warm-up stream")
     parser.add_argument("--untracked-frames", type=int, default=32, help="per stream, before 0 tracks")
     parser.add_argument("--window", type=int, default=4, help="frames in flight per stream")
     parser.add_argument("--service-flag", action="append", default=[], help="extra flag for the service")
@@ -205,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     flags = ["--track-idle-s", "3600", "--stream-idle-timeout-s", "3600", *args.service_flag]
     contract = TemporalLifter.load(parse_settings(flags).causal_model_path).contract
-    capacity = track_capacity(contract)
+    capacity = track_capacity(contract, FPS)
     load_start = load_average()
     with ServiceProcess(*flags) as service:
         measured = asyncio.run(measure(service, args, capacity))
