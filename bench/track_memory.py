@@ -3,14 +3,17 @@
     python -m bench.track_memory [--tracks 100,1000] [--streams 16] [--out runs/bench/track_memory.json]
 
 The server runs as `python -m service` in a child process, with tracks and streams that do not
-expire during the run. First a warm-up stream of --warmup-tracks tracks runs and closes (the
-temporal model's arenas are allocated), then --streams LiftStreams open and send untracked frames:
-the server's RSS then is the figure for 0 tracks. Then tracks are opened, spread over the streams,
-until each count of --tracks is open; every stream sends --frames-per-track frames that carry all
-its tracks (LiftFrame.people), by default as many as a track's ring buffer holds, so that every
-track's state is written through. After each count the server's RSS and its gauges
-(repnet_open_tracks, repnet_track_state_bytes) are read. Last, the streams close: the gauges must
-come back to 0.
+expire during the run. Tracked poses travel in LiftFrames of at most --people tracks each (a
+stream's tracks in turn for each frame number), at most --window frames in flight per stream, so
+that the poses in flight (whose windows the server holds until their run) are about as many
+whatever the track count. First --streams warm-up streams of --people tracks each run as many
+frames and close (the allocator and the temporal model's arenas reach their working size); then
+--streams streams open and send untracked frames: the server's RSS then is the figure for 0
+tracks. Then tracks are opened, spread over the streams, until each count of --tracks is open;
+each track gets --frames-per-track frames, by default as many as its ring holds, so that its
+state is written through. After each count the server's RSS and its gauges (repnet_open_tracks,
+repnet_track_state_bytes) are read. Last, the streams close: the gauges must come back to 0.
+Memory per track: the RSS added per track between two counts.
 
 Also reported: Track.nbytes (the bytes of state the server counts per track) and the bytes one
 Track, filled, takes in this process as tracemalloc counts them (its arrays and Python objects).
@@ -81,10 +84,28 @@ def spread(tracks: int, streams: int) -> list[list[str]]:
     return [[f"t{k}" for k in range(s, tracks, streams)] for s in range(streams)]
 
 
+async def feed(lane: Lane, crowd: Crowd, ids: list[str], first: int, frames: int, people: int) -> int:
+    """Frames number first .. first + frames - 1 of the tracks `ids` on one stream, in LiftFrames of
+    at most `people` of them (a frame number's tracks in turn, so that as many poses are in flight
+    whatever the track count); returns the bad answers."""
+    if not ids:
+        return 0
+    groups = [ids[a : a + people] for a in range(0, len(ids), people)]
+    checks = [expect_people(len(g)) for g in groups]
+
+    def frame_of(i: int) -> bytes:
+        return crowd.frame(first + i // len(groups), groups[i % len(groups)])
+
+    def check(answer: bytes, i: int) -> bool:
+        return checks[i % len(groups)](answer, first + i // len(groups))
+
+    return await lane.send(frames * len(groups), frame_of, check)
+
+
 async def measure(service: ServiceProcess, args: argparse.Namespace, capacity: int) -> dict[str, Any]:
     """The phases: warm-up, 0 tracks, each track count, streams closed; RSS and gauges after each."""
     frames = args.frames_per_track or capacity
-    crowd = Crowd.of(16)
+    crowd = Crowd.of(args.people)
     phases: list[dict[str, Any]] = []
     bad = 0
 
@@ -96,37 +117,36 @@ async def measure(service: ServiceProcess, args: argparse.Namespace, capacity: i
 
     async with grpc.aio.insecure_channel(service.target, options=OPTIONS) as channel:
         await sample("idle", 0)
-        warm = Lane(channel, window=args.window)
-        ids = [f"w{k}" for k in range(args.warmup_tracks)]
-        bad += await warm.send(frames, lambda n: crowd.frame(n, ids), expect_people(len(ids)))
-        await warm.close()
+        # warm-up: as many poses in flight as later, on streams that then close
+        warm = [Lane(channel, window=args.window) for _ in range(args.streams)]
+        ids = [[f"w{s}-{k}" for k in range(args.people)] for s in range(args.streams)]
+        bad += sum(
+            await asyncio.gather(
+                *(feed(w, crowd, i, 0, frames, args.people) for w, i in zip(warm, ids, strict=True))
+            )
+        )
+        for lane in warm:
+            await lane.close()
         lanes = [Lane(channel, window=args.window) for _ in range(args.streams)]
         parts = pose_parts(moving_clip())
         untracked, check = args.untracked_frames, expect_pose(temporal=False)
         await asyncio.gather(*(lane.send(untracked, partial(single_frame, parts), check) for lane in lanes))
         await sample("0 tracks, streams open", 0)
-        sent = [0] * args.streams  # frames sent so far on each stream (its frame numbers go on)
+        first = 0  # frame numbers go on from phase to phase
         for count in sorted(args.tracks):
             owned = spread(count, args.streams)
-
-            async def feed(s: int, lane: Lane, owned: list[list[str]] = owned) -> int:
-                ids, first = owned[s], sent[s]
-                sent[s] += frames
-                if not ids:
-                    return 0
-                check = expect_people(len(ids))
-                return await lane.send(
-                    frames, lambda n: crowd.frame(first + n, ids), lambda a, n: check(a, first + n)
-                )
-
             started = time.perf_counter()
-            bad += sum(await asyncio.gather(*(feed(s, lane) for s, lane in enumerate(lanes))))
+            fed = await asyncio.gather(
+                *(feed(lane, crowd, owned[s], first, frames, args.people) for s, lane in enumerate(lanes))
+            )
+            bad += sum(fed)
+            first += frames
             log.info("%d tracks fed %d frames each in %.1f s", count, frames, time.perf_counter() - started)
             await sample(f"{count} tracks", count)
         for lane in lanes:
             await lane.close()
         await sample("streams closed", 0)
-    return {"phases": phases, "bad_answers": bad, "frames_per_track": frames}
+    return {"phases": phases, "bad_answers": bad, "frames_per_track": frames, "people_per_frame": args.people}
 
 
 def per_track(phases: list[dict[str, Any]]) -> list[dict[str, float]]:
@@ -189,7 +209,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--tracks", type=lambda t: [int(v) for v in t.split(",")], default=[100, 1000])
     parser.add_argument("--streams", type=int, default=16, help="streams the tracks are spread over")
     parser.add_argument("--frames-per-track", type=int, default=0, help="0: a track's ring capacity")
-    parser.add_argument("--warmup-tracks", type=int, default=63, help="tracks of the warm-up stream")
+    parser.add_argument("--people", type=int, default=8, help="most tracks (people) per LiftFrame")
     parser.add_argument("--untracked-frames", type=int, default=32, help="per stream, before 0 tracks")
     parser.add_argument("--window", type=int, default=4, help="frames in flight per stream")
     parser.add_argument("--service-flag", action="append", default=[], help="extra flag for the service")

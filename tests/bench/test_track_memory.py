@@ -67,7 +67,7 @@ def test_both_drops_split_the_lanes() -> None:
 
 def test_a_tiny_track_memory_run_reads_the_gauges_and_frees_every_track(tmp_path: Path) -> None:
     out = tmp_path / "track_memory.json"
-    argv = ["--tracks", "3,7", "--streams", "2", "--frames-per-track", "4", "--warmup-tracks", "2",
+    argv = ["--tracks", "3,7", "--streams", "2", "--frames-per-track", "4", "--people", "2",
             "--untracked-frames", "2", "--out", str(out)]  # fmt: skip
     assert track_memory.main(argv) == 0
     found = json.loads(out.read_text())
