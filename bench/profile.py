@@ -32,6 +32,7 @@ from bench.grpc_load import measure_stream, measure_unary
 from bench.http_load import measure_http
 from bench.server import ServiceProcess
 from bench.stats import Result, write_json
+from bench.temporal_load import measure_cameras, measure_people, measure_saturated
 
 log = logging.getLogger("bench.profile")
 
@@ -42,7 +43,19 @@ LOADS: dict[str, Callable[[ServiceProcess, float], Result]] = {
     "grpc-c1": lambda s, d: measure_unary(s.target, s.pid, 1, 1, d),
     "stream-x1": lambda s, d: measure_stream(s.target, s.pid, 1, duration=d),
     "stream-x8": lambda s, d: measure_stream(s.target, s.pid, 8, duration=d),
+    # causal temporal LiftStream (bench.temporal_load): paced tracked cameras, saturated tracked
+    # streams, 16-person frames in lock-step
+    "temporal-cameras-16": lambda s, d: measure_cameras(s, 16, True, _temporal_args(d)),
+    "temporal-cameras-32": lambda s, d: measure_cameras(s, 32, True, _temporal_args(d)),
+    "temporal-x8": lambda s, d: measure_saturated(s, 8, True, _temporal_args(d)),
+    "temporal-people16": lambda s, d: measure_people(s, "16", _temporal_args(d)),
 }
+
+
+def _temporal_args(duration: float) -> argparse.Namespace:
+    return argparse.Namespace(
+        warmup=0.5, duration=duration, people_duration=duration, phase="spread", p99_ms=25.0
+    )
 
 
 @dataclass

@@ -41,9 +41,11 @@ class RoofRow:
         return 1e3 * self.seconds / self.calls
 
 
-def _time_calls(
+def time_calls(
     call: Callable[[], None], duration: float, min_calls: int = 5
 ) -> tuple[int, float, list[float]]:
+    """call() after three warm-up calls, for `duration` seconds and at least `min_calls` times: the
+    calls, their total seconds and each one's."""
     for _ in range(3):  # warm-up: first runs allocate
         call()
     laps: list[float] = []
@@ -71,7 +73,7 @@ def measure_roof(
         def run(feeds: dict[str, np.ndarray] = feeds) -> None:
             lifter.session.run(list(OUTPUTS), feeds)
 
-        calls, seconds, laps = _time_calls(run, duration)
+        calls, seconds, laps = time_calls(run, duration)
         rows.append(RoofRow("session.run", batch, calls, seconds, latency_summary(laps)))
         if with_lifter:
             poses = [PoseInput(p, np.ones(len(p), bool)) for p in points]
@@ -80,7 +82,7 @@ def measure_roof(
             def lift(inputs: ModelInput = inputs) -> None:
                 build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible))
 
-            calls, seconds, laps = _time_calls(lift, duration)
+            calls, seconds, laps = time_calls(lift, duration)
             rows.append(RoofRow("Lifter.lift", batch, calls, seconds, latency_summary(laps)))
     return rows
 

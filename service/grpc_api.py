@@ -109,12 +109,17 @@ def to_pose_input(
     return PoseInput(points, present, confidence, pose.format or default_format, intrinsics)
 
 
-def frame_violations(message: lifter_pb2.LiftFrame) -> list[Violation]:
-    """A frame's own rules: a pose or people, not both; people each with a track id of their own;
-    the frame rate of tracked poses."""
+def frame_violations(message: lifter_pb2.LiftFrame, max_people: int) -> list[Violation]:
+    """A frame's own rules: a pose or people, not both, at most `max_people` of them (a request's
+    pose limit: one frame's poses always fit the batch queue); people each with a track id of their
+    own; the frame rate of tracked poses."""
     several = len(message.people) > 0
     if several and message.HasField("pose"):
         return [Violation("people", "give the frame's pose or its people, not both", "pose_and_people")]
+    if len(message.people) > max_people:
+        count = len(message.people)
+        reason = f"{count} people in one frame, the limit is {max_people} (REPNET_MAX_REQUEST_POSES)"
+        return [Violation("people", reason, "too_many_people")]
     found, seen = [], set()
     for k, person in enumerate(message.people):
         if not person.track_id or len(person.track_id) > MAX_TRACK_ID:
@@ -286,7 +291,7 @@ class PoseLifterServicer:
         try:
             threshold = message.confidence_threshold if message.HasField("confidence_threshold") else None
             cut = check_threshold(threshold, self.limits)
-            if found := frame_violations(message):
+            if found := frame_violations(message, self.limits.max_request_poses):
                 raise InvalidKeypoints(found)
         except InvalidKeypoints as err:
             return Frame(frame_id, read_at, error=err)

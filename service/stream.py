@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections import deque
 from collections.abc import AsyncGenerator, AsyncIterator, Callable
 from dataclasses import dataclass
@@ -42,8 +43,10 @@ class StreamState:
 
     At most `window` frames are held from read to answer (the reader waits for room: backpressure).
     Frames are taken only while none of the stream's groups waits for a run, so the frames that
-    arrive during a run become the next groups (at most `max_group` frames each): the cost per frame
-    stays small, and one stream fills batches instead of waiting for each frame's run.
+    arrive during a run become the next groups (at most `max_group` poses each, a frame with more
+    people a group of its own): the cost per frame stays small, and one stream fills batches
+    instead of waiting for each frame's run. Counting poses, not frames, keeps every group within
+    the batch queue, however many people its frames carry.
     """
 
     def __init__(self, window: int, max_group: int) -> None:
@@ -71,9 +74,21 @@ class StreamState:
         return bool(self.inbox) and (not self.groups or self.groups[-1].done())
 
     def take(self) -> list[Group]:
-        """Every frame read so far, as the next groups (queued behind the earlier ones)."""
+        """Every frame read so far, as the next groups of at most max_group poses (queued behind the
+        earlier ones)."""
         frames, self.inbox = self.inbox, []
-        groups = [Group(frames[a : a + self.max_group]) for a in range(0, len(frames), self.max_group)]
+        groups: list[Group] = []
+        taken: list[Frame] = []
+        poses = 0
+        for frame in frames:
+            count = len(frame.persons())
+            if taken and poses + count > self.max_group:
+                groups.append(Group(taken))
+                taken, poses = [], 0
+            taken.append(frame)
+            poses += count
+        if taken:
+            groups.append(Group(taken))
         self.groups.extend(groups)
         return groups
 
@@ -177,6 +192,7 @@ class _Reader:
         self.ended = False  # no frame will come any more
         self.unreadable: Exception | None = None  # why the frames ended, if they failed
         self._room = asyncio.Event()  # a group was answered: the window may have room again
+        self._quiet_since: float | None = None  # time.monotonic() since nothing is in progress
         self._loop = asyncio.get_running_loop()
         self._task = asyncio.create_task(self._read(frames))
 
@@ -208,15 +224,27 @@ class _Reader:
         self.state.answered(group)
         self._room.set()
 
-    async def next_event(self, idle_timeout_s: float) -> None:
-        """Wait until something may be actionable; StreamIdle when nothing is in progress and no
-        frame comes for `idle_timeout_s`."""
+    async def next_event(self, idle_timeout_s: float, tick_s: float | None = None) -> None:
+        """Wait until something may be actionable, or at most `tick_s` (the caller's timers);
+        StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s` (ticks do
+        not count as frames)."""
         if self.state.can_take() or self.state.answerable() is not None:
+            self._quiet_since = None
             return
         if self.state.held or self.ended:
-            await self.wake.wait()
-        elif not await _wait(self.wake, idle_timeout_s):
+            self._quiet_since = None
+            if tick_s is None:
+                await self.wake.wait()
+            else:
+                await _wait(self.wake, tick_s)
+            return
+        now = time.monotonic()
+        if self._quiet_since is None:
+            self._quiet_since = now
+        remaining = self._quiet_since + idle_timeout_s - now
+        if remaining <= 0:
             raise StreamIdle(f"no frame for {idle_timeout_s:g} s")
+        await _wait(self.wake, remaining if tick_s is None else min(remaining, tick_s))
 
     def close(self) -> None:
         """Stop reading."""
@@ -239,8 +267,9 @@ async def answer_stream(
 
     Raises StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s`, and
     UnreadableFrame (after answering the frames before it) when `frames` fails. With a causal
-    temporal model, tracked poses are answered from their track's frames so far; the stream's
-    tracks are freed when it ends.
+    temporal model, tracked poses are answered from their track's frames so far; a track without
+    a frame for the tracks' idle_s is dropped (whether the stream sends other frames or none), and
+    the stream's tracks are freed when it ends.
     """
     reader = _Reader(frames, StreamState(window, engine.max_batch))
     state = reader.state
@@ -262,11 +291,18 @@ async def answer_stream(
                 if reader.unreadable is not None:
                     raise UnreadableFrame(str(reader.unreadable)) from reader.unreadable
                 return
-            await reader.next_event(idle_timeout_s)
+            if table is not None:  # tracks without a frame for idle_s go, frames or not
+                table.expire()
+            await reader.next_event(idle_timeout_s, tick_s=_tick(table))
     finally:
         reader.close()
         if table is not None:
             table.close()
+
+
+def _tick(table: TrackTable | None) -> float | None:
+    """How often a stream must look at its tracks' idle times: half of idle_s while it holds any."""
+    return table.idle_s / 2 if table is not None and table.tracks else None
 
 
 async def _wait(event: asyncio.Event, timeout_s: float) -> bool:

@@ -139,7 +139,7 @@ def clip_plan(
         mine = np.array([k for k, t in enumerate(track_ids) if t == track_id])
         mine = mine[np.argsort(frames[mine], kind="stable")]
         if contract.mode == "causal":
-            track = Track(track_capacity(contract), fps)
+            track = Track(track_capacity(contract, fps), fps)
             for k in mine:
                 track.push(int(frames[k]), seen[k])
                 parts.append((int(rows[k]), track.window(contract), track.bone_reference()))

@@ -118,10 +118,12 @@ class Track:
         return self.bone_sum / max(self.bone_count, 1)
 
 
-def track_capacity(contract: Contract) -> int:
-    """Frames a track must keep for a causal window at any whole rate up to MAX_FPS."""
-    rates = np.arange(1.0, MAX_FPS + 1.0)
-    return max(contract.thinning(f) * contract.slots(f / contract.thinning(f)) for f in rates)
+def track_capacity(contract: Contract, fps: float) -> int:
+    """Frames a track at `fps` must keep for its causal window: the newest frame and the q (K - 1)
+    before it (K slots, every q-th frame). A track's rate never changes (a new rate restarts it), so
+    its ring is sized for its own rate (49 frames at 30 fps, 385 at 240 with the bundled model)."""
+    q = contract.thinning(fps)
+    return q * (contract.slots(fps / q) - 1) + 1
 
 
 def track_bytes(capacity: int) -> int:
@@ -142,7 +144,6 @@ class TrackTable:
         self.per_stream = per_stream
         self.idle_s = idle_s
         self.budget = budget
-        self.capacity = track_capacity(contract)
         self.tracks: dict[str, Track] = {}
 
     def expire(self, now: float | None = None) -> int:
@@ -164,11 +165,12 @@ class TrackTable:
         if len(self.tracks) >= self.per_stream:
             reason = f"a stream holds at most {self.per_stream} open tracks (REPNET_STREAM_MAX_TRACKS)"
             raise TrackLimitReached([Violation(field, reason, "too_many_tracks")])
-        if not self.budget.take(track_bytes(self.capacity)):
+        capacity = track_capacity(self.contract, fps)
+        if not self.budget.take(track_bytes(capacity)):
             limit = self.budget.limit
             reason = f"the server holds at most {limit} open tracks (REPNET_MAX_TRACKS); retry later"
             raise TrackLimitReached([Violation(field, reason, "too_many_tracks")])
-        track = self.tracks[track_id] = Track(self.capacity, fps)
+        track = self.tracks[track_id] = Track(capacity, fps)
         return track
 
     def _drop(self, track_id: str) -> None:

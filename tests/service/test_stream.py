@@ -21,9 +21,11 @@ from service.stream import (
     Answers,
     Frame,
     Group,
+    Person,
     StreamIdle,
     StreamState,
     UnreadableFrame,
+    _Reader,
     answer_stream,
 )
 from tests.conftest import POSE_2D, GatedLifter
@@ -158,6 +160,49 @@ def test_a_stream_is_answered_in_order_and_fills_batches(
     assert all(isinstance(a.outcome, int) for a in answers)
 
 
+def crowd(i: int, people: int) -> Frame:
+    persons = tuple(Person(f"t{k}", f"people[{k}].pose", pose(i + k)) for k in range(people))
+    return Frame(i, time.perf_counter(), fps=30.0, people=persons)
+
+
+def test_groups_count_poses_so_that_frames_of_many_people_fit_the_queue() -> None:
+    state = StreamState(window=10, max_group=4)
+    frames = [crowd(0, 3), crowd(1, 2), crowd(2, 5), frame(3), frame(4), frame(5, error=ModelNotReady("x"))]
+    for f in frames:
+        state.add(f)
+    groups = state.take()  # a frame of more people than max_group is a group of its own
+    assert [[f.frame_id for f in g.frames] for g in groups] == [[0], [1], [2], [3, 4, 5]]
+    assert [len(g.poses()) for g in groups] == [3, 2, 5, 2]
+
+
+def test_a_stream_of_many_people_per_frame_is_answered_within_the_queue(
+    engine_factory: Callable[..., Engine], gated: GatedLifter, limits: Limits
+) -> None:
+    """Frames of 3 people that pile up during a run are lifted in groups of at most max_batch
+    poses, never more than the queue holds (it refused them all at once before)."""
+    engine = engine_factory(gated, max_batch=8, queue_size=16)
+    frames = [crowd(i, 3) for i in range(12)]
+
+    async def scenario() -> list[Answer]:
+        pulled: list[int] = []
+        more = asyncio.Event()
+        stream = answer_stream(
+            source(frames, pulled, more), engine, limits, same, window=16, idle_timeout_s=30, transport="t"
+        )
+        gated.gate.clear()
+        answered = asyncio.create_task(collect(stream))
+        await until(gated.entered.is_set)  # frame 0 is in its run
+        more.set()
+        await until(lambda: len(pulled) == 12)
+        gated.gate.set()
+        return await answered
+
+    answers = asyncio.run(scenario())
+    assert [a.frame.frame_id for a in answers] == list(range(12))
+    assert all(isinstance(o, int) for a in answers for o in a.people), [a.error for a in answers]
+    assert max(gated.batches) <= 8 and sum(gated.batches) == 36
+
+
 def test_the_reader_stops_reading_when_the_window_is_full(
     engine_factory: Callable[..., Engine], gated: GatedLifter, limits: Limits
 ) -> None:
@@ -215,6 +260,31 @@ def test_a_stream_without_frames_is_closed_as_idle(engine: Engine, limits: Limit
     with pytest.raises(StreamIdle, match="no frame for 0.1 s"):
         asyncio.run(scenario())
     assert time.monotonic() - start < 5
+
+
+def test_ticks_do_not_count_as_frames_for_the_idle_timeout() -> None:
+    """A stream that wakes every tick (to drop its idle tracks) is still closed idle_timeout_s after
+    its last frame, not a tick later each time."""
+
+    async def silent() -> AsyncIterator[Frame]:
+        await asyncio.Event().wait()
+        yield frame(0)
+
+    async def scenario() -> tuple[int, float, BaseException | None]:
+        reader = _Reader(silent(), StreamState(window=4, max_group=4))
+        ticks, start = 0, time.monotonic()
+        try:
+            while ticks < 100:
+                await reader.next_event(0.5, tick_s=0.1)
+                ticks += 1
+        except StreamIdle as err:
+            return ticks, time.monotonic() - start, err
+        finally:
+            reader.close()
+        return ticks, time.monotonic() - start, None
+
+    ticks, waited, closed = asyncio.run(scenario())
+    assert isinstance(closed, StreamIdle) and ticks >= 3 and 0.45 < waited < 2.0
 
 
 def test_frames_the_engine_refuses_get_its_error_and_the_stream_goes_on(

@@ -3,6 +3,7 @@ and over a gRPC LiftStream (tracks, several people per frame, their limits and e
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -250,3 +251,42 @@ def test_the_model_description_lists_the_temporal_models_and_their_limit(tempora
 def test_a_service_without_temporal_models_describes_none(client: TestClient) -> None:
     described = client.get("/v1/model").json()
     assert described["temporal"] == [] and described["limits"]["max_temporal_poses"] is None
+
+
+def test_a_frame_holds_at_most_a_requests_poses_of_people(temporal: Temporal) -> None:
+    pose = lifter_pb2.Pose2D(keypoints=clip(1, 0.0)[0].ravel().tolist())
+    people = [lifter_pb2.TrackedPose(track_id=f"p{k}", pose=pose) for k in range(1025)]  # the limit: 1024
+    (result,) = temporal.stub.LiftStream(iter([lifter_pb2.LiftFrame(frame_id=0, fps=30, people=people)]))
+    assert result.error.code == grpc.StatusCode.INVALID_ARGUMENT.value[0] and not result.people
+    assert [(v.field, v.code) for v in result.error.violations] == [("people", "too_many_people")]
+
+
+def test_a_track_without_frames_is_dropped_while_its_stream_stays_open(temporal: Temporal) -> None:
+    """Idle tracks go after track_idle_s (0.5 s here) though the stream sends untracked frames, or
+    nothing at all, meanwhile (they stayed until the stream ended before)."""
+    pose = lifter_pb2.Pose2D(keypoints=clip(1, 0.0)[0].ravel().tolist())
+    open_tracks: list[float | None] = []
+
+    def gauge() -> float | None:
+        return temporal.metrics.registry.get_sample_value("repnet_open_tracks")
+
+    def messages() -> Iterator[lifter_pb2.LiftFrame]:
+        yield lifter_pb2.LiftFrame(
+            frame_id=0, fps=30, people=[lifter_pb2.TrackedPose(track_id="p", pose=pose)]
+        )
+        yield lifter_pb2.LiftFrame(frame_id=1, fps=30, track_id="q", pose=pose)
+        deadline = time.monotonic() + 5
+        while gauge() != 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        open_tracks.append(gauge())
+        for k in range(6):  # untracked frames only, for 1.2 s
+            time.sleep(0.2)
+            yield lifter_pb2.LiftFrame(frame_id=2 + k, pose=pose)
+        open_tracks.append(gauge())
+        yield lifter_pb2.LiftFrame(frame_id=8, fps=30, track_id="r", pose=pose)
+        time.sleep(1.2)  # nothing at all
+        open_tracks.append(gauge())
+
+    results = list(temporal.stub.LiftStream(messages()))
+    assert len(results) == 9 and results[8].pose.temporal
+    assert open_tracks == [2, 0, 0]

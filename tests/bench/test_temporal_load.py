@@ -1,0 +1,102 @@
+"""bench.temporal_load: the camera search, the roof per tracked pose, the report, and a tiny run
+against a started server (its plumbing, not its timings)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.roof import RoofRow
+from bench.stats import Result
+from bench.temporal_load import PEOPLE_KINDS, Report, clip_windows, held, main, per_pose_roof, search
+from service.lifter import Lifter
+from service.temporal import Contract
+
+
+def test_the_search_stops_at_the_first_count_not_held_then_halves_the_gap() -> None:
+    limit = 41
+    best, tried = search([8, 16, 32, 48, 64], lambda n: n <= limit, refine=4)
+    assert best == 40 and tried == [8, 16, 32, 48, 40, 44]  # 40 held, 44 not: within 4
+    assert search([8, 16], lambda n: True, refine=4) == (16, [8, 16])
+    assert search([8, 16], lambda n: False, refine=4) == (0, [8, 4])
+    assert search([16, 8], lambda n: n < 16, refine=0) == (8, [8, 16])
+
+
+def result(name: str, frames: int, p99: float = 10.0, errors: int = 0, **extra: object) -> Result:
+    return Result(name, 1, frames, frames, 1.0, {"p50": p99 / 2, "p99": p99}, errors, 0.5, 0.1, dict(extra))
+
+
+def test_cameras_are_held_with_p99_in_bounds_no_errors_and_every_frame_answered() -> None:
+    assert held(result("c", 300, offered=300.0, sent=300), 25)
+    assert not held(result("c", 300, p99=26, offered=300.0, sent=300), 25)
+    assert not held(result("c", 300, errors=1, offered=300.0, sent=300), 25)
+    assert not held(result("c", 280, offered=300.0, sent=300), 25)  # the server fell behind
+    assert not held(result("c", 300, offered=300.0, sent=280), 25)  # the client fell behind
+
+
+def test_the_roof_per_tracked_pose_costs_one_run_of_each_model() -> None:
+    rows = [RoofRow("session.run", 8, 100, 1.0, {}), RoofRow("temporal session.run", 8, 300, 1.0, {})]
+    assert per_pose_roof(rows) == {8: {"single": 800.0, "temporal": 2400.0, "both": 600.0}}
+
+
+def report(people: list[Result]) -> Report:
+    roof = [RoofRow("session.run", 1, 100, 1.0, {}), RoofRow("temporal session.run", 1, 100, 1.0, {})]
+    return Report(
+        when="", command="python -m bench.temporal_load", machine={"cpus": 2, "cpu": "x"}, models={},
+        contract={}, service_flags=[], roof=roof, most_cameras=48, searched=[8, 16, 32, 48, 64],
+        people=people,
+    )  # fmt: skip
+
+
+def test_the_report_gives_the_cameras_held_and_the_cost_of_many_people_against_its_targets() -> None:
+    one = result(PEOPLE_KINDS["pose"], 100, people=1, server_cpu_ms_per_frame=2.0)
+    many = result("16 people (people)", 50, p99=30.0, people=16, server_cpu_ms_per_frame=5.0)
+    r = report([one, many])
+    assert r.people_ratio() == {"server_cpu": 2.5, "p50": 3.0, "p99": 3.0}
+    cameras, people = r.targets
+    assert cameras.startswith("MISSED: causal temporal LiftStream holds 48 cameras")
+    assert people.startswith("met: a 16-person frame costs 2.50x a 1-person frame in server CPU, 3.00x")
+    assert r.roof_best == {"single": 100.0, "temporal": 100.0, "both": 50.0}
+    assert "| 1 | 100 | 100 | 50 |" in r.markdown()
+    assert report([one]).people_ratio() == {}
+
+
+def test_the_roof_windows_are_a_tracked_persons_causal_windows(lifter: Lifter) -> None:
+    contract = Contract("causal", 50.0, 81, 60.0)
+    windows = clip_windows(lifter, contract, 5)
+    assert windows.poses.shape == (5, contract.slots(30), 17, 3) and np.all(windows.fps == 30)
+    np.testing.assert_array_equal(
+        windows.poses[0, 0], windows.poses[0, -1]
+    )  # frame 0: its own frame repeated
+    assert not np.allclose(windows.poses[4, -1], windows.poses[4, -2])  # the person moved
+
+
+def test_a_tiny_run_measures_every_part_and_writes_its_figures(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "temporal_load.json"
+    argv = [
+        "--cameras", "1,2", "--refine", "0", "--p99-ms", "10000", "--streams", "1", "--people", "3",
+        "--duration", "0.6", "--people-duration", "0.4", "--warmup", "0.3", "--batches", "1,4",
+        "--roof-duration", "0.05", "--out", str(out),
+    ]  # fmt: skip
+    assert main(argv) == 0
+    found = json.loads(out.read_text())
+    assert [r["name"] for r in found["saturated"]] == [
+        "LiftStream x1, 256 in flight, tracked",
+        "LiftStream x1, 256 in flight, untracked",
+    ]
+    assert found["searched"] == [1, 2] and found["most_cameras"] == 2
+    assert [(r["concurrency"], r["extra"]["tracked"]) for r in found["cameras"]] == [
+        (1, True), (1, False), (2, True), (2, False),
+    ]  # fmt: skip
+    assert [r["extra"]["people"] for r in found["people"]] == [1, 1, 1, 3]
+    for r in found["saturated"] + found["cameras"] + found["people"]:
+        assert r["errors"] == 0 and r["calls"] > 0 and r["server_cpu"] > 0, r
+    assert {r["what"] for r in found["roof"]} == {"session.run", "temporal session.run"}
+    assert found["contract"]["slots_30fps"] == 49 and found["roof_end"]
+    printed = capsys.readouterr().out
+    assert "holds 2 cameras" in printed and "a 3-person frame costs" in printed
