@@ -6,16 +6,26 @@ import argparse
 import json
 from pathlib import Path
 
+# Validation figures: val_* in the single-frame trainer's history; <set>_* in the temporal one's
+# (training.temporal_train: sh25, sh50 and gt25 clips).
+VALIDATION_PREFIXES = ("val_", "sh25_", "sh50_", "gt25_")
+
 
 def read_validations(history: Path) -> list[dict[str, float]]:
     """The history records that carry validation figures, in step order."""
     records = [json.loads(line) for line in history.read_text().splitlines() if line.strip()]
-    return sorted((r for r in records if any(k.startswith("val_") for k in r)), key=lambda r: r["step"])
+    found = (r for r in records if any(k.startswith(VALIDATION_PREFIXES) for k in r))
+    return sorted(found, key=lambda r: r["step"])
+
+
+def figure(record: dict[str, float], key: str) -> float:
+    """A validation figure by its name without val_ (nan where the record has none)."""
+    return record.get(f"val_{key}", record.get(key, float("nan")))
 
 
 def markdown_table(records: list[dict[str, float]]) -> str:
     """One row per validation: step, minutes, then every val_* figure (mm)."""
-    keys = sorted({k for r in records for k in r if k.startswith("val_")})
+    keys = sorted({k for r in records for k in r if k.startswith(VALIDATION_PREFIXES)})
     lines = [
         "| step | minutes | " + " | ".join(k.removeprefix("val_") for k in keys) + " |",
         "|---:|---:|" + "---:|" * len(keys),
@@ -85,7 +95,7 @@ def plot_runs(
         for colour, (name, records) in enumerate(runs.items()):
             minutes = [r["minutes"] for r in records]
             for style, key in zip(styles, keys, strict=False):
-                values = [r.get(f"val_{key}", float("nan")) for r in records]
+                values = [figure(r, key) for r in records]
                 if all(v != v for v in values):  # no such figure in this run
                     continue
                 label = f"{name}: {key}" if name else key
@@ -96,7 +106,10 @@ def plot_runs(
         ax.set_ylabel(f"validation {ylabel}")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("RepNet validation on held-out training-subject frames (gt: GT 2D, sh: SH detections)")
+    fig.suptitle(
+        "RepNet validation on held-out training-subject frames (gt: GT 2D, sh: SH detections;"
+        " 25/50: clips at 25 Hz / upsampled to 50 Hz)"
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -58,3 +58,22 @@ def test_many_runs_plot_one_panel_per_named_figure(tmp_path: Path) -> None:
     curve.plot_runs(runs, tmp_path / "one.png", ("gt_pa_mpjpe",))
     narrow = matplotlib.image.imread(tmp_path / "one.png")
     assert wide.shape[0] == narrow.shape[0] and wide.shape[1] == 2 * narrow.shape[1]
+
+
+def test_a_temporal_runs_history_is_read_and_drawn_by_its_set_figures(tmp_path: Path) -> None:
+    """training.temporal_train writes sh25_/sh50_/gt25_ figures without the val_ prefix."""
+    path = tmp_path / "temporal.jsonl"
+    rows = [{"step": 10, "minutes": 0.1, "position": 70.0}]
+    rows += [
+        {"step": s, "minutes": s / 100, "sh50_accel": 3.0 - s / 1000, "gt25_pa_mpjpe": 33.0}
+        for s in (500, 1000)
+    ]
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    records = curve.read_validations(path)
+    assert [r["step"] for r in records] == [500, 1000]
+    assert curve.markdown_table(records).splitlines()[2] == "| 500 | 5.0 | 33.0 | 2.5 |"
+    assert curve.figure(records[1], "sh50_accel") == 2.0 and curve.figure(
+        records[1], "gt_pa_mpjpe"
+    ) != curve.figure(records[1], "gt_pa_mpjpe")
+    curve.plot_runs({"causal": records}, tmp_path / "t.png", ("sh50_accel", "gt25_pa_mpjpe"))
+    assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
