@@ -26,7 +26,7 @@ def test_reach_is_how_far_the_services_windows_read(fps: float) -> None:
     clip, _, _ = bridged_clip(frames, seen, fps)
     read = offline_windows(clip, OFFLINE).keypoints_2d[200, :, 0, 0]  # the window of frame 200
     assert (200 - read.min(), read.max() - 200) == OFFLINE.reach(fps)
-    track = Track(track_capacity(CAUSAL), fps)
+    track = Track(track_capacity(CAUSAL, fps), fps)
     for frame, observation in zip(frames.tolist(), seen, strict=True):
         track.push(frame, observation)
     window = track.window(CAUSAL).keypoints_2d[0, :, 0, 0]  # the newest frame's: 399
@@ -88,7 +88,7 @@ def test_assemble_puts_the_kept_answers_in_place_and_checks_every_pose_has_one()
 
 def causal_windows(frames: np.ndarray, seen: list[Observation], fps: float) -> list[np.ndarray]:
     """Each pose's causal window (its keypoints), as a request's track gives them."""
-    track = Track(track_capacity(CAUSAL), fps)
+    track = Track(track_capacity(CAUSAL, fps), fps)
     out = []
     for frame, observation in zip(frames.tolist(), seen, strict=True):
         track.push(frame, observation)
