@@ -48,7 +48,7 @@ class Tracked:
 
 
 class Metrics:
-    """The service's metrics; documented in README.md, section Metrics."""
+    """The service's metrics; documented in docs/API.md, section Metrics."""
 
     def __init__(self, registry: CollectorRegistry) -> None:
         self.registry = registry

@@ -9,6 +9,7 @@ import { View3D, draw2d, sideOf } from "./view.js";
 const $ = (id) => document.getElementById(id);
 const SLOTS = ["example", "file", "paste", "format", "threshold", "temporal", "rate"];
 const DEFAULT_FPS = 30;  // a sequence's frame rate when neither the input nor the page gives one
+const NUMBERS = ["num-model", "num-scale", "num-rotation", "num-error", "num-plausibility", "num-imputed", "num-derived", "num-track"];
 // poses: what was sent, results: their answers, tracks: each pose's track, frames: the input's frame
 // numbers in order, byFrame: frame number -> its poses, shown: the track the player follows ("": the
 // first person of each frame).
@@ -28,7 +29,18 @@ function clearErrors() {
   $("format-warnings").replaceChildren();
 }
 
+// An error leaves nothing of an earlier lift on screen: views, numbers and player are emptied.
+function clearResult() {
+  pause();
+  Object.assign(state, { poses: [], results: [], tracks: null, frames: [], byFrame: new Map(), shown: "" });
+  $("player").hidden = true;
+  draw2d($("view2d"), null);
+  view3d.setPose(null);
+  for (const id of NUMBERS) text(id, "—");
+}
+
 function addError(slot, message) {
+  clearResult();
   const line = document.createElement("span");
   line.textContent = message;
   $(`${slot}-error`).append(line);
@@ -51,7 +63,7 @@ function showApiError(status, detail, send, frames, source) {
   }
   for (const item of detail) {
     const at = Number.isInteger(item.pose) ? send[item.pose] : undefined;
-    const where = at !== undefined && at !== item.pose ? ` (pose ${at + 1} of the input, frame ${frames[at]})` : "";
+    const where = at !== undefined && at !== item.pose ? ` (poses[${at}] of the input, frame ${frames[at]})` : "";
     addError(slotOf(String(item.field ?? ""), source), `${item.message ?? item.reason ?? JSON.stringify(item)}${where}`);
   }
 }
@@ -176,9 +188,9 @@ function show(parsed, poses, results, tracks, mode) {
   const crowded = [...state.byFrame.values()].some((list) => list.length > 1);
   const longest = [...counts].sort((a, b) => b[1] - a[1])[0];
   state.shown = crowded && longest ? longest[0] : "";
-  const options = [["", "the first person of each frame"], ...[...counts].map(([t, n]) => [t, `track ${t} (${n} frame${n === 1 ? "" : "s"})`])];
+  const options = [["", "person 0 of each frame"], ...[...counts].map(([t, n]) => [t, `track ${t} (${n} frame${n === 1 ? "" : "s"})`])];
   const most = Math.max(0, ...[...state.byFrame.values()].map((list) => list.length));
-  if (!counts.size) for (let k = 1; k < most; k += 1) options.push([`#${k}`, `person ${k + 1} of each frame`]);
+  if (!counts.size) for (let k = 1; k < most; k += 1) options.push([`#${k}`, `person ${k} of each frame`]);
   $("track").replaceChildren(...options.map(([value, label]) => {
     const option = document.createElement("option");
     option.value = value;
@@ -226,14 +238,14 @@ function render(index) {
   const at = poseAt(index);
   const [frame, result] = at === null ? [null, null] : [state.poses[at], state.results[at]];
   $("frame").value = String(index);
-  text("frame-label", `frame ${index + 1} / ${state.frames.length}`);
+  text("frame-label", `frame ${state.frames[index]} (${index + 1} / ${state.frames.length})`);  // the input's number, as the CLI's
   const { parents } = state.model;
   const sides = state.model.joints.map(sideOf);
   if (!result) {
     draw2d($("view2d"), null);
     view3d.setPose(null);
-    for (const id of ["num-scale", "num-rotation", "num-error", "num-plausibility", "num-imputed", "num-derived", "num-track"]) text(id, "—");
-    const who = state.shown.startsWith("#") ? `person ${Number(state.shown.slice(1)) + 1}` : `track ${state.shown}`;
+    for (const id of NUMBERS) text(id, "—");
+    const who = state.shown.startsWith("#") ? `person ${Number(state.shown.slice(1))}` : `track ${state.shown}`;
     text("num-model", state.shown === "" ? "no person in this frame" : `${who} is not in this frame`);
     return;
   }
@@ -281,18 +293,27 @@ async function run(source, read) {
     await lift(parsed, source);
   } catch (err) {
     if (!(err instanceof InputError)) throw err;
+    state.last = null;  // a new setting has no input to lift again
     clearErrors();
     addError(source, err.message);
   }
+}
+
+// The example list names what is shown: an example, or in its first entry the user's own input.
+function markExample(label) {
+  $("example-none").textContent = label;
+  $("example").value = "";
 }
 
 function liftFiles() {
   const files = [...$("file").files];
   if (!files.length) return;
   clearErrors();
+  markExample(files.length === 1 ? `(your file: ${files[0].name})` : `(your ${files.length} files)`);
   for (const file of files) {
     const tooBig = tooLarge(file.size, `file ${file.name}`);
     if (tooBig) {
+      state.last = null;
       addError("file", tooBig);
       return;
     }
@@ -303,14 +324,20 @@ function liftFiles() {
 function liftPaste() {
   const pasted = $("paste").value;
   clearErrors();
+  markExample("(your pasted input)");
+  $("file").value = "";
   const tooBig = tooLarge(new Blob([pasted]).size, "the pasted text");
-  if (tooBig) addError("paste", tooBig);
-  else run("paste", async () => parseText(pasted));
+  if (tooBig) {
+    state.last = null;
+    addError("paste", tooBig);
+  } else run("paste", async () => parseText(pasted));
 }
 
 function liftExample() {
   const example = state.examples[Number($("example").value)];
   if (!example) return;
+  $("file").value = "";  // the file field no longer names what is shown
+  $("example-none").textContent = "— pick one —";
   run("example", async () => ({ ...parseJson(example.data), fps: example.fps ?? null }));
 }
 
@@ -325,7 +352,10 @@ async function start() {
   }
   const m = state.model;
   const temporal = (m.temporal ?? []).map((t) => t.mode).join(" and ") || "none";
-  text("model-line", `model ${m.model_id} (${m.skeleton}), ${m.joints.length} joints; plausibility: ${m.plausibility ? "given" : "not given by this model"}; temporal models: ${temporal}`);
+  text("model-name", `model ${m.model_id} (${m.skeleton} skeleton, ${m.joints.length} joints) ·`);
+  text("model-plausibility", m.plausibility ? "rates how plausible each 3D pose is" : "no plausibility rating (this model has no critic)");
+  $("model-plausibility").hidden = false;
+  text("model-temporal", `· temporal models: ${temporal}`);
   state.examples = await (await fetch("/ui/examples.json")).json();
   state.examples.forEach((example, i) => {
     const option = document.createElement("option");

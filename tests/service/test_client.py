@@ -202,16 +202,17 @@ def test_stream_can_be_left_early(live_service: LiveService) -> None:
     assert all(r.result is not None for r in first)
 
 
-def test_readme_client_snippet_runs_as_written(
+def test_api_doc_client_snippet_runs_as_written(
     live_service: LiveService, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """The README's Python example, run as it stands (only the addresses point at the test server)."""
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
-    section = readme[readme.index("## Python client and command line") :]
+    """docs/API.md's Python client example, run as it stands (only the addresses point at the test
+    server)."""
+    readme = (Path(__file__).resolve().parents[2] / "docs" / "API.md").read_text()
+    section = readme[readme.index("## Python clients") :]
     snippet = section[section.index("```python\n") + len("```python\n") : section.index("\n```\n")]
     snippet = snippet.replace("http://localhost:8000", live_service.http_url)
     snippet = snippet.replace('"localhost:50051"', repr(live_service.grpc_target))
-    exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
+    exec(compile(snippet, "docs/API.md", "exec"), {"__name__": "api_doc"})
     out = capsys.readouterr().out
     assert out.startswith("(17, 3) [")  # the lift: pose_3d shape, imputed flags, error, warnings
     frames = re.findall(r"^(\d+) \[([^\]]*)\]$", out, re.MULTILINE)  # then one line per stream frame
@@ -379,11 +380,11 @@ def test_stream_client_reports_person_errors_and_raises_for_a_frame_it_cannot_se
     assert second.error is not None and second.error.details[0]["code"] == "track_repeated"
 
 
-def test_readme_sequence_snippet_runs_as_written(
+def test_api_doc_sequence_snippet_runs_as_written(
     live_service: LiveService, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """The README's Python example of temporal lifting, run as it stands (addresses: the test server)."""
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    """docs/API.md's Python example of temporal lifting, run as it stands (addresses: the test server)."""
+    readme = (Path(__file__).resolve().parents[2] / "docs" / "API.md").read_text()
     section = readme[readme.index("### Sequences: tracks and temporal lifting") :]
     snippet = section[
         section.index("```python\n") + len("```python\n") : section.index(
@@ -392,6 +393,6 @@ def test_readme_sequence_snippet_runs_as_written(
     ]
     snippet = snippet.replace("http://localhost:8000", live_service.http_url)
     snippet = snippet.replace('"localhost:50051"', repr(live_service.grpc_target))
-    exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
+    exec(compile(snippet, "docs/API.md", "exec"), {"__name__": "api_doc"})
     lines = capsys.readouterr().out.splitlines()
     assert lines == ["True a", "0 True", "1 True", "2 True", *["[('a', True), ('b', True)]"] * 3]

@@ -320,7 +320,7 @@ def test_openpose_frames_upload_and_the_player_steps_through_them(
     driver.find_element(By.ID, "file").send_keys("\n".join(str(p) for p in reversed(paths)))
     wait_lift(driver, before)
     assert driver.find_element(By.ID, "player").is_displayed()
-    assert text_of(driver, "frame-label") == f"frame 1 / {len(yaws)}"
+    assert text_of(driver, "frame-label") == f"frame 0 (1 / {len(yaws)})"  # numbers from 0, as the CLI's
     body = {"format": "body25", "poses": [json.loads(p.read_text())["people"][0] for p in paths]}
     body["poses"] = [
         {"keypoints": np.array(p["pose_keypoints_2d"]).reshape(-1, 3)[:, :2].tolist(),
@@ -333,12 +333,12 @@ def test_openpose_frames_upload_and_the_player_steps_through_them(
     assert text_of(driver, "num-track") == f"0, temporal {page_mode(driver)}"
     first = pixels(driver, "view3d")["hash"]
     driver.find_element(By.ID, "next").click()
-    assert text_of(driver, "frame-label") == f"frame 2 / {len(yaws)}"
+    assert text_of(driver, "frame-label") == f"frame 1 (2 / {len(yaws)})"
     assert_numbers_match(shown_numbers(driver), reply["poses"][1], reply["joints"])
     assert pixels(driver, "view3d")["hash"] != first
     driver.execute_script("const s = document.getElementById('frame'); s.value = '6';"
                           "s.dispatchEvent(new Event('input'));")  # fmt: skip
-    assert text_of(driver, "frame-label") == f"frame 7 / {len(yaws)}"
+    assert text_of(driver, "frame-label") == f"frame 6 (7 / {len(yaws)})"
     assert_numbers_match(shown_numbers(driver), reply["poses"][6], reply["joints"])
     driver.save_screenshot(str(SHOTS / "openpose-frame7.png"))
     driver.execute_script("document.getElementById('fps').value = '20'")
@@ -367,7 +367,7 @@ def test_npz_upload_is_read_as_the_cli_reads_it(driver: Any, page_url: str, tmp_
     }
     reply = lift_api(page_url, tracked(body, [0, 1, 2], page_mode(driver), 30.0))
     driver.find_element(By.ID, "next").click()
-    assert text_of(driver, "frame-label") == "frame 2 / 3"
+    assert text_of(driver, "frame-label") == "frame 1 (2 / 3)"
     assert_numbers_match(shown_numbers(driver), reply["poses"][1], reply["joints"])
     assert "left_wrist" in text_of(driver, "num-imputed")
 
@@ -432,7 +432,9 @@ def test_page_shows_the_plausibility_of_a_model_that_has_it(driver: Any, tmp_pat
     plausible = load_model(build_model(tmp_path / "plausible.onnx"))
     with serving(plausible) as url:
         open_page(driver, url)
-        assert "plausibility: given" in text_of(driver, "model-line")
+        assert text_of(driver, "model-plausibility") == "rates how plausible each 3D pose is"
+        help_text = driver.find_element(By.ID, "model-plausibility").get_attribute("title")
+        assert "more plausible than 30 % of real poses" in help_text
         before = lifts(driver)
         Select(driver.find_element(By.ID, "example")).select_by_index(4)  # the 36-frame sequence
         wait_lift(driver, before)
@@ -721,6 +723,53 @@ def test_several_people_of_one_image_are_each_shown(driver: Any, page_url: str) 
     }
     reply = lift_api(page_url, body)
     assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
-    Select(driver.find_element(By.ID, "track")).select_by_visible_text("person 2 of each frame")
+    Select(driver.find_element(By.ID, "track")).select_by_visible_text("person 1 of each frame")  # --person 1
     assert_numbers_match(shown_numbers(driver), reply["poses"][1], reply["joints"])
     assert text_of(driver, "num-track") == "none, lifted alone"
+
+
+def test_the_example_list_names_the_users_input_and_an_error_clears_the_last_result(
+    driver: Any, page_url: str, tmp_path: Path
+) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    def example_shown() -> str:
+        return str(Select(driver.find_element(By.ID, "example")).first_selected_option.text)
+
+    open_page(driver, page_url)
+    before = lifts(driver)
+    Select(driver.find_element(By.ID, "example")).select_by_index(1)
+    wait_lift(driver, before)
+    example_name = example_shown()
+    assert example_name == build_examples()[0]["name"]
+    (path,) = openpose_frames(tmp_path, [20.0])
+    before = lifts(driver)
+    driver.find_element(By.ID, "file").send_keys(str(path))
+    wait_lift(driver, before)
+    assert example_shown() == f"(your file: {path.name})"  # not the example's name any more
+    assert text_of(driver, "num-scale") != "—" and pixels(driver, "view3d")["left"]["count"] > 300
+    driver.save_screenshot(str(SHOTS / "your-file.png"))
+
+    driver.execute_script("document.getElementById('paste').value = '[[1, 2], [3, 4]]'")
+    driver.find_element(By.ID, "lift-paste").click()
+    wait_for(driver, "return document.getElementById('paste-error').textContent.length > 0")
+    assert example_shown() == "(your pasted input)"
+    assert driver.execute_script("return document.getElementById('file').value") == ""
+    assert all(text_of(driver, f"num-{k}") == "—" for k in shown_numbers(driver))
+    flat, solid = pixels(driver, "view2d"), pixels(driver, "view3d")
+    assert flat["drawn"] == 0 and solid["left"]["count"] == 0 and solid["right"]["count"] == 0
+    assert not driver.find_element(By.ID, "player").is_displayed()
+    driver.save_screenshot(str(SHOTS / "error-clears-result.png"))
+    before = lifts(driver)
+    driver.execute_script("const f = document.getElementById('format'); f.value = 'coco17';"
+                          "f.dispatchEvent(new Event('change'));")  # fmt: skip
+    time.sleep(0.5)  # the last input is the rejected paste (refused again), not the earlier file
+    assert lifts(driver) == before and text_of(driver, "num-scale") == "—"
+    driver.execute_script("const f = document.getElementById('format'); f.value = '';")
+
+    before = lifts(driver)
+    Select(driver.find_element(By.ID, "example")).select_by_index(1)
+    wait_lift(driver, before)
+    assert example_shown() == example_name
+    assert driver.execute_script("return document.getElementById('file').value") == ""
