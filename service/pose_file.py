@@ -244,7 +244,8 @@ def frame_number(path: Path) -> int | None:
 
 def load_poses(path: Path) -> Poses:
     """Poses from a .json (a pose, a list of poses, a POST /lift body or OpenPose output) or .npz
-    (`keypoints` (N, J, 2|3) or (J, 2|3) with NaN for missing joints, optional `confidence`, `format`)."""
+    (`keypoints` (N, J, 2|3|4) or (J, 2|3|4) with NaN for missing joints, optional `confidence`,
+    `format`; 4 values are MediaPipe's [x, y, z, visibility], to scale by an image size)."""
     try:
         if path.suffix == ".npz":
             with np.load(path, allow_pickle=False) as npz:
@@ -255,10 +256,13 @@ def load_poses(path: Path) -> Poses:
                 fmt = npz["format"] if "format" in npz else None
                 fps = float(npz["fps"]) if "fps" in npz else None
             keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
-            if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3):
-                raise InputFileError(f"expected keypoints (N, J, 2) or (N, J, 3), got {keypoints.shape}")
+            if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3, 4):
+                raise InputFileError(f"expected keypoints (N, J, 2|3|4), got {keypoints.shape}")
+            landmarks = np.full(len(keypoints), keypoints.shape[-1] == 4)  # MediaPipe [x, y, z, visibility]
+            keypoints = keypoints[..., [0, 1, 3]] if keypoints.shape[-1] == 4 else keypoints
             padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
-            return replace(_stack(list(padded), conf, fmt, str(path)), fps=_fps({"fps": fps}))
+            poses = _stack(list(padded), conf, fmt, str(path))
+            return replace(poses, fps=_fps({"fps": fps}), landmarks=landmarks if landmarks.any() else None)
         if path.suffix == ".json":
             data = json.loads(path.read_text())
             poses = _read_json(data)

@@ -403,3 +403,23 @@ def test_readme_sequence_snippet_runs_as_written(
     exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
     lines = capsys.readouterr().out.splitlines()
     assert lines == ["True a", "0 True", "1 True", "2 True", *["[('a', True), ('b', True)]"] * 3]
+
+
+def test_x_y_confidence_arrays_are_sent_as_keypoints_and_confidence_by_every_client(
+    live_service: LiveService,
+) -> None:
+    body, found = from_model_joints(FORMATS["body25"], POSE_2D[None])
+    conf = np.where(found[0], np.linspace(0.9, 0.5, 25), 0.0)
+    rows = np.concatenate([body[0], conf[:, None]], axis=1)  # (25, 3) [x, y, c], NaN rows: not found
+    with LiftClient(live_service.http_url) as client:
+        want = client.lift(body[0], format="body25", confidence=conf)
+        got = client.lift(rows, format="body25")
+        with pytest.raises(LiftClientError, match="either as the third value of each joint or as"):
+            client.lift(rows, format="body25", confidence=conf)
+    with StreamClient(live_service.grpc_target, timeout=30) as stream:
+        (frame,) = stream.stream([Frame(rows, format="body25")])
+        (person,) = stream.stream([Frame(people=[Person("a", rows, format="body25")], fps=30.0)])
+    assert frame.result is not None and person.people[0].result is not None
+    for result in (got, frame.result):
+        np.testing.assert_allclose(result.pose_3d, want.pose_3d, rtol=1e-5, atol=1e-3)
+        np.testing.assert_array_equal(result.visible, want.visible)
