@@ -107,7 +107,7 @@ def _fps(data: Any) -> float | None:
     if fps is None:
         return None
     if not isinstance(fps, int | float) or isinstance(fps, bool) or not 0 < fps < float("inf"):
-        raise InputFileError(f"fps: expected a number > 0, got {fps!r}")
+        raise InputFileError(f"fps: expected a number > 0, got {shown(fps)}")
     return float(fps)
 
 
