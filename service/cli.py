@@ -7,10 +7,13 @@ import importlib
 import json
 import math
 import os
+import re
 import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
+
+import numpy as np
 
 from service.cli_lift import (
     RemoteLifter,
@@ -23,8 +26,8 @@ from service.cli_lift import (
     warn_about,
 )
 from service.client import DEFAULT_URL, LiftClientError
-from service.errors import ModelLoadError
-from service.formats import FORMATS, MODEL_PARENTS, format_table
+from service.errors import ModelLoadError, echo
+from service.formats import FORMATS, MODEL_PARENTS, alias_of, format_table, hint_for
 from service.lift_body import Intrinsics
 from service.pose_file import InputFileError, Poses, load_poses, read_input
 
@@ -77,13 +80,17 @@ def _intrinsics(text: str) -> Intrinsics:
 
 
 def run_lift(args: argparse.Namespace) -> int:
-    poses = read_input(args.input, lambda files: _progress(files, "file"))
+    size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
+    poses = read_input(args.input, lambda files: _progress(files, "file"), size)
     fmt = args.format or poses.format or "h36m17"
     if fmt not in FORMATS:
-        raise InputFileError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
+        raise InputFileError(_format_error(fmt))
     if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
+        first = poses.points[0]
+        hint = hint_for(first, ~np.isnan(first).any(axis=1), fmt) or "; pick the format with --format"
+        hint = re.sub(r'send format "(\w+)"', r"use --format \1", hint)
         raise InputFileError(f"{args.input}: poses have {poses.points.shape[1]} joints, format {fmt} has "
-                             f"{len(FORMATS[fmt].joint_names)}; pick the format with --format")  # fmt: skip
+                             f"{len(FORMATS[fmt].joint_names)}{hint}")  # fmt: skip
     remote = (
         None
         if args.local
@@ -117,6 +124,31 @@ def run_lift(args: argparse.Namespace) -> int:
         tracks = "" if choice.temporal == "off" else f", temporal {choice.temporal} at {choice.fps:g} fps"
         say(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}{tracks}) -> {args.output}")
     return EXIT_OK
+
+
+def _format_error(name: str) -> str:
+    """Why `name` is no format, with the one it may mean."""
+    alias = alias_of(name)
+    means = f"; for {FORMATS[alias].description} use --format {alias}" if alias else ""
+    return f"unknown format {echo(name)}; expected one of {', '.join(FORMATS)}{means}"
+
+
+def _format(text: str) -> str:
+    """--format: a format's name."""
+    if text not in FORMATS:
+        raise argparse.ArgumentTypeError(_format_error(text))
+    return text
+
+
+def _size(text: str) -> float:
+    """One value of --image-size: a number of pixels > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"expected a number of pixels > 0, got {text!r}")
+    return value
 
 
 def _fps(text: str) -> float:
@@ -168,7 +200,11 @@ def build_parser() -> argparse.ArgumentParser:
     lift = sub.add_parser("lift", help="lift the poses of a .json or .npz file to 3D")
     lift.add_argument("input", help=".json or .npz file of one or many poses, or a folder or glob "
                       "of per-frame .json files (OpenPose --write_json), taken by frame number")  # fmt: skip
-    lift.add_argument("--format", choices=list(FORMATS), help="keypoint format (default: file's, h36m17)")
+    lift.add_argument("--format", type=_format, metavar="{" + ",".join(FORMATS) + "}",
+                      help="keypoint format (default: file's, h36m17)")  # fmt: skip
+    lift.add_argument("--image-size", type=_size, nargs=2, metavar=("W", "H"),
+                      help="the image's width and height in px when x, y are normalised to [0, 1] "
+                      "(MediaPipe [x, y, z, visibility] rows): they are multiplied by it")  # fmt: skip
     lift.add_argument("--url", default=DEFAULT_URL, help=f"service URL (default {DEFAULT_URL})")
     lift.add_argument("--local", action="store_true", help="run the ONNX model in this process, no service")
     lift.add_argument("--model", type=Path, help="ONNX model for --local (default: the bundled one)")

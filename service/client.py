@@ -22,7 +22,15 @@ from service.lift_body import (
     parse_response,
     temporal_parts,
 )
-from service.lift_result import ArrayLike, BoolArray, FloatArray, LiftClientError, LiftResult, as_poses
+from service.lift_result import (
+    ArrayLike,
+    BoolArray,
+    FloatArray,
+    LiftClientError,
+    LiftInputError,
+    LiftResult,
+    as_poses,
+)
 
 __all__ = ["ArrayLike", "AsyncLiftClient", "BoolArray", "FloatArray", "LiftClient", "LiftClientError",
            "LiftResult", "as_poses", "build_request", "http_error", "parse_response"]  # fmt: skip
@@ -54,8 +62,11 @@ class _HttpBase:
                fps: float | None, track_ids: Sequence[str | None] | None,
                frames: ArrayLike | None) -> Batch:  # fmt: skip
         points, conf = as_poses(keypoints, confidence)
-        tracking = Tracking.of(len(points), temporal, fps, track_ids, frames)
-        return Batch(points, conf, format, confidence_threshold, as_intrinsics(intrinsics), tracking)
+        try:
+            tracking = Tracking.of(len(points), temporal, fps, track_ids, frames)
+            return Batch(points, conf, format, confidence_threshold, as_intrinsics(intrinsics), tracking)
+        except (ValueError, TypeError) as err:  # raised before any request: as the service would
+            raise LiftInputError("arguments", str(err)) from err
 
     def _parts(self, batch: Batch, model: dict[str, Any] | None) -> list[Part]:
         """Requests of batch_size poses, or of a temporal clip within the service's limits (`model`:

@@ -232,3 +232,68 @@ def format_table() -> str:
     counts = " | ".join(str(len(f.joint_names)) for f in fmts)
     lines.append(f"| | input joints | {counts} |")
     return "\n".join(lines)
+
+
+# Names users give formats, lower-cased without separators -> the format's own name.
+FORMAT_ALIASES: dict[str, str] = {
+    "openpose": "body25", "openposebody25": "body25", "op25": "body25",
+    "coco": "coco17", "yolo": "coco17", "yolopose": "coco17", "yolov8": "coco17", "mmpose": "coco17",
+    "detectron2": "coco17", "rtmpose": "coco17", "vitpose": "coco17", "cocowholebody": "coco17",
+    "mediapipe": "mediapipe33", "blazepose": "mediapipe33", "mediapipepose": "mediapipe33",
+    "mpii": "mpii16", "stackedhourglass": "mpii16", "hourglass": "mpii16",
+    "h36m": "h36m17", "human36m": "h36m17", "human3.6m": "h36m17", "h3.6m": "h36m17",
+}  # fmt: skip
+
+
+def alias_of(name: str) -> str | None:
+    """The format a name users give means ("openpose" -> body25, "BODY_25" -> body25), if any."""
+    key = "".join(c for c in name.lower() if c.isalnum() or c == ".")
+    if key in FORMATS:
+        return key
+    return FORMAT_ALIASES.get(key) or FORMAT_ALIASES.get(key.replace(".", ""))
+
+
+def suggest_format(points: np.ndarray, present: np.ndarray) -> str | None:
+    """The format a pose of (K, 2) points (present (K,): the joints given) looks like: the one format
+    with K joints; where two have K (h36m17 and coco17), the one joint 0's height above the
+    shoulders points to (nose_height: above, COCO's nose; below, Human3.6M's pelvis); else None."""
+    names = [f.name for f in FORMATS.values() if len(f.joint_names) == len(points)]
+    if len(names) < 2:
+        return names[0] if names else None
+    if len(points) != len(COCO17.joint_names):
+        return None
+    ok = present & np.isfinite(points).all(axis=-1)
+    height = float(nose_height(np.asarray(points, np.float64)[None], ok[None])[0])
+    if np.isnan(height):
+        return None
+    return COCO17.name if height > 0 else H36M17.name
+
+
+def hint_for(points: np.ndarray, present: np.ndarray, given: str | None) -> str:
+    """A hint for a pose that does not fit its format `given` (None: no format was sent): "; this
+    looks like body25 (OpenPose BODY_25): send format \"body25\"", or "" when nothing fits better."""
+    found = suggest_format(points, present)
+    if found is None or found == given:
+        return ""
+    described = FORMATS[found].description
+    return f'; {len(points)} joints: this looks like {found} ({described}): send format "{found}"'
+
+
+def raw_output_hint(data: object) -> str | None:
+    """What to do with a detector's own output file posted as a POST /lift body, or None for any
+    other body: an OpenPose --write_json frame ({"version", "people": [{"pose_keypoints_2d"}]}) or
+    COCO keypoint results / annotations ([{"image_id", "keypoints": [x, y, s, ...]}])."""
+    if isinstance(data, dict) and "people" in data and "poses" not in data:
+        return (
+            "this is OpenPose output (--write_json): use `repnet lift` on the file or folder, or send "
+            'each person\'s pose_keypoints_2d as {"keypoints": [[x, y, c], ...]} with format "body25"'
+        )
+    items = data.get("annotations") if isinstance(data, dict) and "poses" not in data else data
+    first = items[0] if isinstance(items, list) and items else None
+    if isinstance(first, dict) and "keypoints" in first and ("image_id" in first or "category_id" in first):
+        return (
+            "this is COCO keypoint output ([{image_id, keypoints: [x, y, score, ...]}]): use `repnet lift` "
+            'on the file, or send each result\'s keypoints as {"keypoints": [[x, y, score], ...]} with '
+            'format "coco17"'
+        )
+    return None

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from typing import Any
 
 import grpc
-import numpy as np
 
 from service._proto.repnet.v1 import lifter_pb2
 from service.engine import Engine, offload
@@ -24,7 +22,8 @@ from service.errors import (
     Violation,
     clip,
 )
-from service.keypoints import DEFAULT_FORMAT, Limits, ModelInput, PoseInput, check_threshold, prepare_request
+from service.grpc_input import image_size_violations, intrinsics_violations, to_pose_input
+from service.keypoints import DEFAULT_FORMAT, Limits, ModelInput, check_threshold, prepare_request
 from service.lifter import Prediction
 from service.metrics import OVERLOADED, Metrics, outcome_of
 from service.replies import build_replies
@@ -66,47 +65,6 @@ def status_of(err: LiftError) -> grpc.StatusCode:
     if isinstance(err, ModelNotReady):
         return grpc.StatusCode.UNAVAILABLE
     return grpc.StatusCode.INTERNAL
-
-
-def intrinsics_violations(camera: lifter_pb2.CameraIntrinsics, field: str) -> list[Violation]:
-    """fx, fy must be finite and > 0, cx, cy finite."""
-    found = []
-    for name in ("fx", "fy", "cx", "cy"):
-        value = getattr(camera, name)
-        if not math.isfinite(value) or (name in ("fx", "fy") and value <= 0):
-            rule = "finite and > 0" if name in ("fx", "fy") else "finite"
-            found.append(Violation(f"{field}.{name}", f"must be {rule}, got {value}", "intrinsics"))
-    return found
-
-
-def _structure_violations(pose: lifter_pb2.Pose2D) -> list[Violation]:
-    """Layout rules that JSON expresses by nesting and proto by counts (fields named within the pose)."""
-    found = []
-    values = len(pose.keypoints)
-    if values % 2:
-        reason = f"expected 2 values (x, y) per joint, got {values} values"
-        found.append(Violation("keypoints", reason, "joint_count"))
-    if pose.missing and len(pose.missing) != values // 2:
-        reason = f"expected no values or one per joint ({values // 2}), got {len(pose.missing)}"
-        found.append(Violation("missing", reason, "missing_count"))
-    if pose.HasField("intrinsics"):
-        found += intrinsics_violations(pose.intrinsics, "intrinsics")
-    return found
-
-
-def to_pose_input(
-    pose: lifter_pb2.Pose2D, default_format: str, default_intrinsics: lifter_pb2.CameraIntrinsics | None
-) -> PoseInput:
-    """A proto pose in its wire-independent form, float32 as the wire carries it; InvalidKeypoints
-    (named within the pose) on a bad layout. default_intrinsics: those of a pose without its own."""
-    if found := _structure_violations(pose):
-        raise InvalidKeypoints(found)
-    points = np.array(pose.keypoints, dtype=np.float32).reshape(-1, 2)
-    present = ~np.array(pose.missing, dtype=bool) if pose.missing else np.ones(len(points), dtype=bool)
-    confidence = np.array(pose.confidence, dtype=np.float32) if pose.confidence else None
-    camera = pose.intrinsics if pose.HasField("intrinsics") else default_intrinsics
-    intrinsics = None if camera is None else (camera.fx, camera.fy, camera.cx, camera.cy)
-    return PoseInput(points, present, confidence, pose.format or default_format, intrinsics)
 
 
 def frame_violations(message: lifter_pb2.LiftFrame, max_people: int) -> list[Violation]:
@@ -224,12 +182,14 @@ class PoseLifterServicer:
 
     def _prepare_request(self, request: lifter_pb2.LiftRequest) -> ModelInput:
         default = request.intrinsics if request.HasField("intrinsics") else None
-        if default is not None and (found := intrinsics_violations(default, "intrinsics")):
+        size = request.image_size if request.HasField("image_size") else None
+        found = [] if default is None else intrinsics_violations(default, "intrinsics")
+        if found := found + ([] if size is None else image_size_violations(size, "image_size")):
             raise InvalidKeypoints(found)
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
         poses, fmt = request.poses, request.format or DEFAULT_FORMAT
         return prepare_request(
-            len(poses), lambda i: to_pose_input(poses[i], fmt, default), threshold, self.limits
+            len(poses), lambda i: to_pose_input(poses[i], fmt, default, size), threshold, self.limits
         )
 
     async def LiftStream(

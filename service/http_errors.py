@@ -27,7 +27,7 @@ from service.errors import (
 )
 from service.http_middleware import OUTCOME_KEY, STARTED_KEY
 from service.metrics import INVALID, Metrics, outcome_of
-from service.schemas import UNKNOWN_FIELD
+from service.schemas import DETECTOR_OUTPUT, UNKNOWN_FIELD
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,8 @@ def violations_of(errors: Sequence[Any]) -> list[Violation]:
         reason = str(error.get("msg", "invalid"))
         if ctx_error := (error.get("ctx") or {}).get("error"):
             reason = f"{reason}: {ctx_error}"
-        code = "malformed_json" if error.get("type") == "json_invalid" else "malformed"
+        codes = {"json_invalid": "malformed_json", DETECTOR_OUTPUT: DETECTOR_OUTPUT}
+        code = codes.get(str(error.get("type")), "malformed")
         found.append(Violation(field, reason, code, pose=pose, joint=joint))
     return found
 

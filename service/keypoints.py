@@ -15,6 +15,8 @@ from service.formats import (
     FORMATS,
     MODEL_JOINTS,
     KeypointFormat,
+    alias_of,
+    hint_for,
     lookalike_of,
     nose_height,
     to_model_joints,
@@ -64,6 +66,7 @@ class ModelInput:
     format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into formats.FORMAT_NAMES
     nose_height: npt.NDArray[np.float32]  # (N,) formats.nose_height of its 17 input joints, or NaN
     intrinsics: FloatArray  # (N, 4) fx, fy, cx, cy px of the pose's camera; NaN where not given
+    zeroed: npt.NDArray[np.int16]  # (N,) joints at exactly (0, 0) without confidence, read as missing
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
@@ -136,11 +139,14 @@ def _shape_violations(pose: PoseInput, i: int) -> list[Violation]:
     """Format and per-joint counts; a pose with any of these is not checked further."""
     fmt = FORMATS.get(pose.format)
     if fmt is None:
-        reason = f"unknown format {echo(pose.format)}; expected one of {', '.join(FORMATS)}"
+        alias = alias_of(pose.format)
+        means = f'; for {FORMATS[alias].description} send format "{alias}"' if alias else ""
+        reason = f"unknown format {echo(pose.format)}; expected one of {', '.join(FORMATS)}{means}"
         return [Violation("format", reason, "unknown_format", pose=i)]
     joints = len(fmt.joint_names)
     if pose.points.shape[0] != joints:
-        reason = f"format {fmt.name} has {joints} joints, got {pose.points.shape[0]}"
+        hint = hint_for(pose.points, pose.present, fmt.name)
+        reason = f"format {fmt.name} has {joints} joints, got {pose.points.shape[0]}{hint}"
         return [Violation("keypoints", reason, "joint_count", pose=i)]
     if pose.confidence is not None and pose.confidence.shape[0] != joints:
         reason = f"expected {joints} values (one per joint of {fmt.name}), got {pose.confidence.shape[0]}"
@@ -187,9 +193,10 @@ def _joint_violation(
 
 
 def _model_violations(
-    index: npt.NDArray[np.intp], points: np.ndarray, visible: np.ndarray, limits: Limits
+    index: npt.NDArray[np.intp], points: np.ndarray, visible: np.ndarray, limits: Limits, zeroed: np.ndarray
 ) -> list[Violation]:
-    """Rules on the converted (n, 17) model joints: enough of them, and not all at one point."""
+    """Rules on the converted (n, 17) model joints: enough of them, and not all at one point.
+    zeroed: (n,) the pose's joints read as missing at (0, 0), named when too few are left."""
     found: list[Violation] = []
     count = visible.sum(axis=1)  # (n,)
     mean, spread = visible_stats(points, visible)  # (n, 2), (n,) px
@@ -199,6 +206,8 @@ def _model_violations(
                 f"{count[p]} of {len(MODEL_JOINTS)} model joints are visible after the confidence "
                 f"threshold and format conversion, need at least {limits.min_visible_joints}"
             )
+            if zeroed[p]:
+                reason += f" ({zeroed[p]} joints at exactly (0, 0) without confidence count as missing)"
             found.append(Violation("keypoints", reason, "too_few_visible", pose=int(index[p])))
         elif spread[p] < MIN_SPREAD_PX:
             reason = (
@@ -219,15 +228,23 @@ def _used(fmt: KeypointFormat) -> np.ndarray:
 
 def _stack(
     fmt: KeypointFormat, poses: Sequence[PoseInput], cut: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points (n, K, 2), confidences (n, K) (1 where none given) and visibility (n, K) of poses;
-    `cut`: (n, 1) each pose's confidence threshold."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points (n, K, 2), confidences (n, K) (1 where none given), visibility (n, K) and the joints
+    read as missing for being at exactly (0, 0) (n, K) of poses; `cut`: (n, 1) each pose's
+    confidence threshold.
+
+    A joint at exactly (0, 0) in a pose without confidence is missing: OpenPose and other detectors
+    write 0, 0 (with confidence 0) for a joint they did not find, and without the confidence it would
+    be lifted as a joint in the image's corner. With a confidence, the threshold decides."""
     points = np.stack([p.points for p in poses])  # the wire's dtype: float32 stays float32
     ones = np.ones(len(fmt.joint_names))
     confidence = np.stack([ones if p.confidence is None else p.confidence for p in poses])
+    present = np.stack([p.present for p in poses]).astype(bool)
+    unsure = np.array([[p.confidence is None] for p in poses])  # (n, 1)
+    zeroed = present & unsure & (points == 0).all(axis=-1)  # (n, K)
     with np.errstate(invalid="ignore"):  # a NaN confidence is reported, not used
-        visible = np.stack([p.present for p in poses]).astype(bool) & (confidence >= cut)
-    return points, confidence, visible
+        visible = present & ~zeroed & (confidence >= cut)
+    return points, confidence, visible, zeroed
 
 
 def _clean(index: npt.NDArray[np.intp], found: list[Violation]) -> BoolArray:
@@ -240,7 +257,8 @@ class _Part:
     """The valid poses of one format: their request indices and their converted model input."""
 
     index: npt.NDArray[np.intp]
-    columns: tuple[np.ndarray, ...]  # keypoints_2d, visible, derived, imputed, format_index, nose_height
+    # keypoints_2d, visible, derived, imputed, format_index, nose_height, zeroed
+    columns: tuple[np.ndarray, ...]
 
 
 def _prepare_format(
@@ -251,21 +269,22 @@ def _prepare_format(
     limits: Limits,
 ) -> tuple[_Part, list[Violation]]:
     """Check and convert the poses of one format; a pose with bad values is not checked further."""
-    points, confidence, visible = _stack(fmt, poses, cut)
+    points, confidence, visible, zeroed = _stack(fmt, poses, cut)
     found = _value_violations(fmt, index, points, visible & _used(fmt), confidence, limits)
     if found and not (ok := _clean(index, found)).all():
-        points, visible, index = points[ok], visible[ok], index[ok]
+        points, visible, index, zeroed = points[ok], visible[ok], index[ok], zeroed[ok]
     converted = to_model_joints(fmt, points, visible)
-    model = _model_violations(index, converted[0], converted[1], limits)
+    counts = (zeroed & _used(fmt)).sum(axis=1).astype(np.int16)  # (n,) only joints the model reads
+    model = _model_violations(index, converted[0], converted[1], limits, counts)
     if model and not (ok := _clean(index, model)).all():
-        points, visible, index = points[ok], visible[ok], index[ok]
+        points, visible, index, counts = points[ok], visible[ok], index[ok], counts[ok]
         converted = (converted[0][ok], converted[1][ok], converted[2][ok], converted[3][ok])
     # The geometry a format mix-up shows, kept for the reply's warnings (service.lookalike).
     height = (
         nose_height(points, visible) if lookalike_of(fmt.name) else np.full(len(index), np.nan, np.float32)
     )
     format_index = np.full(len(index), FORMAT_NAMES.index(fmt.name), np.int8)
-    return _Part(index, (*converted, format_index, height)), found + model
+    return _Part(index, (*converted, format_index, height, counts)), found + model
 
 
 def prepare_poses(poses: Sequence[PoseInput], limits: Limits, threshold: float | None = None) -> Prepared:
@@ -292,9 +311,10 @@ def prepare_poses(poses: Sequence[PoseInput], limits: Limits, threshold: float |
         parts.append(part)
         for v in broken:
             found[v.pose or 0].append(v)
-    rows, (points, visible, derived, imputed, format_index, height) = _join(parts)
+    rows, (points, visible, derived, imputed, format_index, height, zeroed) = _join(parts)
     camera = np.array([poses[i].intrinsics or (np.nan,) * 4 for i in rows.tolist()], np.float32)
-    inputs = ModelInput(points, visible, derived, imputed, format_index, height, camera.reshape(len(rows), 4))
+    camera = camera.reshape(len(rows), 4)
+    inputs = ModelInput(points, visible, derived, imputed, format_index, height, camera, zeroed)
     return Prepared(inputs, tuple(tuple(sorted(f, key=lambda v: v.joint or -1)) for f in found))
 
 
@@ -312,6 +332,7 @@ def _join(parts: list[_Part]) -> tuple[npt.NDArray[np.intp], tuple[np.ndarray, .
             flags,
             np.zeros(0, np.int8),
             np.zeros(0, np.float32),
+            np.zeros(0, np.int16),
         )
     index = np.concatenate([p.index for p in parts])
     order = np.argsort(index, kind="stable")

@@ -109,14 +109,37 @@ def _optional(get: Callable[[str], Any], name: str) -> Any:
         return None
 
 
+class LiftInputError(LiftClientError, ValueError):
+    """Arguments a client cannot send (the shape of the keypoints, the tracks): raised before any
+    request, with the status 422 the service would answer. A ValueError too, as before."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        super().__init__(reason, 422, [{"field": field, "reason": reason, "code": "client_argument"}])
+
+
 def as_poses(
     keypoints: ArrayLike, confidence: ArrayLike | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """(N, J, 2) float points (NaN = missing joint) and (N, J) confidence or None."""
-    points = np.asarray(keypoints, dtype=np.float64)
+    """(N, J, 2) float points (NaN = missing joint) and (N, J) confidence or None. (N, J, 3) rows
+    [x, y, confidence], as detectors write them, give the confidence (as over HTTP)."""
+    try:
+        points = np.asarray(keypoints, dtype=np.float64)
+        conf = None if confidence is None else np.asarray(confidence, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise LiftInputError("keypoints", f"expected numbers: {str(err)[:100]}") from err
+    if points.ndim == 3 and points.shape[-1] == 3:
+        if conf is not None:
+            raise LiftInputError("confidence", "give the confidence either as the third value of each "
+                                 "joint or as `confidence`, not both")  # fmt: skip
+        points, conf = points[..., :2], points[..., 2]
     if points.ndim != 3 or points.shape[-1] != 2:
-        raise ValueError(f"expected keypoints of shape (N, J, 2), got {points.shape}")
-    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64)
+        hint = " (MediaPipe [x, y, z, visibility]: multiply x, y by the image size, pass [x, y, visibility])"
+        raise LiftInputError(
+            "keypoints",
+            "expected keypoints of shape (N, J, 2) or (N, J, 3) [x, y, "
+            f"confidence], got {points.shape}{hint if points.shape[-1:] == (4,) else ''}",
+        )
     if conf is not None and conf.shape != points.shape[:2]:
-        raise ValueError(f"expected confidence of shape {points.shape[:2]}, got {conf.shape}")
+        reason = f"expected confidence of shape {points.shape[:2]}, got {conf.shape}"
+        raise LiftInputError("confidence", reason)
     return points, conf

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from service.errors import MAX_ECHO_CHARS
+
 Progress = Callable[[Sequence[Path]], Iterable[Path]]
 
 
@@ -30,6 +32,10 @@ class Poses:
     person: np.ndarray  # (N,) int: the pose's index among the people of its frame
     fps: float | None = None  # the frame rate the file gives (`fps`), if it does
     track_id: tuple[str | None, ...] | None = None  # the tracks the file gives (a POST /lift body's)
+    # (N, 2) the image size [width, height] px a pose's x, y are normalised by (a POST /lift body's
+    # image_size), NaN where the file gives none; None: none given
+    image_size: np.ndarray | None = None
+    landmarks: np.ndarray | None = None  # (N,) the pose's rows were MediaPipe [x, y, z, visibility]
 
     @property
     def frame_count(self) -> int:
@@ -37,18 +43,34 @@ class Poses:
         return len(np.unique(self.frame))
 
 
+ROW_HINT = (
+    "each joint is [x, y] or [x, y, confidence] in pixels, MediaPipe's [x, y, z, visibility] (with "
+    "--image-size W H, or image_size in a POST /lift body), or null; `repnet lift --help` lists the "
+    "files it reads (OpenPose, COCO results, POST /lift bodies, NPZ)"
+)
+
+
+def shown(value: Any) -> str:
+    """A value of the input quoted in an error, cut to MAX_ECHO_CHARS characters with its length."""
+    text = repr(value)
+    return text if len(text) <= MAX_ECHO_CHARS else f"{text[:MAX_ECHO_CHARS]}… ({len(text)} characters)"
+
+
 def _pose_array(rows: Any, where: str) -> np.ndarray:
-    """One pose of J rows ([x, y], [x, y, c] or null) -> (J, 3): NaN rows for null, c NaN if not given."""
+    """One pose of J rows ([x, y], [x, y, c], [x, y, z, visibility] or null) -> (J, 4): x, y, c (the
+    visibility of a MediaPipe row; NaN if not given), and 1 where the row was MediaPipe's; NaN rows
+    for null."""
     if not isinstance(rows, list) or not rows:
-        raise InputFileError(f"{where}: expected a non-empty list of joints, got {type(rows).__name__}")
-    out = np.full((len(rows), 3), np.nan)
+        raise InputFileError(f"{where}: expected a non-empty list of joints, got {shown(rows)}; {ROW_HINT}")
+    out = np.full((len(rows), 4), np.nan)
     for j, row in enumerate(rows):
         if row is None:
             continue
         numbers = isinstance(row, list) and all(isinstance(v, int | float) for v in row)
-        if not numbers or len(row) not in (2, 3):
-            raise InputFileError(f"{where}[{j}]: expected [x, y], [x, y, confidence] or null, got {row!r}")
-        out[j, : len(row)] = row
+        if not numbers or len(row) not in (2, 3, 4):
+            raise InputFileError(f"{where}[{j}]: expected a joint, got {shown(row)}; {ROW_HINT}")
+        out[j, : min(len(row), 3)] = row[:2] + row[-1:] if len(row) == 4 else row
+        out[j, 3] = 1.0 if len(row) == 4 else np.nan
     return out
 
 
@@ -59,12 +81,14 @@ def _stack(poses: Sequence[np.ndarray], confidence: Any, fmt: Any, where: str) -
         raise InputFileError(f"{where}: no poses")
     if len({p.shape for p in poses}) != 1:
         raise InputFileError(f"{where}: poses have different joint counts {sorted({len(p) for p in poses})}")
-    data = np.stack(poses)  # (N, J, 3)
+    data = np.stack(poses)  # (N, J, 3 or 4)
     if confidence is None and not np.isnan(data[..., 2]).all():
         confidence = np.nan_to_num(data[..., 2], nan=1.0)  # a joint given without confidence counts as sure
     conf = None if confidence is None else np.asarray(confidence, dtype=np.float64).reshape(data.shape[:2])
     n = len(poses)
-    return Poses(data[..., :2], conf, None if fmt is None else str(fmt), np.arange(n), np.zeros(n, int))
+    landmarks = (data[..., 3] == 1).any(axis=1) if data.shape[-1] > 3 else np.zeros(n, bool)
+    return Poses(data[..., :2], conf, None if fmt is None else str(fmt), np.arange(n), np.zeros(n, int),
+                 landmarks=landmarks if landmarks.any() else None)  # fmt: skip
 
 
 def _openpose_people(data: dict[str, Any]) -> list[np.ndarray]:
@@ -83,7 +107,7 @@ def _fps(data: Any) -> float | None:
     if fps is None:
         return None
     if not isinstance(fps, int | float) or isinstance(fps, bool) or not 0 < fps < float("inf"):
-        raise InputFileError(f"fps: expected a number > 0, got {fps!r}")
+        raise InputFileError(f"fps: expected a number > 0, got {shown(fps)}")
     return float(fps)
 
 
@@ -105,6 +129,10 @@ def _lift_body(data: dict[str, Any]) -> Poses:
         if isinstance(item, dict) and item.get("confidence") is not None:
             pose[:, 2] = np.asarray(item["confidence"], dtype=np.float64)
     poses = replace(_stack(arrays, None, data.get("format"), "poses"), fps=_fps(data))
+    sizes = [_size(p.get("image_size") or data.get("image_size"), f"poses[{i}].image_size")
+             for i, p in enumerate(items)]  # fmt: skip
+    if any(s is not None for s in sizes):
+        poses = replace(poses, image_size=np.array([(np.nan, np.nan) if s is None else s for s in sizes]))
     tracks = [str(p["track_id"]) if p.get("track_id") is not None else None for p in items]
     if not any(t is not None for t in tracks):
         return poses
@@ -113,6 +141,35 @@ def _lift_body(data: dict[str, Any]) -> Poses:
         raise InputFileError("poses: every pose with a track_id needs its frame number (an integer >= 0)")
     numbers = np.array([f if isinstance(f, int) else i for i, f in enumerate(frames)])
     return replace(poses, frame=numbers, track_id=tuple(tracks))
+
+
+def _size(value: Any, where: str) -> tuple[float, float] | None:
+    """An image_size [width, height] px, or None."""
+    if value is None:
+        return None
+    ok = isinstance(value, list) and len(value) == 2 and all(isinstance(v, int | float) for v in value)
+    if not ok or not all(0 < v < float("inf") for v in value):
+        raise InputFileError(f"{where}: expected [width, height] in pixels (> 0), got {shown(value)}")
+    return (float(value[0]), float(value[1]))
+
+
+def to_pixels(poses: Poses, image_size: tuple[float, float] | None) -> Poses:
+    """The poses with normalised x, y multiplied by their image size: the file's (a POST /lift body's
+    image_size), else `image_size` (--image-size) for every pose; InputFileError for MediaPipe rows
+    with neither."""
+    n = len(poses.points)
+    size = np.full((n, 2), np.nan) if poses.image_size is None else poses.image_size
+    if image_size is not None:
+        size = np.where(np.isnan(size), np.asarray(image_size, np.float64), size)
+    unscaled = np.isnan(size).any(axis=1)  # (N,)
+    if poses.landmarks is not None and (poses.landmarks & unscaled).any():
+        first = int(np.flatnonzero(poses.landmarks & unscaled)[0])
+        raise InputFileError(
+            f"poses[{first}]: rows of 4 values are MediaPipe landmarks [x, y, z, visibility] with x, y "
+            "normalised to [0, 1]: give the image size with --image-size W H (or image_size in the file)"
+        )
+    points = np.where(unscaled[:, None, None], poses.points, poses.points * size[:, None, :])
+    return replace(poses, points=points, image_size=None, landmarks=None)
 
 
 def _image_frames(ids: Sequence[Any]) -> np.ndarray:
@@ -187,7 +244,8 @@ def frame_number(path: Path) -> int | None:
 
 def load_poses(path: Path) -> Poses:
     """Poses from a .json (a pose, a list of poses, a POST /lift body or OpenPose output) or .npz
-    (`keypoints` (N, J, 2|3) or (J, 2|3) with NaN for missing joints, optional `confidence`, `format`)."""
+    (`keypoints` (N, J, 2|3|4) or (J, 2|3|4) with NaN for missing joints, optional `confidence`,
+    `format`; 4 values are MediaPipe's [x, y, z, visibility], to scale by an image size)."""
     try:
         if path.suffix == ".npz":
             with np.load(path, allow_pickle=False) as npz:
@@ -198,10 +256,13 @@ def load_poses(path: Path) -> Poses:
                 fmt = npz["format"] if "format" in npz else None
                 fps = float(npz["fps"]) if "fps" in npz else None
             keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
-            if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3):
-                raise InputFileError(f"expected keypoints (N, J, 2) or (N, J, 3), got {keypoints.shape}")
+            if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3, 4):
+                raise InputFileError(f"expected keypoints (N, J, 2|3|4), got {keypoints.shape}")
+            landmarks = np.full(len(keypoints), keypoints.shape[-1] == 4)  # MediaPipe [x, y, z, visibility]
+            keypoints = keypoints[..., [0, 1, 3]] if keypoints.shape[-1] == 4 else keypoints
             padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
-            return replace(_stack(list(padded), conf, fmt, str(path)), fps=_fps({"fps": fps}))
+            poses = _stack(list(padded), conf, fmt, str(path))
+            return replace(poses, fps=_fps({"fps": fps}), landmarks=landmarks if landmarks.any() else None)
         if path.suffix == ".json":
             data = json.loads(path.read_text())
             poses = _read_json(data)
@@ -227,7 +288,9 @@ def _frame_files(spec: str) -> list[Path]:
     return sorted(files, key=lambda f: (frame_number(f) is None, frame_number(f) or 0, f.name))
 
 
-def load_frames(files: Sequence[Path], progress: Progress) -> Poses:
+def load_frames(
+    files: Sequence[Path], progress: Progress, image_size: tuple[float, float] | None = None
+) -> Poses:
     """Every person of every frame file (OpenPose per-frame JSON, or any pose file), in frame order;
     a frame without people gives no pose."""
     parts: list[np.ndarray] = []
@@ -246,9 +309,10 @@ def load_frames(files: Sequence[Path], progress: Progress) -> Poses:
             except (KeyError, ValueError, TypeError) as err:
                 raise InputFileError(f"{path}: {err}") from err
             fmt = fmt or _openpose_format(people)
-            rows = people
+            scale = np.array([*(image_size or (1.0, 1.0)), 1.0])  # --keypoint_scale 3 writes [0, 1]
+            rows = [p * scale for p in people]
         else:
-            poses = load_poses(path)
+            poses = to_pixels(load_poses(path), image_size)
             fmt = fmt or poses.format
             conf = np.full(poses.points.shape[:2], np.nan) if poses.confidence is None else poses.confidence
             rows = list(np.concatenate([poses.points, conf[..., None]], axis=-1))
@@ -259,11 +323,12 @@ def load_frames(files: Sequence[Path], progress: Progress) -> Poses:
     return replace(poses, frame=np.array(frames), person=np.array(persons))
 
 
-def read_input(spec: str, progress: Progress) -> Poses:
-    """Poses from one file, or from every frame file of a folder or a glob pattern."""
+def read_input(spec: str, progress: Progress, image_size: tuple[float, float] | None = None) -> Poses:
+    """Poses from one file, or from every frame file of a folder or a glob pattern, in pixels
+    (normalised coordinates multiplied by their image size: the file's, else `image_size`)."""
     path = Path(spec)
     if path.is_file():
-        return load_poses(path)
+        return to_pixels(load_poses(path), image_size)
     if path.is_dir() or any(c in spec for c in "*?["):
-        return load_frames(_frame_files(spec), progress)
+        return load_frames(_frame_files(spec), progress, image_size)
     raise InputFileError(f"{spec}: No such file or folder")

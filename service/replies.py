@@ -152,11 +152,22 @@ def build_replies(
         "imputed": inputs.imputed,
         "derived": inputs.derived,
         "plausibility": prediction.plausibility,
-        "warnings": format_warnings(inputs, error, prediction.plausibility),
+        "warnings": _warnings(inputs, error, prediction.plausibility),
         "temporal": np.isin(np.arange(len(inputs)), temporal.rows),
         "track_id": [None] * len(inputs) if track_ids is None else list(track_ids),
     }
     return Replies(columns, failed | non_finite_rows(rotation, reprojection, error))
+
+
+def _warnings(inputs: ModelInput, error: FloatArray, plausibility: FloatArray | None) -> list[list[str]]:
+    """Per pose, why its answer may be wrong: joints read as missing at (0, 0), a format mix-up."""
+    out = format_warnings(inputs, error, plausibility)
+    for i in np.flatnonzero(inputs.zeroed).tolist():
+        count = int(inputs.zeroed[i])
+        out[i].insert(0, f"keypoints: {count} joint{'s' if count > 1 else ''} at exactly (0, 0) without "
+                      "confidence counted as missing (detectors write 0, 0 for a joint they did not find); "
+                      "send null for a missing joint, or a confidence per joint")  # fmt: skip
+    return out
 
 
 def camera_orientation(inputs: ModelInput, rotation: FloatArray) -> FloatArray:

@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, Strict, field_vali
 from pydantic_core import PydanticCustomError
 
 from service.errors import echo, encodable
-from service.formats import FORMATS
+from service.formats import FORMATS, raw_output_hint
 from service.tracks import MAX_TRACK_ID
 
 # Strict: a JSON string such as "12" or a boolean is not a coordinate.
@@ -41,6 +41,7 @@ PLAUSIBILITY_DOC = (
 
 
 UNKNOWN_FIELD = "unknown_field"  # pydantic error type of reject_unknown_keys
+DETECTOR_OUTPUT = "detector_output"  # pydantic error type of a detector's own file posted as a body
 
 
 def reject_unknown_keys(model: type[BaseModel], data: Any) -> None:
@@ -220,6 +221,8 @@ class LiftRequest(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _accept_single_pose(cls, data: Any) -> Any:
+        if (hint := raw_output_hint(data)) is not None:
+            raise PydanticCustomError(DETECTOR_OUTPUT, hint)
         if isinstance(data, dict) and "poses" not in data and "keypoints" in data:
             pose = {k: v for k, v in data.items() if k not in ("confidence_threshold",)}
             batch = {"poses": [pose]}

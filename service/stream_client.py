@@ -199,7 +199,7 @@ class StreamClient:
                 for i, frame in enumerate(frames):
                     yield _frame_message(i, frame, format, confidence_threshold, fps)
             except Exception as err:  # gRPC would swallow it on its own thread: raised below
-                unsent.append(LiftClientError(f"frame {i} cannot be sent: {err}"))
+                unsent.append(LiftClientError(f"frame {i} cannot be sent: {getattr(err, 'message', err)}"))
 
         call = self._stub.LiftStream(requests(), timeout=self.timeout, metadata=self._metadata)
         try:

@@ -101,7 +101,7 @@ function plan(parsed) {
   const thresholdText = $("threshold").value.trim();
   const threshold = thresholdText === "" ? parsed.threshold
     : (Number.isFinite(Number(thresholdText)) ? Number(thresholdText) : thresholdText);
-  const extra = { format: chosen || parsed.format || "h36m17" };
+  const extra = { ...(parsed.request ?? {}), format: chosen || parsed.format || "h36m17" };
   if (threshold !== undefined && threshold !== null) extra.confidence_threshold = threshold;
   const poses = parsed.poses.map((p) => (p && chosen && typeof p === "object" ? { ...p, format: undefined } : p));
   const sequence = parsed.allFrames.length > 1;
@@ -161,7 +161,7 @@ async function lift(parsed, source) {
     document.body.dataset.busy = "false";
   }
   showWarnings(warnings);
-  show(parsed, poses.map((p) => ({ ...p, format: p.format || extra.format })), results, tracks, mode);
+  show(parsed, poses.map((p) => ({ ...p, format: p.format || extra.format, image_size: p.image_size ?? extra.image_size })), results, tracks, mode);
   const lifted = results.filter(Boolean).length;
   const how = mode === "off" ? "each pose alone" : `temporal ${mode} at ${fps} fps`;
   const counted = tracks ? `, ${new Set(tracks.filter((t) => t !== null)).size} track(s)` : "";
@@ -213,11 +213,13 @@ function poseAt(index) {
   return list.find((i) => state.tracks?.[i] === state.shown) ?? null;
 }
 
-// The input's model joints (the mean of each joint's visible sources) and its other detector points.
+// The input's model joints (the mean of each joint's visible sources) and its other detector points,
+// in pixels: normalised x, y (MediaPipe) times the pose's image_size, as the service scales them.
 function inputPoints(frame, result) {
   const fmt = state.formats[frame.format];
   const keypoints = Array.isArray(frame.keypoints) ? frame.keypoints : [];
-  const point = (k) => (Array.isArray(keypoints[k]) ? keypoints[k].map(Number) : null);
+  const size = Array.isArray(frame.image_size) && frame.image_size.length === 2 ? frame.image_size.map(Number) : [1, 1];
+  const point = (k) => (Array.isArray(keypoints[k]) ? [0, 1].map((c) => Number(keypoints[k][c]) * size[c]) : null);
   const input = fmt.sources.map((src, j) => {
     const found = src.map(point);
     if (!result.visible[j] || !found.length || found.some((p) => !p)) return null;

@@ -1,10 +1,11 @@
 // Input files and pasted text -> poses for POST /lift. Values pass through as they are: the service,
 // not the page, judges them and words the error. Only the layout of each file kind is read here.
 //
-// parse*() return {poses, frames, people, allFrames, trackIds, fps, temporal, format, threshold, note}:
+// parse*() return {poses, frames, people, allFrames, trackIds, fps, temporal, format, threshold, request, note}:
 // poses are /lift pose objects ({keypoints, confidence?, format?}); frames[i] is pose i's frame number
 // and people[i] its index in that frame; allFrames every frame number of the input in order (a frame
-// may have no person); trackIds (per pose), fps and temporal what the input gives, else null.
+// may have no person); trackIds (per pose), fps and temporal what the input gives, else null; request:
+// the request-level fields of a POST /lift body that its poses default to (image_size, intrinsics).
 
 export class InputError extends Error {}
 
@@ -145,7 +146,9 @@ export function parseJson(data) {
       const body = Array.isArray(data.poses) ? null : data;
       const given = body ? { poses: [] } : givenTracks(data.poses, data.poses);
       const temporal = typeof data.temporal === "string" ? data.temporal : null;
-      return withFrames({ ...given, fps: rate(data), temporal, format: data.format ?? null, threshold: data.confidence_threshold, body, note: "POST /lift body" });
+      // The body's defaults for its poses (image_size, intrinsics) go with every request, as curl sends them.
+      const request = Object.fromEntries(["image_size", "intrinsics"].filter((k) => k in data).map((k) => [k, data[k]]));
+      return withFrames({ ...given, fps: rate(data), temporal, format: data.format ?? null, threshold: data.confidence_threshold, body, request, note: "POST /lift body" });
     }
     if ("keypoints" in data) {
       if (isPoseList(data.keypoints)) {

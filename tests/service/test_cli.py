@@ -486,3 +486,59 @@ def test_plot_animates_one_track_of_a_crowded_sequence(tmp_path: Path) -> None:
     person_1 = [p["track_id"] for p in data["poses"] if p["person"] == 1]
     assert len(set(person_1)) == 2  # the detector's index 1 is A in some frames and B in others
     assert main(["plot", str(out), "-o", str(gif), "--track", "nobody"]) == EXIT_USAGE
+
+
+def test_coco_results_with_format_coco17_are_lifted(tmp_path: Path) -> None:
+    path, out_path = _coco_file(tmp_path), tmp_path / "out.json"
+    assert main(["lift", str(path), "--format", "coco17", "--local", "-o", str(out_path)]) == EXIT_OK
+    out = json.loads((tmp_path / "out.json").read_text())
+    assert out["format"] == "coco17" and len(out["poses"]) == 3
+
+
+def test_an_input_value_in_an_error_is_cut_short_with_a_hint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "odd.json"
+    path.write_text(json.dumps({"keypoints": [[{"image_id": 1, "values": list(range(400))}] * 17]}))
+    assert main(["lift", str(path), "--local"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    quoted = err.split("got ", 1)[1].split("; each joint")[0]
+    assert len(quoted) < 130 and "characters)" in quoted
+    assert "each joint is [x, y] or [x, y, confidence]" in err and "--image-size" in err
+
+
+def test_mediapipe_rows_need_an_image_size_and_lift_with_the_flag_as_with_the_bodys(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    landmarks, found = from_model_joints(FORMATS["mediapipe33"], project(POSE_3D, 20.0)[None])
+    pixels = np.where(found[0][:, None], landmarks[0], landmarks[0, 0])  # (33, 2) px; the face at the nose
+    rows = [[x / 1280, y / 720, 0.0, 0.8] for x, y in pixels.tolist()]
+    bare, body = tmp_path / "bare.json", tmp_path / "body.json"
+    bare.write_text(json.dumps({"poses": [{"keypoints": rows}], "format": "mediapipe33"}))
+    sized = {"poses": [{"keypoints": rows}], "format": "mediapipe33", "image_size": [1280, 720]}
+    body.write_text(json.dumps(sized))
+    assert main(["lift", str(bare), "--local"]) == EXIT_USAGE
+    assert "give the image size with --image-size W H" in capsys.readouterr().err
+    answers = []
+    np.savez(npz := tmp_path / "landmarks.npz", keypoints=np.array([rows]), format=np.array("mediapipe33"))
+    sized_flag = ["--image-size", "1280", "720"]
+    for args in ([str(bare), *sized_flag], [str(body)], [str(npz), *sized_flag]):
+        assert main(["lift", *args, "--local", "-o", str(tmp_path / "out.json")]) == EXIT_OK
+        answers.append(json.loads((tmp_path / "out.json").read_text())["poses"][0])
+    assert answers[0]["reprojection"] == answers[1]["reprojection"] == answers[2]["reprojection"]
+    np.testing.assert_allclose(answers[0]["input"]["keypoints"][11], pixels[11], atol=1e-6)  # left shoulder
+    assert answers[0]["input"]["confidence"][11] == 0.8
+
+
+def test_a_format_alias_and_a_joint_count_are_answered_with_the_format_they_mean(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit):
+        main(["lift", "x.json", "--format", "openpose"])
+    assert "for OpenPose BODY_25 use --format body25" in capsys.readouterr().err
+    body, _ = from_model_joints(FORMATS["body25"], POSE_2D[None])
+    path = tmp_path / "body.json"
+    path.write_text(json.dumps([[None if np.isnan(p).any() else p.tolist() for p in body[0]]]))
+    assert main(["lift", str(path), "--local"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "25 joints: this looks like body25 (OpenPose BODY_25): use --format body25" in err

@@ -144,9 +144,17 @@ def test_503_gives_up_after_the_last_retry() -> None:
 def test_keypoints_of_the_wrong_rank_are_refused_before_sending() -> None:
     with (
         LiftClient("http://test", transport=_scripted([], [])) as client,
-        pytest.raises(ValueError, match=r"expected keypoints of shape \(N, J, 2\), got \(17, 2\)"),
+        pytest.raises(
+            LiftClientError, match=r"expected keypoints of shape \(N, J, 2\) or \(N, J, 3\).*got \(17, 2\)"
+        ),
     ):
         client.lift_batch(POSE_2D)  # (17, 2) is one pose, not a batch
+    with (
+        LiftClient("http://test", transport=_scripted([], [])) as client,
+        pytest.raises(LiftClientError) as info,
+    ):
+        client.lift(np.zeros((33, 4)))  # MediaPipe rows need the image size
+    assert info.value.status == 422 and "multiply x, y by the image size" in info.value.message
 
 
 def test_stream_answers_every_frame_in_order(live_service: LiveService, lifter: Lifter) -> None:
@@ -185,7 +193,7 @@ def test_grpc_unary_lift_matches_http(live_service: LiveService) -> None:
 
 def test_grpc_rejection_raises_with_status(live_service: LiveService) -> None:
     with StreamClient(live_service.grpc_target, timeout=30) as client, pytest.raises(LiftClientError) as info:
-        client.lift_batch(np.zeros((1, 17, 2)))  # every joint at one point
+        client.lift_batch(np.full((1, 17, 2), 5.0))  # every joint at one point
     assert info.value.status == "INVALID_ARGUMENT" and "one point" in info.value.message
 
 
@@ -370,7 +378,7 @@ def test_stream_client_reports_person_errors_and_raises_for_a_frame_it_cannot_se
             [
                 Frame(POSE_2D, track_id="a"),  # no fps: the frame's error
                 Frame(people=[Person("a", POSE_2D), Person("a", POSE_2D)], fps=30.0),  # a track twice
-                Frame(np.zeros((17, 3))),  # the wrong shape: cannot be sent
+                Frame(np.zeros((17, 5))),  # the wrong shape: cannot be sent
             ]
         )
         first, second = next(results), next(results)
@@ -396,3 +404,23 @@ def test_api_doc_sequence_snippet_runs_as_written(
     exec(compile(snippet, "docs/API.md", "exec"), {"__name__": "api_doc"})
     lines = capsys.readouterr().out.splitlines()
     assert lines == ["True a", "0 True", "1 True", "2 True", *["[('a', True), ('b', True)]"] * 3]
+
+
+def test_x_y_confidence_arrays_are_sent_as_keypoints_and_confidence_by_every_client(
+    live_service: LiveService,
+) -> None:
+    body, found = from_model_joints(FORMATS["body25"], POSE_2D[None])
+    conf = np.where(found[0], np.linspace(0.9, 0.5, 25), 0.0)
+    rows = np.concatenate([body[0], conf[:, None]], axis=1)  # (25, 3) [x, y, c], NaN rows: not found
+    with LiftClient(live_service.http_url) as client:
+        want = client.lift(body[0], format="body25", confidence=conf)
+        got = client.lift(rows, format="body25")
+        with pytest.raises(LiftClientError, match="either as the third value of each joint or as"):
+            client.lift(rows, format="body25", confidence=conf)
+    with StreamClient(live_service.grpc_target, timeout=30) as stream:
+        (frame,) = stream.stream([Frame(rows, format="body25")])
+        (person,) = stream.stream([Frame(people=[Person("a", rows, format="body25")], fps=30.0)])
+    assert frame.result is not None and person.people[0].result is not None
+    for result in (got, frame.result):
+        np.testing.assert_allclose(result.pose_3d, want.pose_3d, rtol=1e-5, atol=1e-3)
+        np.testing.assert_array_equal(result.visible, want.visible)

@@ -295,3 +295,20 @@ def test_bad_intrinsics_are_invalid_argument(
     error = lift_error(stub, request)
     assert error.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert (error.details() or "").startswith(f"{field}: must be finite"), error.details()
+
+
+def test_image_size_scales_normalised_keypoints_per_pose_or_per_request(stub: Stub) -> None:
+    size = lifter_pb2.ImageSize(width=1280.0, height=720.0)
+    normalised = (POSE_2D / [1280.0, 720.0]).ravel().tolist()
+
+    def reprojection(pose: lifter_pb2.Pose2D, **fields: lifter_pb2.ImageSize) -> list[float]:
+        return list(stub.Lift(lifter_pb2.LiftRequest(poses=[pose], **fields)).poses[0].reprojection)
+
+    pixels = reprojection(lifter_pb2.Pose2D(keypoints=POSE_2D.ravel().tolist()))
+    per_pose = reprojection(lifter_pb2.Pose2D(keypoints=normalised, image_size=size))
+    per_request = reprojection(lifter_pb2.Pose2D(keypoints=normalised), image_size=size)
+    np.testing.assert_allclose([per_pose, per_request], [pixels, pixels], rtol=1e-5, atol=1e-3)
+    bad = lifter_pb2.Pose2D(keypoints=normalised, image_size=lifter_pb2.ImageSize(width=0.0, height=720.0))
+    err = lift_error(stub, lifter_pb2.LiftRequest(poses=[bad]))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert err.details().startswith("poses[0].image_size.width: must be a finite number of pixels > 0")

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -338,3 +340,22 @@ def test_non_finite_intrinsics_are_refused(client: TestClient) -> None:
     reply = client.post("/lift", content=body, headers={"content-type": "application/json"})
     assert reply.status_code == 422, reply.text
     assert reply.json()["detail"][0]["field"] == "poses[0].intrinsics.principal_point_px[0]"
+
+
+def test_model_description_shows_no_absolute_build_path_and_the_page_answers_head(client: TestClient) -> None:
+    roots = "home|work|tmp|root|Users|mnt|data|opt|srv"
+    absolute = re.compile(rf"""(?:^|[\s"'=:(\[,])(?:/(?:{roots})/|[A-Za-z]:\\)""")
+
+    def strings(value: Any) -> Iterator[str]:
+        if isinstance(value, dict):
+            yield from (s for v in value.values() for s in strings(v))
+        elif isinstance(value, list):
+            yield from (s for v in value for s in strings(v))
+        elif isinstance(value, str):
+            yield value
+
+    found = [s[:120] for s in strings(client.get("/v1/model").json()) if absolute.search(s)]
+    assert found == []
+    assert absolute.search('"/home/u/runs/x.pt"') and absolute.search("out C:\\runs")  # the check can fail
+    head = client.head("/")
+    assert head.status_code == 200 and head.content == b""

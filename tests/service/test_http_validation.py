@@ -159,3 +159,29 @@ def test_a_body_that_is_not_sent_as_json_is_told_so(
     assert (item["field"], item["code"]) == ("body", "content_type")
     assert "expected a JSON body with content-type: application/json" in item["reason"]
     assert got in item["reason"]
+
+
+def test_raw_openpose_output_is_told_how_to_send_it(client: TestClient) -> None:
+    person = {"person_id": [-1], "pose_keypoints_2d": [0.0] * 75}
+    item = only_item(client.post("/lift", json={"version": 1.3, "people": [person]}))
+    assert (item["field"], item["code"]) == ("body", "detector_output")
+    assert "this is OpenPose output" in item["reason"] and "repnet lift" in item["reason"]
+    assert "pose_keypoints_2d" in item["reason"] and '"body25"' in item["reason"]
+
+
+def test_raw_coco_results_are_told_how_to_send_them(client: TestClient) -> None:
+    results = [{"image_id": 1, "category_id": 1, "keypoints": [1.0, 2.0, 0.9] * 17, "score": 0.9}]
+    for body in (results, {"images": [], "annotations": results}):
+        item = only_item(client.post("/lift", json=body))
+        assert item["code"] == "detector_output" and '"coco17"' in item["reason"], item
+
+
+def test_zero_joints_of_pairs_are_missing_with_a_warning(client: TestClient) -> None:
+    keypoints = POSE_2D.tolist()
+    keypoints[3] = [0.0, 0.0]
+    zero = client.post("/lift", json={"keypoints": keypoints}).json()["poses"][0]
+    keypoints[3] = None
+    null = client.post("/lift", json={"keypoints": keypoints}).json()["poses"][0]
+    assert zero["pose_3d"] == null["pose_3d"] and not zero["visible"][3]
+    assert len(zero["warnings"]) == 1 and "1 joint at exactly (0, 0)" in zero["warnings"][0]
+    assert null["warnings"] == []

@@ -143,3 +143,37 @@ def test_long_lists_of_violations_are_cut_in_the_message() -> None:
     with pytest.raises(InvalidKeypoints) as info:
         prepare_poses([pose(points)], LIMITS).check()
     assert len(info.value.violations) == 17 and str(info.value).endswith("; and 7 more")
+
+
+@pytest.mark.parametrize("name", ["mpii16", "body25", "mediapipe33"])
+def test_a_pose_sent_without_its_format_is_told_which_format_it_looks_like(name: str) -> None:
+    points, present = from_model_joints(FORMATS[name], POSE_2D[None])
+    (message,) = violations(pose(np.nan_to_num(points[0]), present[0]))
+    assert f"this looks like {name}" in message and f'send format "{name}"' in message
+
+
+def test_a_correctly_labelled_pose_gets_no_hint_and_a_17_joint_mix_up_is_told_by_geometry() -> None:
+    coco, present = from_model_joints(FORMATS["coco17"], POSE_2D[None])
+    coco = np.where(present[0][:, None], coco[0], POSE_2D[:17])  # eyes and ears: anywhere near the head
+    coco[:5] = POSE_2D[9] + np.array([[0, 0], [-8, -6], [8, -6], [-15, 0], [15, 0]])  # the face
+    assert "looks like coco17" in violations(pose(coco, format="mpii16"))[0]
+    assert "looks like h36m17" in violations(pose(POSE_2D, format="mpii16"))[0]
+    assert model_input([pose(coco, format="coco17"), pose(POSE_2D)]).keypoints_2d.shape == (2, 17, 2)
+
+
+@pytest.mark.parametrize(("given", "means"), [("openpose", "body25"), ("BODY_25", "body25"),
+                                              ("MediaPipe", "mediapipe33"), ("yolo", "coco17")])  # fmt: skip
+def test_a_format_alias_names_the_format_it_means(given: str, means: str) -> None:
+    (message,) = violations(pose(format=given))
+    assert f"unknown format {given!r}" in message and f'send format "{means}"' in message
+
+
+def test_exact_zero_joints_without_confidence_are_missing_and_counted() -> None:
+    points = POSE_2D.copy()
+    points[[3, 13]] = 0.0  # OpenPose's 0, 0 for a joint it did not find
+    got = model_input([pose(points), pose(points, confidence=[1.0] * 17)])
+    assert got.visible[0].tolist() == [j not in (3, 13) for j in range(17)]
+    assert got.visible[1].all()  # with a confidence, the threshold decides
+    assert got.zeroed.tolist() == [2, 0]
+    same = model_input([pose(POSE_2D, present=np.array([j not in (3, 13) for j in range(17)]))])
+    np.testing.assert_array_equal(got.keypoints_2d[0], same.keypoints_2d[0])

@@ -23,12 +23,12 @@ from service.app import build_app
 from service.client import LiftClient
 from service.config import Settings
 from service.engine import Engine
-from service.formats import FORMATS
+from service.formats import FORMATS, from_model_joints
 from service.lifter import Lifter
 from service.metrics import Metrics
 from service.page import ASSETS, CSP, STATIC_DIR
 from service.tracker import assign_tracks
-from tests.conftest import TEMPORAL_MODES, live_settings, load_model, running_service
+from tests.conftest import POSE_3D, TEMPORAL_MODES, live_settings, load_model, project, running_service
 from tests.service.page_examples import EXAMPLES_PATH, build_examples, detector_pose
 
 SHOTS = Path(__file__).resolve().parents[2] / "runs" / "page"
@@ -773,3 +773,43 @@ def test_the_example_list_names_the_users_input_and_an_error_clears_the_last_res
     wait_lift(driver, before)
     assert example_shown() == example_name
     assert driver.execute_script("return document.getElementById('file').value") == ""
+
+
+def test_mediapipe_rows_with_a_request_or_a_pose_image_size_are_lifted_and_drawn_in_pixels(
+    driver: Any, page_url: str
+) -> None:
+    """MediaPipe [x, y, z, visibility] rows normalised to [0, 1]: with the body's image_size (as curl
+    sends it) or the pose's own, the page gets the API's answer and draws the 2D input where the same
+    pose in pixels is drawn (not shrunk into the top-left corner)."""
+    from selenium.webdriver.common.by import By
+
+    size = [1000.0, 1000.0]
+    landmarks, found = from_model_joints(FORMATS["mediapipe33"], project(POSE_3D, 30.0)[None])
+    pixels_pose = np.where(found[0][:, None], landmarks[0], landmarks[0, 0]).round(1)  # the face at the nose
+    rows = [[x / size[0], y / size[1], 0.0, 0.9] for x, y in pixels_pose.tolist()]
+    bodies = {
+        "request": {"poses": [{"keypoints": rows}], "format": "mediapipe33", "image_size": size},
+        "pose": {"poses": [{"keypoints": rows, "image_size": size}], "format": "mediapipe33"},
+        "pixels": {
+            "poses": [{"keypoints": [[x, y, 0.9] for x, y in pixels_pose.tolist()]}],
+            "format": "mediapipe33",
+        },
+    }
+    open_page(driver, page_url)
+    drawn = {}
+    for name, body in bodies.items():
+        before = lifts(driver)
+        driver.execute_script("document.getElementById('paste').value = arguments[0]", json.dumps(body))
+        driver.find_element(By.ID, "lift-paste").click()
+        wait_lift(driver, before)
+        assert text_of(driver, "paste-error") == ""
+        assert_numbers_match(
+            shown_numbers(driver), lift_api(page_url, body), lift_api(page_url, body)["joints"]
+        )
+        drawn[name] = pixels(driver, "view2d")
+        driver.save_screenshot(str(SHOTS / f"mediapipe-image-size-{name}.png"))
+    for name in ("request", "pose"):
+        assert drawn[name]["box"] == drawn["pixels"]["box"], name
+        assert drawn[name]["left"]["count"] == pytest.approx(drawn["pixels"]["left"]["count"], rel=0.02)
+    x0, y0, x1, y1 = drawn["pixels"]["box"]
+    assert x1 - x0 > 100 and y1 - y0 > 100  # a person, not a dot in a corner

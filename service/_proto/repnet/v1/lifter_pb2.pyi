@@ -7,18 +7,28 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class Pose2D(_message.Message):
-    __slots__ = ("keypoints", "confidence", "missing", "format", "intrinsics")
+    __slots__ = ("keypoints", "confidence", "missing", "format", "intrinsics", "image_size")
     KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
     MISSING_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
     keypoints: _containers.RepeatedScalarFieldContainer[float]
     confidence: _containers.RepeatedScalarFieldContainer[float]
     missing: _containers.RepeatedScalarFieldContainer[bool]
     format: str
     intrinsics: CameraIntrinsics
-    def __init__(self, keypoints: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., missing: _Optional[_Iterable[bool]] = ..., format: _Optional[str] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ...) -> None: ...
+    image_size: ImageSize
+    def __init__(self, keypoints: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., missing: _Optional[_Iterable[bool]] = ..., format: _Optional[str] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ...) -> None: ...
+
+class ImageSize(_message.Message):
+    __slots__ = ("width", "height")
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    width: float
+    height: float
+    def __init__(self, width: _Optional[float] = ..., height: _Optional[float] = ...) -> None: ...
 
 class CameraIntrinsics(_message.Message):
     __slots__ = ("fx", "fy", "cx", "cy")
@@ -33,16 +43,18 @@ class CameraIntrinsics(_message.Message):
     def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ...) -> None: ...
 
 class LiftRequest(_message.Message):
-    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics")
+    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics", "image_size")
     POSES_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
     poses: _containers.RepeatedCompositeFieldContainer[Pose2D]
     format: str
     confidence_threshold: float
     intrinsics: CameraIntrinsics
-    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ...) -> None: ...
+    image_size: ImageSize
+    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ...) -> None: ...
 
 class PoseResult(_message.Message):
     __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings", "temporal", "track_id")

@@ -1,0 +1,39 @@
+"""bench.format_hints without the Human3.6M data: its pipeline on the test person, its arguments."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.format_hints import hints, markdown, parse_args, row, warned
+from service.formats import FORMATS, from_model_joints
+from service.lifter import Lifter
+from tests.conftest import POSE_3D, project
+
+
+def test_hints_name_the_format_of_a_format_less_pose_and_nothing_under_its_own(trained: Lifter) -> None:
+    h36m = np.stack([project(POSE_3D, yaw) for yaw in range(-90, 91, 30)])  # (7, 17, 2)
+    for name in ("mpii16", "body25", "mediapipe33"):
+        points, present = from_model_joints(FORMATS[name], h36m)
+        assert hints(points.astype(np.float64), present, "h36m17") == [name] * 7
+        assert hints(points.astype(np.float64), present, name) == [""] * 7
+    coco, present = from_model_joints(FORMATS["coco17"], h36m)
+    assert hints(coco.astype(np.float64), present, "mpii16") == ["coco17"] * 7
+    assert warned(trained, coco.astype(np.float64), present, "h36m17") == ["coco17"] * 7
+    assert warned(trained, coco.astype(np.float64), present, "coco17") == [""] * 7
+
+
+def test_rows_and_markdown_give_the_rates_against_the_targets() -> None:
+    r = row("no format", "body25", "h36m17", ["body25", "body25", "", "mpii16"], "body25")
+    assert (r["right"], r["right_count"], r["told_other"]) == (0.5, 2, ["", "mpii16"])
+    summary = {"count_hint_right": 0.5, "right_labels_told_something": 0.0}
+    text = markdown({"command": "c", "dataset": "d", "frame_step": 10, "poses_per_format": 4,
+                     "model_id": "m", "rows": [r], "summary": summary})  # fmt: skip
+    assert "| no format | body25 | h36m17 | 4 | 50.000% (2) | nothing, mpii16 |" in text
+    assert "told the right format: 50.000% (target >= 99 %)" in text
+
+
+def test_the_frame_step_must_be_positive() -> None:
+    assert parse_args([]).frame_step == 10
+    with pytest.raises(SystemExit):
+        parse_args(["--frame-step", "0"])
