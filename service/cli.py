@@ -92,8 +92,9 @@ def run_lift(args: argparse.Namespace) -> int:
     try:
         lifter = local_lifter(args.model, args.batch_size) if remote is None else remote
         choice = choose(poses, args.temporal, args.fps, lifter.temporal_modes, say)
+        ids = tracks_of(poses, choice)
         batch = batch_of(
-            poses, fmt, args.confidence_threshold, args.intrinsics, choice, tracks_of(poses, choice)
+            poses, fmt, args.confidence_threshold, args.intrinsics, choice, ids, args.person_height
         )
         bar = progress_bar(len(poses.points), "pose")
         try:
@@ -178,8 +179,11 @@ def build_parser() -> argparse.ArgumentParser:
         type=_intrinsics,
         metavar="FX,FY,CX,CY",
         help="the camera's focal lengths and principal point in px, if known: pose_3d_camera "
-        "is then turned along the ray to the person",
+        "is then turned along the ray to the person, and root_camera_m gives where the person stands",
     )
+    lift.add_argument("--person-height", type=float, metavar="METRES",
+                      help="the person's skeleton height (head top to ankle, about stature - 0.1 m): sets "
+                      "root_camera_m's depth (default: the model's template size)")  # fmt: skip
     lift.add_argument("--temporal", choices=["off", "causal", "offline"],
                       help="how a sequence's tracked people are lifted: off, each pose alone; causal, from "
                       "its track's frames up to it; offline, from the frames around it (default: offline "

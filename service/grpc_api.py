@@ -13,6 +13,7 @@ import grpc
 import numpy as np
 
 from service._proto.repnet.v1 import lifter_pb2
+from service._proto.repnet.v1.lifter_pb2 import CameraIntrinsics as Camera
 from service.engine import Engine, offload
 from service.errors import (
     MAX_ERROR_ITEMS,
@@ -94,11 +95,10 @@ def _structure_violations(pose: lifter_pb2.Pose2D) -> list[Violation]:
     return found
 
 
-def to_pose_input(
-    pose: lifter_pb2.Pose2D, default_format: str, default_intrinsics: lifter_pb2.CameraIntrinsics | None
-) -> PoseInput:
+def to_pose_input(pose: lifter_pb2.Pose2D, default_format: str, default_intrinsics: Camera | None,
+                  default_height: float | None = None) -> PoseInput:  # fmt: skip
     """A proto pose in its wire-independent form, float32 as the wire carries it; InvalidKeypoints
-    (named within the pose) on a bad layout. default_intrinsics: those of a pose without its own."""
+    (named within the pose) on a bad layout. default_*: those of a pose without its own."""
     if found := _structure_violations(pose):
         raise InvalidKeypoints(found)
     points = np.array(pose.keypoints, dtype=np.float32).reshape(-1, 2)
@@ -106,7 +106,9 @@ def to_pose_input(
     confidence = np.array(pose.confidence, dtype=np.float32) if pose.confidence else None
     camera = pose.intrinsics if pose.HasField("intrinsics") else default_intrinsics
     intrinsics = None if camera is None else (camera.fx, camera.fy, camera.cx, camera.cy)
-    return PoseInput(points, present, confidence, pose.format or default_format, intrinsics)
+    height = pose.person_height_m if pose.HasField("person_height_m") else default_height
+    fmt = pose.format or default_format
+    return PoseInput(points, present, confidence, fmt, intrinsics, person_height_m=height)
 
 
 def frame_violations(message: lifter_pb2.LiftFrame, max_people: int) -> list[Violation]:
@@ -228,8 +230,9 @@ class PoseLifterServicer:
             raise InvalidKeypoints(found)
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
         poses, fmt = request.poses, request.format or DEFAULT_FORMAT
+        height = request.person_height_m if request.HasField("person_height_m") else None
         return prepare_request(
-            len(poses), lambda i: to_pose_input(poses[i], fmt, default), threshold, self.limits
+            len(poses), lambda i: to_pose_input(poses[i], fmt, default, height), threshold, self.limits
         )
 
     async def LiftStream(

@@ -27,6 +27,10 @@ MIN_SPREAD_PX = 1e-3
 Points = npt.NDArray[np.floating]
 
 
+# The skeleton heights a person_height_m may give (geometry.skeleton_height: a child to a giant).
+MIN_HEIGHT_M, MAX_HEIGHT_M = 0.5, 2.5
+
+
 @dataclass(frozen=True)
 class Limits:
     """The documented input limits; app.limits_of takes them from Settings."""
@@ -51,6 +55,9 @@ class PoseInput:
     # The pose's own confidence threshold, checked by check_threshold (a stream frame has one);
     # None: the request's, else the server default.
     confidence_threshold: float | None = None
+    # The person's skeleton height in metres (geometry.skeleton_height), if known: sets the depth of
+    # root_camera_m; None: the answer's own size (the model's template) is used.
+    person_height_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -64,6 +71,7 @@ class ModelInput:
     format_index: npt.NDArray[np.int8]  # (N,) the pose's format, an index into formats.FORMAT_NAMES
     nose_height: npt.NDArray[np.float32]  # (N,) formats.nose_height of its 17 input joints, or NaN
     intrinsics: FloatArray  # (N, 4) fx, fy, cx, cy px of the pose's camera; NaN where not given
+    person_height_m: FloatArray  # (N,) the person's skeleton height in m; NaN where not given
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
@@ -145,6 +153,12 @@ def _shape_violations(pose: PoseInput, i: int) -> list[Violation]:
     if pose.confidence is not None and pose.confidence.shape[0] != joints:
         reason = f"expected {joints} values (one per joint of {fmt.name}), got {pose.confidence.shape[0]}"
         return [Violation("confidence", reason, "confidence_count", pose=i)]
+    height = pose.person_height_m
+    if height is not None and not MIN_HEIGHT_M <= height <= MAX_HEIGHT_M:  # NaN fails too
+        reason = f"expected metres in [{MIN_HEIGHT_M}, {MAX_HEIGHT_M}], got {height:g}" + (
+            " (millimetres? divide by 1000)" if height > 100 * MIN_HEIGHT_M else ""
+        )
+        return [Violation("person_height_m", reason, "person_height", pose=i)]
     return []
 
 
@@ -294,7 +308,10 @@ def prepare_poses(poses: Sequence[PoseInput], limits: Limits, threshold: float |
             found[v.pose or 0].append(v)
     rows, (points, visible, derived, imputed, format_index, height) = _join(parts)
     camera = np.array([poses[i].intrinsics or (np.nan,) * 4 for i in rows.tolist()], np.float32)
-    inputs = ModelInput(points, visible, derived, imputed, format_index, height, camera.reshape(len(rows), 4))
+    sizes = np.array([poses[i].person_height_m or np.nan for i in rows.tolist()], np.float32)
+    inputs = ModelInput(
+        points, visible, derived, imputed, format_index, height, camera.reshape(len(rows), 4), sizes
+    )
     return Prepared(inputs, tuple(tuple(sorted(f, key=lambda v: v.joint or -1)) for f in found))
 
 

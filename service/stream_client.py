@@ -76,10 +76,10 @@ def _pose_proto(points: np.ndarray, conf: np.ndarray | None, format: str) -> lif
 
 def proto_field(pose: lifter_pb2.PoseResult) -> Callable[[str], Any]:
     """A field getter of one proto result for LiftResult.from_fields; an unset optional field
-    (plausibility, track_id) is None."""
+    (plausibility, track_id, root_height_source) is None; an empty root_camera_m is read as None."""
 
     def get(name: str) -> Any:
-        if name in ("plausibility", "track_id") and not pose.HasField(name):
+        if name in ("plausibility", "track_id", "root_height_source") and not pose.HasField(name):
             return None
         return getattr(pose, name)
 
