@@ -26,6 +26,7 @@ from service.client import DEFAULT_URL, LiftClientError
 from service.errors import ModelLoadError
 from service.formats import FORMATS, MODEL_PARENTS, format_table
 from service.lift_body import Intrinsics
+from service.lift_output import WRITERS, Lifted, check_output, write_output
 from service.pose_file import InputFileError, Poses, load_poses, read_input
 
 MAX_FPS = 240.0  # as the service takes (tracks.MAX_FPS)
@@ -77,6 +78,8 @@ def _intrinsics(text: str) -> Intrinsics:
 
 
 def run_lift(args: argparse.Namespace) -> int:
+    if args.output is not None:
+        check_output(args.output)
     poses = read_input(args.input, lambda files: _progress(files, "file"))
     fmt = args.format or poses.format or "h36m17"
     if fmt not in FORMATS:
@@ -109,14 +112,14 @@ def run_lift(args: argparse.Namespace) -> int:
            "input_joints": list(FORMATS[fmt].joint_names), "joints": list(results[0].joints),
            "parents": list(MODEL_PARENTS), "poses": output_rows(results, poses)}  # fmt: skip
     warn_about(results, poses)
-    text = json.dumps(out, allow_nan=False)
     n, frames = len(results), poses.frame_count
     if args.output is None:
-        print(text)
+        print(json.dumps(out, allow_nan=False))
     else:
-        args.output.write_text(text)
+        written = write_output(args.output, Lifted(out, results, poses))
         tracks = "" if choice.temporal == "off" else f", temporal {choice.temporal} at {choice.fps:g} fps"
-        say(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}{tracks}) -> {args.output}")
+        files = ", ".join(map(str, written))
+        say(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}{tracks}) -> {files}")
     return EXIT_OK
 
 
@@ -200,7 +203,10 @@ def build_parser() -> argparse.ArgumentParser:
     lift.add_argument(
         "--ca-file", type=Path, help="PEM CA certificates of an https:// --url (default: the system's)"
     )
-    lift.add_argument("-o", "--output", type=Path, help="output .json (default: stdout)")
+    lift.add_argument("-o", "--output", type=Path,
+                      help=f"output file by its suffix ({', '.join(WRITERS)}; default: JSON on stdout): .npz "
+                      "arrays named as the reply's fields, .csv a row per pose per joint, .bvh a skeleton "
+                      "animation per person (file.track-ID.bvh when several)")  # fmt: skip
     plot = sub.add_parser("plot", help="draw a lift output: 2D input with reprojection, 3D from two sides")
     plot.add_argument("input", type=Path, help="output .json of `repnet lift`")
     plot.add_argument("-o", "--output", type=Path, required=True,
