@@ -251,8 +251,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
     except ImportError as err:
-        print(f"repnet: error: {err.name or err} is needed: pip install 'repnet[cli]'", file=sys.stderr)
+        print(f"repnet: error: {err.name or err} is needed: {install_hint()}", file=sys.stderr)
         return EXIT_USAGE
+
+
+def install_hint() -> str:
+    """How to install the `cli` extra (matplotlib, tqdm) into this interpreter: from the checkout this
+    package runs from (`make serve` installs it too), else from a repnet wheel or source tree."""
+    root = Path(__file__).resolve().parent.parent
+    pip = f"{sys.executable} -m pip install"
+    if (root / "pyproject.toml").is_file():
+        return f"{pip} -e '{root}[cli]' (the checkout's `make serve` and `make test` install it too)"
+    return f"{pip} 'repnet-wheel-or-source-folder[cli]' (the `cli` extra of repnet)"
 
 
 if __name__ == "__main__":
