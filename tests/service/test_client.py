@@ -395,3 +395,23 @@ def test_readme_sequence_snippet_runs_as_written(
     exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
     lines = capsys.readouterr().out.splitlines()
     assert lines == ["True a", "0 True", "1 True", "2 True", *["[('a', True), ('b', True)]"] * 3]
+
+
+def test_lift_results_carry_the_root_sync_and_async(live_service: LiveService) -> None:
+    camera = (1145.0, 1145.0, 512.0, 515.0)
+    with LiftClient(live_service.http_url) as client:
+        given = client.lift(POSE_2D, intrinsics=camera, person_height_m=1.7)
+        template = client.lift(POSE_2D, intrinsics=camera)
+        plain = client.lift(POSE_2D)
+    assert given.root_camera_m is not None and given.root_camera_m.shape == (3,)
+    assert (given.root_height_source, template.root_height_source) == ("given", "template")
+    assert plain.root_camera_m is None and plain.root_height_source is None
+    assert (
+        template.root_camera_m is not None and abs(template.root_camera_m[2] - given.root_camera_m[2]) > 0.01
+    )
+
+    async def lift_async() -> LiftResult:
+        async with AsyncLiftClient(live_service.http_url) as client:
+            return await client.lift(POSE_2D, intrinsics=camera, person_height_m=1.7)
+
+    np.testing.assert_allclose(asyncio.run(lift_async()).root_camera_m, given.root_camera_m)
