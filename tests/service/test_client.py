@@ -415,3 +415,17 @@ def test_lift_results_carry_the_root_sync_and_async(live_service: LiveService) -
             return await client.lift(POSE_2D, intrinsics=camera, person_height_m=1.7)
 
     np.testing.assert_allclose(asyncio.run(lift_async()).root_camera_m, given.root_camera_m)
+
+
+def test_stream_client_sends_the_camera_and_height_for_the_root(live_service: LiveService) -> None:
+    camera = (1145.0, 1145.0, 512.0, 515.0)
+    with LiftClient(live_service.http_url) as client:
+        expected = client.lift(POSE_2D, intrinsics=camera, person_height_m=1.7).root_camera_m
+    with StreamClient(live_service.grpc_target, timeout=30) as grpc_client:
+        (unary,) = grpc_client.lift_batch(POSE_2D[None], intrinsics=camera, person_height_m=1.7)
+        (streamed,) = list(grpc_client.stream([POSE_2D], intrinsics=camera, person_height_m=1.7))
+    assert (
+        streamed.pose is not None and unary.root_height_source == streamed.pose.root_height_source == "given"
+    )
+    for got in (unary.root_camera_m, streamed.result.root_camera_m):
+        np.testing.assert_allclose(got, expected, atol=1e-4)
