@@ -425,7 +425,8 @@ def test_stream_client_sends_the_camera_and_height_for_the_root(live_service: Li
         (unary,) = grpc_client.lift_batch(POSE_2D[None], intrinsics=camera, person_height_m=1.7)
         (streamed,) = list(grpc_client.stream([POSE_2D], intrinsics=camera, person_height_m=1.7))
     assert (
-        streamed.pose is not None and unary.root_height_source == streamed.pose.root_height_source == "given"
+        streamed.result is not None
+        and unary.root_height_source == streamed.result.root_height_source == "given"
     )
     for got in (unary.root_camera_m, streamed.result.root_camera_m):
         np.testing.assert_allclose(got, expected, atol=1e-4)
