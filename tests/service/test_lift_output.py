@@ -135,3 +135,24 @@ def test_an_unknown_suffix_is_refused_before_lifting(
     assert main(["lift", str(tmp_path / "absent.json"), "--local", "-o", str(out)]) == EXIT_USAGE
     err = capsys.readouterr().err
     assert "unknown output suffix '.txt'" in err and ".json, .npz, .csv, .bvh" in err and not out.exists()
+
+
+def test_readme_export_snippet_runs_as_written(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each `repnet` line of README's export block, run in a folder holding clip.json (a tracked clip)."""
+    import shlex
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    block = (
+        readme.split("### Where the person stands, and export", 1)[1].split("```bash\n", 1)[1].split("```")[0]
+    )
+    lines = [shlex.split(line, comments=True) for line in block.splitlines() if line.startswith("repnet ")]
+    assert len(lines) == 5
+    monkeypatch.chdir(tmp_path)
+    _clip(tmp_path, frames=6)
+    for argv in lines:
+        assert main(argv[1:]) == EXIT_OK, argv
+    for name in ("out.json", "clip.bvh", "clip.csv", "clip.npz", "walk.gif"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert all(
+        p["root_height_source"] == "given" for p in json.loads((tmp_path / "out.json").read_text())["poses"]
+    )
