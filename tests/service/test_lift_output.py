@@ -156,3 +156,19 @@ def test_readme_export_snippet_runs_as_written(tmp_path: Path, monkeypatch: pyte
     assert all(
         p["root_height_source"] == "given" for p in json.loads((tmp_path / "out.json").read_text())["poses"]
     )
+
+
+def test_a_frame_without_the_person_repeats_the_pose_before_it() -> None:
+    from service.lift_output import person_positions
+    from service.lift_result import LiftResult
+
+    def result(shift: float) -> LiftResult:
+        pose = np.asarray(POSE_3D, np.float32) + [shift, 0.0, 0.0]
+        flags, eye = np.zeros(17, bool), np.eye(3, dtype=np.float32)
+        flat = np.zeros((17, 2), np.float32)
+        return LiftResult(pose, pose, eye[:2], 1.0, eye, flat, 0.0, flags, flags, flags, MODEL_JOINTS, "m")
+
+    positions = person_positions([result(0.0), result(100.0), result(300.0)], np.array([4, 5, 7]))
+    assert positions.shape == (4, 17, 3)  # frames 4 to 7
+    np.testing.assert_allclose(positions[2], positions[1])  # frame 6 missing: frame 5's pose
+    np.testing.assert_allclose(positions[3, :, 0] - positions[0, :, 0], 0.3)  # m, x kept in BVH axes
