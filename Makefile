@@ -32,9 +32,10 @@ $(VENV)/bin/python:
 	$(PYTHON3) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian, apt-get install python3-venv"; exit 1; }
 	$(PY) -m pip install --upgrade pip
 
+# The service and the `repnet` command with its `cli` extra (progress bars, `repnet plot`).
 $(STAMP_DIR)/.serve-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/python)
 	@mkdir -p $(STAMP_DIR)
-	$(PY) -m pip install $(PIP_ARGS) -e .
+	$(PY) -m pip install $(PIP_ARGS) -e '.[cli]'
 	@touch $@
 
 $(STAMP_DIR)/.test-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/python)

@@ -29,6 +29,7 @@ from service.client import DEFAULT_URL, LiftClientError
 from service.errors import ModelLoadError, echo
 from service.formats import FORMATS, MODEL_PARENTS, alias_of, format_table, hint_for
 from service.lift_body import Intrinsics
+from service.lift_output import WRITERS, Lifted, check_output, write_output
 from service.pose_file import InputFileError, Poses, load_poses, read_input
 
 MAX_FPS = 240.0  # as the service takes (tracks.MAX_FPS)
@@ -80,6 +81,8 @@ def _intrinsics(text: str) -> Intrinsics:
 
 
 def run_lift(args: argparse.Namespace) -> int:
+    if args.output is not None:
+        check_output(args.output)
     size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
     poses = read_input(args.input, lambda files: _progress(files, "file"), size)
     fmt = args.format or poses.format or "h36m17"
@@ -99,8 +102,9 @@ def run_lift(args: argparse.Namespace) -> int:
     try:
         lifter = local_lifter(args.model, args.batch_size) if remote is None else remote
         choice = choose(poses, args.temporal, args.fps, lifter.temporal_modes, say)
+        ids = tracks_of(poses, choice)
         batch = batch_of(
-            poses, fmt, args.confidence_threshold, args.intrinsics, choice, tracks_of(poses, choice)
+            poses, fmt, args.confidence_threshold, args.intrinsics, choice, ids, args.person_height
         )
         bar = progress_bar(len(poses.points), "pose")
         try:
@@ -115,14 +119,14 @@ def run_lift(args: argparse.Namespace) -> int:
            "input_joints": list(FORMATS[fmt].joint_names), "joints": list(results[0].joints),
            "parents": list(MODEL_PARENTS), "poses": output_rows(results, poses)}  # fmt: skip
     warn_about(results, poses)
-    text = json.dumps(out, allow_nan=False)
     n, frames = len(results), poses.frame_count
     if args.output is None:
-        print(text)
+        print(json.dumps(out, allow_nan=False))
     else:
-        args.output.write_text(text)
+        written = write_output(args.output, Lifted(out, results, poses))
         tracks = "" if choice.temporal == "off" else f", temporal {choice.temporal} at {choice.fps:g} fps"
-        say(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}{tracks}) -> {args.output}")
+        files = ", ".join(map(str, written))
+        say(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}{tracks}) -> {files}")
     return EXIT_OK
 
 
@@ -214,8 +218,11 @@ def build_parser() -> argparse.ArgumentParser:
         type=_intrinsics,
         metavar="FX,FY,CX,CY",
         help="the camera's focal lengths and principal point in px, if known: pose_3d_camera "
-        "is then turned along the ray to the person",
+        "is then turned along the ray to the person, and root_camera_m gives where the person stands",
     )
+    lift.add_argument("--person-height", type=float, metavar="METRES",
+                      help="the person's skeleton height (head top to ankle, about stature - 0.1 m): sets "
+                      "root_camera_m's depth (default: the model's template size)")  # fmt: skip
     lift.add_argument("--temporal", choices=["off", "causal", "offline"],
                       help="how a sequence's tracked people are lifted: off, each pose alone; causal, from "
                       "its track's frames up to it; offline, from the frames around it (default: offline "
@@ -232,7 +239,10 @@ def build_parser() -> argparse.ArgumentParser:
     lift.add_argument(
         "--ca-file", type=Path, help="PEM CA certificates of an https:// --url (default: the system's)"
     )
-    lift.add_argument("-o", "--output", type=Path, help="output .json (default: stdout)")
+    lift.add_argument("-o", "--output", type=Path,
+                      help=f"output file by its suffix ({', '.join(WRITERS)}; default: JSON on stdout): .npz "
+                      "arrays named as the reply's fields, .csv a row per pose per joint, .bvh a skeleton "
+                      "animation per person (file.track-ID.bvh when several)")  # fmt: skip
     plot = sub.add_parser("plot", help="draw a lift output: 2D input with reprojection, 3D from two sides")
     plot.add_argument("input", type=Path, help="output .json of `repnet lift`")
     plot.add_argument("-o", "--output", type=Path, required=True,
@@ -277,8 +287,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
     except ImportError as err:
-        print(f"repnet: error: {err.name or err} is needed: pip install 'repnet[cli]'", file=sys.stderr)
+        print(f"repnet: error: {err.name or err} is needed: {install_hint()}", file=sys.stderr)
         return EXIT_USAGE
+
+
+def install_hint() -> str:
+    """How to install the `cli` extra (matplotlib, tqdm) into this interpreter: from the checkout this
+    package runs from (`make serve` installs it too), else from a repnet wheel or source tree."""
+    root = Path(__file__).resolve().parent.parent
+    pip = f"{sys.executable} -m pip install"
+    if (root / "pyproject.toml").is_file():
+        return f"{pip} -e '{root}[cli]' (the checkout's `make serve` and `make test` install it too)"
+    return f"{pip} 'repnet-wheel-or-source-folder[cli]' (the `cli` extra of repnet)"
 
 
 if __name__ == "__main__":

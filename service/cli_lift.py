@@ -57,7 +57,7 @@ class RemoteLifter:
         return self.client.lift_batch(batch.points, format=batch.format, confidence=batch.conf,
                                       confidence_threshold=batch.threshold, intrinsics=batch.intrinsics,
                                       temporal=t.temporal, fps=t.fps, track_ids=t.track_ids, frames=t.frames,
-                                      progress=progress)  # fmt: skip
+                                      progress=progress, person_height_m=batch.person_height_m)  # fmt: skip
 
     def close(self) -> None:
         """Close the client's connections."""
@@ -111,11 +111,12 @@ def tracks_of(poses: Poses, choice: Choice) -> tuple[str | None, ...] | None:
 
 
 def batch_of(poses: Poses, fmt: str, threshold: float | None, intrinsics: Intrinsics | None,
-             choice: Choice, tracks: tuple[str | None, ...] | None) -> Batch:  # fmt: skip
+             choice: Choice, tracks: tuple[str | None, ...] | None,
+             person_height_m: float | None = None) -> Batch:  # fmt: skip
     """What is sent: the poses with their tracks and frame numbers."""
     frames = None if tracks is None else poses.frame.astype(np.int64)
     tracking = Tracking.of(len(poses.points), choice.temporal, choice.fps, tracks, frames)
-    return Batch(poses.points, poses.confidence, fmt, threshold, intrinsics, tracking)
+    return Batch(poses.points, poses.confidence, fmt, threshold, intrinsics, tracking, person_height_m)
 
 
 def result_json(result: LiftResult, points: np.ndarray, conf: np.ndarray | None) -> dict[str, Any]:

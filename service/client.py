@@ -60,11 +60,12 @@ class _HttpBase:
     def _batch(self, keypoints: ArrayLike, format: str, confidence: ArrayLike | None,
                confidence_threshold: float | None, intrinsics: Sequence[float] | None, temporal: str,
                fps: float | None, track_ids: Sequence[str | None] | None,
-               frames: ArrayLike | None) -> Batch:  # fmt: skip
+               frames: ArrayLike | None, person_height_m: float | None = None) -> Batch:  # fmt: skip
         points, conf = as_poses(keypoints, confidence)
         try:
             tracking = Tracking.of(len(points), temporal, fps, track_ids, frames)
-            return Batch(points, conf, format, confidence_threshold, as_intrinsics(intrinsics), tracking)
+            return Batch(points, conf, format, confidence_threshold, as_intrinsics(intrinsics), tracking,
+                         person_height_m)  # fmt: skip
         except (ValueError, TypeError) as err:  # raised before any request: as the service would
             raise LiftInputError("arguments", str(err)) from err
 
@@ -141,20 +142,22 @@ class LiftClient(_HttpBase):
             return err
 
     def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
-             confidence_threshold: float | None = None,
-             intrinsics: Sequence[float] | None = None) -> LiftResult:  # fmt: skip
+             confidence_threshold: float | None = None, intrinsics: Sequence[float] | None = None,
+             person_height_m: float | None = None) -> LiftResult:  # fmt: skip
         """Lift one (J, 2) pose; NaN marks a missing joint, `confidence` is (J,) in [0, 1];
-        `intrinsics` (fx, fy, cx, cy) px, if known, turn pose_3d_camera along the ray to the person."""
+        `intrinsics` (fx, fy, cx, cy) px, if known, turn pose_3d_camera along the ray to the person
+        and give root_camera_m, its depth from `person_height_m` (skeleton height, m) if given."""
         conf = None if confidence is None else np.asarray(confidence)[None]
         return self.lift_batch(np.asarray(keypoints)[None], format=format, confidence=conf,
-                               confidence_threshold=confidence_threshold,
-                               intrinsics=intrinsics)[0]  # fmt: skip
+                               confidence_threshold=confidence_threshold, intrinsics=intrinsics,
+                               person_height_m=person_height_m)[0]  # fmt: skip
 
     def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
                    confidence_threshold: float | None = None, intrinsics: Sequence[float] | None = None,
                    temporal: str = "off", fps: float | None = None,
                    track_ids: Sequence[str | None] | None = None, frames: ArrayLike | None = None,
-                   progress: Progress | None = None) -> list[LiftResult]:  # fmt: skip
+                   progress: Progress | None = None,
+                   person_height_m: float | None = None) -> list[LiftResult]:  # fmt: skip
         """Lift (N, J, 2) poses in requests of at most `batch_size`; results in input order.
 
         temporal -- "off" (each pose alone), "causal" or "offline": each tracked pose is lifted from
@@ -165,7 +168,7 @@ class LiftClient(_HttpBase):
         progress(n) -- told after each request how many poses it answered.
         """
         batch = self._batch(keypoints, format, confidence, confidence_threshold, intrinsics, temporal, fps,
-                            track_ids, frames)  # fmt: skip
+                            track_ids, frames, person_height_m)  # fmt: skip
         parts = self._parts(batch, None if temporal == "off" else self.model())
 
         def lift(part: Part) -> list[LiftResult]:
@@ -229,25 +232,25 @@ class AsyncLiftClient(_HttpBase):
             return err
 
     async def lift(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
-                   confidence_threshold: float | None = None,
-                   intrinsics: Sequence[float] | None = None) -> LiftResult:  # fmt: skip
+                   confidence_threshold: float | None = None, intrinsics: Sequence[float] | None = None,
+                   person_height_m: float | None = None) -> LiftResult:  # fmt: skip
         """Lift one (J, 2) pose; see LiftClient.lift."""
         conf = None if confidence is None else np.asarray(confidence)[None]
         results = await self.lift_batch(np.asarray(keypoints)[None], format=format, confidence=conf,
-                                        confidence_threshold=confidence_threshold,
-                                        intrinsics=intrinsics)  # fmt: skip
+                                        confidence_threshold=confidence_threshold, intrinsics=intrinsics,
+                                        person_height_m=person_height_m)  # fmt: skip
         return results[0]
 
     async def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17",
                          confidence: ArrayLike | None = None, confidence_threshold: float | None = None,
                          intrinsics: Sequence[float] | None = None, temporal: str = "off",
                          fps: float | None = None, track_ids: Sequence[str | None] | None = None,
-                         frames: ArrayLike | None = None,
-                         progress: Progress | None = None) -> list[LiftResult]:  # fmt: skip
+                         frames: ArrayLike | None = None, progress: Progress | None = None,
+                         person_height_m: float | None = None) -> list[LiftResult]:  # fmt: skip
         """Lift (N, J, 2) poses in requests of at most `batch_size`, `max_concurrency` at a time;
         temporal clips as LiftClient.lift_batch sends them."""
         batch = self._batch(keypoints, format, confidence, confidence_threshold, intrinsics, temporal, fps,
-                            track_ids, frames)  # fmt: skip
+                            track_ids, frames, person_height_m)  # fmt: skip
         parts = self._parts(batch, None if temporal == "off" else await self.model())
         slots = asyncio.Semaphore(self.max_concurrency)
 

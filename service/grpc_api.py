@@ -188,8 +188,9 @@ class PoseLifterServicer:
             raise InvalidKeypoints(found)
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
         poses, fmt = request.poses, request.format or DEFAULT_FORMAT
+        height = request.person_height_m if request.HasField("person_height_m") else None
         return prepare_request(
-            len(poses), lambda i: to_pose_input(poses[i], fmt, default, size), threshold, self.limits
+            len(poses), lambda i: to_pose_input(poses[i], fmt, default, size, height), threshold, self.limits
         )
 
     async def LiftStream(

@@ -60,10 +60,11 @@ def to_pose_input(
     default_format: str,
     default_intrinsics: lifter_pb2.CameraIntrinsics | None,
     default_size: lifter_pb2.ImageSize | None = None,
+    default_height: float | None = None,
 ) -> PoseInput:
     """A proto pose in its wire-independent form, float32 as the wire carries it; InvalidKeypoints
-    (named within the pose) on a bad layout. default_intrinsics, default_size: those of a pose
-    without its own. Normalised keypoints are multiplied by the image size, as over HTTP."""
+    (named within the pose) on a bad layout. default_intrinsics, default_size, default_height: those
+    of a pose without its own. Normalised keypoints are multiplied by the image size, as over HTTP."""
     if found := _structure_violations(pose):
         raise InvalidKeypoints(found)
     points = np.array(pose.keypoints, dtype=np.float32).reshape(-1, 2)
@@ -74,4 +75,6 @@ def to_pose_input(
     confidence = np.array(pose.confidence, dtype=np.float32) if pose.confidence else None
     camera = pose.intrinsics if pose.HasField("intrinsics") else default_intrinsics
     intrinsics = None if camera is None else (camera.fx, camera.fy, camera.cx, camera.cy)
-    return PoseInput(points, present, confidence, pose.format or default_format, intrinsics)
+    height = pose.person_height_m if pose.HasField("person_height_m") else default_height
+    fmt = pose.format or default_format
+    return PoseInput(points, present, confidence, fmt, intrinsics, person_height_m=height)

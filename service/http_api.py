@@ -89,6 +89,7 @@ def to_pose_input(pose: PoseIn, request: LiftRequest, index: int) -> PoseInput:
     size = pose.image_size or request.image_size
     camera = pose.intrinsics or request.intrinsics
     intrinsics = None if camera is None else (*camera.focal_px, *camera.principal_point_px)
+    height = request.person_height_m if pose.person_height_m is None else pose.person_height_m
     width = next((len(p) for p in pose.keypoints if p is not None), 2)  # every row has it (PoseIn)
     present = np.array([p is not None for p in pose.keypoints], dtype=bool)
     blank = (np.nan,) * width
@@ -96,13 +97,13 @@ def to_pose_input(pose: PoseIn, request: LiftRequest, index: int) -> PoseInput:
     rows = rows.reshape(-1, width)  # (K, width)
     confidence = None if pose.confidence is None else np.array(pose.confidence, dtype=np.float64)
     if width == 2 and size is None:
-        return PoseInput(rows, present, confidence, fmt, intrinsics)
+        return PoseInput(rows, present, confidence, fmt, intrinsics, person_height_m=height)
     if found := _layout_violations(pose, width, fmt, size, index):
         raise InvalidKeypoints(found)
     points = rows[:, :2] if size is None else rows[:, :2] * np.asarray(size)  # (K, 2) px
     if width >= 3:  # a missing joint's confidence is never read: 0 keeps the range check quiet
         confidence = np.where(present, rows[:, width - 1], 0.0)
-    return PoseInput(points, present, confidence, fmt, intrinsics)
+    return PoseInput(points, present, confidence, fmt, intrinsics, person_height_m=height)
 
 
 class LiftJSONResponse(JSONResponse):

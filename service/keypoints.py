@@ -21,7 +21,7 @@ from service.formats import (
     nose_height,
     to_model_joints,
 )
-from service.geometry import BoolArray, FloatArray, visible_stats
+from service.geometry import BoolArray, FloatArray, height_problem, visible_stats
 
 DEFAULT_FORMAT = "h36m17"
 # Below this spread (px) the visible joints count as one point: the input cannot be normalised.
@@ -53,6 +53,9 @@ class PoseInput:
     # The pose's own confidence threshold, checked by check_threshold (a stream frame has one);
     # None: the request's, else the server default.
     confidence_threshold: float | None = None
+    # The person's skeleton height in metres (geometry.skeleton_height), if known: sets the depth of
+    # root_camera_m; None: the answer's own size (the model's template) is used.
+    person_height_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,7 @@ class ModelInput:
     nose_height: npt.NDArray[np.float32]  # (N,) formats.nose_height of its 17 input joints, or NaN
     intrinsics: FloatArray  # (N, 4) fx, fy, cx, cy px of the pose's camera; NaN where not given
     zeroed: npt.NDArray[np.int16]  # (N,) joints at exactly (0, 0) without confidence, read as missing
+    person_height_m: FloatArray  # (N,) the person's skeleton height in m; NaN where not given
 
     def __len__(self) -> int:
         return int(self.keypoints_2d.shape[0])
@@ -151,6 +155,8 @@ def _shape_violations(pose: PoseInput, i: int) -> list[Violation]:
     if pose.confidence is not None and pose.confidence.shape[0] != joints:
         reason = f"expected {joints} values (one per joint of {fmt.name}), got {pose.confidence.shape[0]}"
         return [Violation("confidence", reason, "confidence_count", pose=i)]
+    if pose.person_height_m is not None and (problem := height_problem(pose.person_height_m)):
+        return [Violation("person_height_m", problem, "person_height", pose=i)]
     return []
 
 
@@ -314,7 +320,8 @@ def prepare_poses(poses: Sequence[PoseInput], limits: Limits, threshold: float |
     rows, (points, visible, derived, imputed, format_index, height, zeroed) = _join(parts)
     camera = np.array([poses[i].intrinsics or (np.nan,) * 4 for i in rows.tolist()], np.float32)
     camera = camera.reshape(len(rows), 4)
-    inputs = ModelInput(points, visible, derived, imputed, format_index, height, camera, zeroed)
+    sizes = np.array([poses[i].person_height_m or np.nan for i in rows.tolist()], np.float32)
+    inputs = ModelInput(points, visible, derived, imputed, format_index, height, camera, zeroed, sizes)
     return Prepared(inputs, tuple(tuple(sorted(f, key=lambda v: v.joint or -1)) for f in found))
 
 

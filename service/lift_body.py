@@ -76,10 +76,11 @@ def pose_item(points: np.ndarray, conf: np.ndarray | None) -> dict[str, Any]:
 
 def build_request(points: np.ndarray, conf: np.ndarray | None, format: str,
                   confidence_threshold: float | None = None, intrinsics: Sequence[float] | None = None,
-                  tracking: Tracking | None = None,
-                  send: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
+                  tracking: Tracking | None = None, send: np.ndarray | None = None,
+                  person_height_m: float | None = None) -> dict[str, Any]:  # fmt: skip
     """The POST /lift body for (N, J, 2) points (those at `send` of them, when given).
-    intrinsics: (fx, fy, cx, cy) px of the camera, for every pose of the body."""
+    intrinsics: (fx, fy, cx, cy) px of the camera, for every pose of the body; person_height_m: the
+    person's skeleton height in metres, for every pose."""
     rows = np.arange(len(points)) if send is None else send
     poses = []
     for i in rows.tolist():
@@ -91,6 +92,8 @@ def build_request(points: np.ndarray, conf: np.ndarray | None, format: str,
     if intrinsics is not None:
         fx, fy, cx, cy = (float(v) for v in intrinsics)
         body["intrinsics"] = {"focal_px": [fx, fy], "principal_point_px": [cx, cy]}
+    if person_height_m is not None:
+        body["person_height_m"] = float(person_height_m)
     return body if tracking is None else {**body, **tracking.extra()}
 
 
@@ -104,11 +107,12 @@ class Batch:
     threshold: float | None
     intrinsics: Intrinsics | None  # (fx, fy, cx, cy) px
     tracking: Tracking
+    person_height_m: float | None = None  # the person's skeleton height, m
 
     def body(self, part: Part) -> dict[str, Any]:
         """The POST /lift body of the poses of `part`."""
         return build_request(self.points, self.conf, self.format, self.threshold, self.intrinsics,
-                             self.tracking, part.send)  # fmt: skip
+                             self.tracking, part.send, self.person_height_m)  # fmt: skip
 
 
 def as_intrinsics(values: Sequence[float] | None) -> Intrinsics | None:

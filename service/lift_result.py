@@ -77,6 +77,8 @@ class LiftResult:
     warnings: tuple[str, ...] = ()  # why the answer may be wrong, e.g. the format looks mistaken
     temporal: bool = False  # a temporal model answered (a tracked pose)
     track_id: str | None = None  # the pose's track; None for an untracked pose
+    root_camera_m: FloatArray | None = None  # (3,) m, the root in the camera frame; None without intrinsics
+    root_height_source: str | None = None  # "given" or "template": whose size set the root's depth
 
     @classmethod
     def pose_fields(cls) -> tuple[str, ...]:
@@ -94,11 +96,14 @@ class LiftResult:
         except KeyError:  # a server from before the field: the same as a model without the output
             plausibility = None
         warnings, temporal, track_id = (_optional(get, name) for name in ("warnings", "temporal", "track_id"))
+        root, source = _optional(get, "root_camera_m"), _optional(get, "root_height_source")
         return cls(**arrays, **flags, scale=float(get("scale")), joints=tuple(joints), model_id=model_id,
                    reprojection_error_px=float(get("reprojection_error_px")),
                    plausibility=None if plausibility is None else float(plausibility),
                    warnings=tuple(str(w) for w in warnings or ()), temporal=bool(temporal),
-                   track_id=str(track_id) if track_id else None)  # fmt: skip
+                   track_id=str(track_id) if track_id else None,
+                   root_camera_m=np.asarray(root, np.float32).reshape(3) if root else None,
+                   root_height_source=str(source) if source else None)  # fmt: skip
 
 
 def _optional(get: Callable[[str], Any], name: str) -> Any:

@@ -71,7 +71,8 @@ class LocalLifter:
         """One request of the poses at `send`, answered as the HTTP adapter answers it."""
         points, conf, tracking = batch.points, batch.conf, batch.tracking
         poses = [PoseInput(points[i], ~np.isnan(points[i]).any(axis=1), None if conf is None else conf[i],
-                           batch.format, batch.intrinsics) for i in send.tolist()]  # fmt: skip
+                           batch.format, batch.intrinsics, person_height_m=batch.person_height_m)
+                 for i in send.tolist()]  # fmt: skip
         ids = None if tracking.track_ids is None else [tracking.track_ids[i] for i in send.tolist()]
         frames = None if tracking.frames is None else tracking.frames[send]
         temporal = self.temporal.get(tracking.temporal)

@@ -22,6 +22,7 @@ ASSETS = {
     "lift.js": "text/javascript; charset=utf-8",
     "track.js": "text/javascript; charset=utf-8",
     "view.js": "text/javascript; charset=utf-8",
+    "trajectory.js": "text/javascript; charset=utf-8",
     "examples.json": "application/json",
     "icon.svg": "image/svg+xml",
 }

@@ -47,6 +47,10 @@ FIELDS: tuple[ReplyField, ...] = (
     ReplyField("warnings", (ANY,), str),  # why the answer may be wrong (service.lookalike)
     ReplyField("temporal", (), bool),  # a temporal model answered (a tracked pose)
     ReplyField("track_id", (), str, optional=True),  # the pose's track; absent for an untracked pose
+    # m, the root (pelvis) in the camera frame; absent without intrinsics (a list per pose, or None)
+    ReplyField("root_camera_m", (3,), float, optional=True),
+    # "given" (the request's person_height_m) or "template" (the answer's own size); absent with the root
+    ReplyField("root_height_source", (), str, optional=True),
 )
 NAMES: tuple[str, ...] = tuple(f.name for f in FIELDS)
 
@@ -155,6 +159,7 @@ def build_replies(
         "warnings": _warnings(inputs, error, prediction.plausibility),
         "temporal": np.isin(np.arange(len(inputs)), temporal.rows),
         "track_id": [None] * len(inputs) if track_ids is None else list(track_ids),
+        **root_columns(inputs, pose_3d_camera),
     }
     return Replies(columns, failed | non_finite_rows(rotation, reprojection, error))
 
@@ -181,3 +186,27 @@ def camera_orientation(inputs: ModelInput, rotation: FloatArray) -> FloatArray:
     turned: FloatArray = rotation.copy()
     turned[given] = ray @ rotation[given]
     return turned
+
+
+def root_columns(inputs: ModelInput, pose_3d_camera: FloatArray) -> dict[str, list[Any]]:
+    """root_camera_m and root_height_source of each pose: None without intrinsics (or where the root
+    cannot be placed in front of the camera). The answer is scaled to the person's given skeleton
+    height, else kept at its own (the template's) size, then placed by geometry.root_translation."""
+    n = len(inputs)
+    roots: list[Any] = [None] * n
+    sources: list[Any] = [None] * n
+    given = np.flatnonzero(~np.isnan(inputs.intrinsics[:, 0]))
+    if not len(given):
+        return {"root_camera_m": roots, "root_height_source": sources}
+    pose = pose_3d_camera[given].astype(np.float64)  # (n, J, 3) mm
+    height_mm = 1000.0 * inputs.person_height_m[given].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        size = np.where(np.isnan(height_mm), 1.0, height_mm / geometry.skeleton_height(pose))
+        points, visible, camera = inputs.keypoints_2d[given], inputs.visible[given], inputs.intrinsics[given]
+        root = geometry.root_translation(points, visible, size[:, None, None] * pose, camera)
+    placed = np.isfinite(root).all(axis=1) & (root[:, 2] > 0)
+    for k, i in enumerate(given.tolist()):
+        if placed[k]:
+            roots[i] = (root[k] / 1000.0).tolist()
+            sources[i] = "template" if np.isnan(height_mm[k]) else "given"
+    return {"root_camera_m": roots, "root_height_source": sources}

@@ -96,6 +96,12 @@ INTRINSICS_DOC = (
     "S9/S11 the bundled model's P-I is 58.9 mm with them and 72.8 mm without, docs/RESULTS.md)."
 )
 
+HEIGHT_DOC = (
+    "The person's skeleton height in metres, in [0.5, 2.5]: head top to ankle along the bones (about "
+    "stature minus 0.1 m). With `intrinsics`, `root_camera_m` takes its depth from it; without it, "
+    "from the answer's own (template) size (`root_height_source`)."
+)
+
 
 class PoseIn(BaseModel):
     """One 2D pose from a detector."""
@@ -130,6 +136,7 @@ class PoseIn(BaseModel):
     intrinsics: CameraIntrinsics | None = Field(
         None, description=INTRINSICS_DOC + " Defaults to the request's `intrinsics`."
     )
+    person_height_m: Number | None = Field(None, description=HEIGHT_DOC + " Defaults to the request's.")
     track_id: Annotated[str, Strict(), Field(min_length=1, max_length=MAX_TRACK_ID)] | None = Field(
         None,
         description="The person this pose belongs to: with `temporal` causal or offline, the poses of one "
@@ -208,6 +215,9 @@ class LiftRequest(BaseModel):
     intrinsics: CameraIntrinsics | None = Field(
         None, description="`intrinsics` of poses that do not give their own. " + INTRINSICS_DOC
     )
+    person_height_m: Number | None = Field(
+        None, description="`person_height_m` of poses that do not give their own. " + HEIGHT_DOC
+    )
     temporal: Literal["off", "causal", "offline"] = Field(
         "off",
         description="How tracked poses (with `track_id` and `frame`) are lifted: off, each alone; causal, "
@@ -272,6 +282,17 @@ class PoseResult(BaseModel):
         "the track's bone lengths, and `pose_3d` that pose turned back by `rotation`."
     )
     track_id: str | None = Field(None, description="The pose's `track_id`, null for an untracked pose.")
+    root_camera_m: list[float] | None = Field(
+        None,
+        description="[x, y, z] of the root (pelvis) in the camera frame, metres (x right, y down, z "
+        "forward); null without `intrinsics`. The answer, at the person's size, placed where it "
+        "reprojects best onto the input through the camera: a trajectory over a clip.",
+    )
+    root_height_source: Literal["given", "template"] | None = Field(
+        None,
+        description='Whose size set `root_camera_m`\'s depth: "given" (`person_height_m`) or "template" '
+        "(the answer's own size); null without `root_camera_m`.",
+    )
 
 
 class LiftResponse(BaseModel):

@@ -76,10 +76,10 @@ def _pose_proto(points: np.ndarray, conf: np.ndarray | None, format: str) -> lif
 
 def proto_field(pose: lifter_pb2.PoseResult) -> Callable[[str], Any]:
     """A field getter of one proto result for LiftResult.from_fields; an unset optional field
-    (plausibility, track_id) is None."""
+    (plausibility, track_id, root_height_source) is None; an empty root_camera_m is read as None."""
 
     def get(name: str) -> Any:
-        if name in ("plausibility", "track_id") and not pose.HasField(name):
+        if name in ("plausibility", "track_id", "root_height_source") and not pose.HasField(name):
             return None
         return getattr(pose, name)
 
@@ -87,8 +87,9 @@ def proto_field(pose: lifter_pb2.PoseResult) -> Callable[[str], Any]:
 
 
 def _frame_message(i: int, frame: ArrayLike | Frame, format: str, threshold: float | None,
-                   fps: float | None) -> lifter_pb2.LiftFrame:  # fmt: skip
-    """The LiftFrame of frame i of a stream; ValueError on keypoints of the wrong shape."""
+                   fps: float | None, camera: Camera = None) -> lifter_pb2.LiftFrame:  # fmt: skip
+    """The LiftFrame of frame i of a stream, every pose with `camera`'s intrinsics and height; ValueError
+    on keypoints of the wrong shape."""
     f = frame if isinstance(frame, Frame) else Frame(frame)
     message = lifter_pb2.LiftFrame(frame_id=i if f.frame_id is None else f.frame_id, track_id=f.track_id,
                                    confidence_threshold=threshold)  # fmt: skip
@@ -98,12 +99,28 @@ def _frame_message(i: int, frame: ArrayLike | Frame, format: str, threshold: flo
     if f.people:
         for person in f.people:
             pose = _pose_proto(*_one_pose(person.keypoints, person.confidence), person.format or format)
-            message.people.add(track_id=person.track_id, pose=pose)
+            message.people.add(track_id=person.track_id, pose=_placed(pose, camera))
     elif f.keypoints is not None:
-        message.pose.CopyFrom(_pose_proto(*_one_pose(f.keypoints, f.confidence), f.format or format))
+        pose = _pose_proto(*_one_pose(f.keypoints, f.confidence), f.format or format)
+        message.pose.CopyFrom(_placed(pose, camera))
     else:
         raise ValueError("a frame needs keypoints or people")
     return message
+
+
+# A stream's camera: (fx, fy, cx, cy) px or None, and the person's skeleton height in m or None.
+Camera = tuple[Sequence[float] | None, float | None] | None
+
+
+def _placed(pose: lifter_pb2.Pose2D, camera: Camera) -> lifter_pb2.Pose2D:
+    """`pose` with the camera's intrinsics and the person's height, where given (root_camera_m)."""
+    intrinsics, height = camera or (None, None)
+    if intrinsics is not None:
+        fx, fy, cx, cy = (float(v) for v in intrinsics)
+        pose.intrinsics.CopyFrom(lifter_pb2.CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy))
+    if height is not None:
+        pose.person_height_m = float(height)
+    return pose
 
 
 def _one_pose(keypoints: ArrayLike, confidence: ArrayLike | None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -181,15 +198,17 @@ class StreamClient:
         self._channel.close()
 
     def stream(self, frames: Iterable[ArrayLike | Frame], *, format: str = "h36m17",
-               confidence_threshold: float | None = None,
-               fps: float | None = None) -> Generator[FrameResult, None, None]:  # fmt: skip
+               confidence_threshold: float | None = None, fps: float | None = None,
+               intrinsics: Sequence[float] | None = None,
+               person_height_m: float | None = None) -> Generator[FrameResult, None, None]:  # fmt: skip
         """Send frames as they come and yield one FrameResult per frame, in order.
 
         A bad frame yields a FrameResult with `error` set (a person's: in `people`); a failed call
         raises LiftClientError, and so does a frame that cannot be sent (after the results of the
         frames before it). `fps`: the frame rate of tracked poses (Frame.track_id, Frame.people)
-        that do not give their own. Frame results carry the model's joint names (LiftFrameResult has
-        none on the wire).
+        that do not give their own. `intrinsics` (fx, fy, cx, cy) px and `person_height_m` go with every
+        pose (root_camera_m). Frame results carry the model's joint names (LiftFrameResult has none on
+        the wire).
         """
         unsent: list[LiftClientError] = []
 
@@ -197,7 +216,9 @@ class StreamClient:
             i = 0
             try:
                 for i, frame in enumerate(frames):
-                    yield _frame_message(i, frame, format, confidence_threshold, fps)
+                    yield _frame_message(
+                        i, frame, format, confidence_threshold, fps, (intrinsics, person_height_m)
+                    )
             except Exception as err:  # gRPC would swallow it on its own thread: raised below
                 unsent.append(LiftClientError(f"frame {i} cannot be sent: {getattr(err, 'message', err)}"))
 
@@ -213,10 +234,14 @@ class StreamClient:
             raise unsent[0]
 
     def lift_batch(self, keypoints: ArrayLike, *, format: str = "h36m17", confidence: ArrayLike | None = None,
-                   confidence_threshold: float | None = None) -> list[LiftResult]:  # fmt: skip
-        """Lift (N, J, 2) poses with the unary Lift, retrying UNAVAILABLE and RESOURCE_EXHAUSTED."""
+                   confidence_threshold: float | None = None, intrinsics: Sequence[float] | None = None,
+                   person_height_m: float | None = None) -> list[LiftResult]:  # fmt: skip
+        """Lift (N, J, 2) poses with the unary Lift, retrying UNAVAILABLE and RESOURCE_EXHAUSTED;
+        `intrinsics` and `person_height_m` as for stream."""
         points, conf = as_poses(keypoints, confidence)
-        poses = [_pose_proto(p, None if conf is None else conf[i], format) for i, p in enumerate(points)]
+        camera = (intrinsics, person_height_m)
+        poses = [_placed(_pose_proto(p, None if conf is None else conf[i], format), camera)
+                 for i, p in enumerate(points)]  # fmt: skip
         request = lifter_pb2.LiftRequest(poses=poses, format=format,
                                          confidence_threshold=confidence_threshold)  # fmt: skip
         for attempt in range(self.retries + 1):

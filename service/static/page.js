@@ -4,12 +4,13 @@
 import { chooseMode, liftRequests } from "./lift.js";
 import { InputError, parseFiles, parseJson, parseText } from "./parse.js";
 import { assignTracks } from "./track.js";
+import { cameraFields, drawTrajectory, rootsOf } from "./trajectory.js";
 import { View3D, draw2d, sideOf } from "./view.js";
 
 const $ = (id) => document.getElementById(id);
-const SLOTS = ["example", "file", "paste", "format", "threshold", "temporal", "rate"];
+const SLOTS = ["example", "file", "paste", "format", "threshold", "temporal", "rate", "intrinsics", "height"];
 const DEFAULT_FPS = 30;  // a sequence's frame rate when neither the input nor the page gives one
-const NUMBERS = ["num-model", "num-scale", "num-rotation", "num-error", "num-plausibility", "num-imputed", "num-derived", "num-track"];
+const NUMBERS = ["num-model", "num-scale", "num-rotation", "num-error", "num-plausibility", "num-imputed", "num-derived", "num-track", "num-root"];
 // poses: what was sent, results: their answers, tracks: each pose's track, frames: the input's frame
 // numbers in order, byFrame: frame number -> its poses, shown: the track the player follows ("": the
 // first person of each frame).
@@ -52,6 +53,8 @@ function slotOf(field, source) {
   if (field === "confidence_threshold") return "threshold";
   if (field === "temporal") return "temporal";
   if (field === "fps") return "rate";
+  if (/(^|\.)intrinsics(\.|$)/.test(field)) return "intrinsics";
+  if (/(^|\.)person_height_m$/.test(field)) return "height";
   return source;
 }
 
@@ -118,6 +121,12 @@ async function lift(parsed, source) {
   clearErrors();
   pause();
   const { poses, extra, mode, fps, tracks, notes } = plan(parsed);
+  const camera = cameraFields($("intrinsics").value, $("height").value);
+  if (camera.error) {
+    addError(camera.error.slot, camera.error.message);
+    return;
+  }
+  Object.assign(extra, camera.extra);
   let batches;
   try {
     batches = parsed.body ? [{ send: [], keep: [], body: JSON.stringify({ ...parsed.body, ...extra }) }]
@@ -243,6 +252,9 @@ function render(index) {
   text("frame-label", `frame ${state.frames[index]} (${index + 1} / ${state.frames.length})`);  // the input's number, as the CLI's
   const { parents } = state.model;
   const sides = state.model.joints.map(sideOf);
+  const roots = rootsOf(state.results, poseAt, state.frames.length);
+  $("trajectory-figure").hidden = !roots.some(Boolean);
+  drawTrajectory($("trajectory"), roots, index);
   if (!result) {
     draw2d($("view2d"), null);
     view3d.setPose(null);
@@ -265,6 +277,9 @@ function render(index) {
   text("num-derived", jointList(result.derived));
   const track = result.track_id === null || result.track_id === undefined ? "none" : result.track_id;
   text("num-track", `${track}, ${result.temporal ? `temporal ${state.temporal}` : "lifted alone"}`);
+  const root = result.root_camera_m;
+  text("num-root", Array.isArray(root) ? `${root.map((v) => v.toFixed(3)).join(", ")} m (height: ${result.root_height_source})`
+    : "— (give the camera intrinsics)");
 }
 
 function step(delta) {
@@ -366,7 +381,7 @@ async function start() {
     $("example").append(option);
   });
   $("example").addEventListener("change", liftExample);
-  for (const id of ["format", "threshold", "temporal", "rate"]) {  // lift the last input again with the new setting
+  for (const id of ["format", "threshold", "temporal", "rate", "intrinsics", "height"]) {  // lift the last input again with the new setting
     $(id).addEventListener("change", () => { if (state.last) lift(state.last.parsed, state.last.source); });
   }
   $("file").addEventListener("change", liftFiles);

@@ -36,7 +36,8 @@ def test_container_test_creates_the_venv_and_runs_the_script_with_its_python(tmp
     venv = tmp_path / "fresh-venv"  # as in a fresh clone: no venv yet
     commands = dry_run(f"VENV={venv}")
     assert any(f"-m venv {venv}" in c for c in commands), commands  # the venv is made first
-    assert any("pip install" in c and "-e ." in c for c in commands), commands  # with the service in it
+    # with the service in it (and the `cli` extra: `repnet plot` works after `make serve`)
+    assert any("pip install" in c and "-e '.[cli]'" in c for c in commands), commands
     assert script_python(commands[-1]) == str(venv / "bin" / "python")
 
 

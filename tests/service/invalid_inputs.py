@@ -78,6 +78,10 @@ CASES = [
          "poses[0].format", "unknown_format", "unknown format 'openpose'", pose=0),
     Case("threshold_out_of_range", {"poses": [good()], "confidence_threshold": 2.0},
          "confidence_threshold", "confidence_range", "in [0, 1], got 2"),
+    Case("person_height_in_mm", {"poses": [good(person_height_m=1750.0)]},
+         "poses[0].person_height_m", "person_height", "got 1750 (millimetres? divide by 1000)", pose=0),
+    Case("request_person_height_too_small", {"poses": [good()], "person_height_m": 0.25},
+         "poses[0].person_height_m", "person_height", "in [0.5, 2.5], got 0.25", pose=0),
 ]  # fmt: skip
 
 
@@ -90,6 +94,7 @@ def to_proto_pose(pose: dict[str, Any]) -> lifter_pb2.Pose2D:
         missing=missing if any(missing) else [],
         confidence=pose.get("confidence") or [],
         format=pose.get("format", ""),
+        person_height_m=pose.get("person_height_m"),
     )
 
 
@@ -97,4 +102,6 @@ def to_proto_request(request: dict[str, Any]) -> lifter_pb2.LiftRequest:
     message = lifter_pb2.LiftRequest(poses=[to_proto_pose(p) for p in request["poses"]])
     if "confidence_threshold" in request:
         message.confidence_threshold = request["confidence_threshold"]
+    if "person_height_m" in request:
+        message.person_height_m = request["person_height_m"]
     return message

@@ -424,3 +424,38 @@ def test_x_y_confidence_arrays_are_sent_as_keypoints_and_confidence_by_every_cli
     for result in (got, frame.result):
         np.testing.assert_allclose(result.pose_3d, want.pose_3d, rtol=1e-5, atol=1e-3)
         np.testing.assert_array_equal(result.visible, want.visible)
+
+
+def test_lift_results_carry_the_root_sync_and_async(live_service: LiveService) -> None:
+    camera = (1145.0, 1145.0, 512.0, 515.0)
+    with LiftClient(live_service.http_url) as client:
+        given = client.lift(POSE_2D, intrinsics=camera, person_height_m=1.7)
+        template = client.lift(POSE_2D, intrinsics=camera)
+        plain = client.lift(POSE_2D)
+    assert given.root_camera_m is not None and given.root_camera_m.shape == (3,)
+    assert (given.root_height_source, template.root_height_source) == ("given", "template")
+    assert plain.root_camera_m is None and plain.root_height_source is None
+    assert (
+        template.root_camera_m is not None and abs(template.root_camera_m[2] - given.root_camera_m[2]) > 0.01
+    )
+
+    async def lift_async() -> LiftResult:
+        async with AsyncLiftClient(live_service.http_url) as client:
+            return await client.lift(POSE_2D, intrinsics=camera, person_height_m=1.7)
+
+    np.testing.assert_allclose(asyncio.run(lift_async()).root_camera_m, given.root_camera_m)
+
+
+def test_stream_client_sends_the_camera_and_height_for_the_root(live_service: LiveService) -> None:
+    camera = (1145.0, 1145.0, 512.0, 515.0)
+    with LiftClient(live_service.http_url) as client:
+        expected = client.lift(POSE_2D, intrinsics=camera, person_height_m=1.7).root_camera_m
+    with StreamClient(live_service.grpc_target, timeout=30) as grpc_client:
+        (unary,) = grpc_client.lift_batch(POSE_2D[None], intrinsics=camera, person_height_m=1.7)
+        (streamed,) = list(grpc_client.stream([POSE_2D], intrinsics=camera, person_height_m=1.7))
+    assert (
+        streamed.result is not None
+        and unary.root_height_source == streamed.result.root_height_source == "given"
+    )
+    for got in (unary.root_camera_m, streamed.result.root_camera_m):
+        np.testing.assert_allclose(got, expected, atol=1e-4)

@@ -312,3 +312,23 @@ def test_image_size_scales_normalised_keypoints_per_pose_or_per_request(stub: St
     err = lift_error(stub, lifter_pb2.LiftRequest(poses=[bad]))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert err.details().startswith("poses[0].image_size.width: must be a finite number of pixels > 0")
+
+
+def test_root_camera_m_and_the_persons_height_like_http(stub: Stub, client: TestClient) -> None:
+    keypoints = (POSE_2D + [400.0, 0.0]).tolist()
+    camera = {"focal_px": [1145.0, 1145.0], "principal_point_px": [512.0, 515.0]}
+    http = client.post("/lift", json={"keypoints": keypoints, "intrinsics": camera, "person_height_m": 1.8})
+    root = http.json()["poses"][0]["root_camera_m"]
+    pose = to_proto_pose({"keypoints": keypoints})
+    by_request = stub.Lift(
+        lifter_pb2.LiftRequest(poses=[pose], intrinsics=_intrinsics(), person_height_m=1.8), timeout=10
+    ).poses[0]
+    pose.person_height_m = 1.8  # the pose's own height wins over the request's
+    by_pose = stub.Lift(
+        lifter_pb2.LiftRequest(poses=[pose], intrinsics=_intrinsics(), person_height_m=0.9), timeout=10
+    ).poses[0]
+    for got in (by_request, by_pose):
+        np.testing.assert_allclose(list(got.root_camera_m), root, atol=1e-4)
+        assert got.root_height_source == "given"
+    plain = stub.Lift(lifter_pb2.LiftRequest(poses=[to_proto_pose({"keypoints": keypoints})]), timeout=10)
+    assert not plain.poses[0].root_camera_m and not plain.poses[0].HasField("root_height_source")

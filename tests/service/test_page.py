@@ -813,3 +813,55 @@ def test_mediapipe_rows_with_a_request_or_a_pose_image_size_are_lifted_and_drawn
         assert drawn[name]["left"]["count"] == pytest.approx(drawn["pixels"]["left"]["count"], rel=0.02)
     x0, y0, x1, y1 = drawn["pixels"]["box"]
     assert x1 - x0 > 100 and y1 - y0 > 100  # a person, not a dot in a corner
+
+
+def test_camera_intrinsics_show_where_the_person_stands_and_the_root_trajectory(
+    driver: Any, page_url: str, tmp_path: Path
+) -> None:
+    """A person walking to the image right: with the intrinsics and a height typed in, each frame shows
+    the API's root_camera_m, and the trajectory seen from above marks the frame's root, which moves
+    right as the player steps; a bad value is named next to its field."""
+    from selenium.webdriver.common.by import By
+
+    paths = []
+    for i in range(8):  # the test pose walking right (detector_pose: body25 at 4.5 m)
+        body = detector_pose("body25", 10.0) + [25.0 * i, 0.0]
+        flat = np.concatenate([body, np.full((len(body), 1), 0.9)], axis=1).ravel().tolist()
+        paths.append(tmp_path / f"walk_{i:012d}_keypoints.json")
+        paths[-1].write_text(json.dumps({"version": 1.3, "people": [{"pose_keypoints_2d": flat}]}))
+    open_page(driver, page_url)
+    driver.execute_script("document.getElementById('intrinsics').value = '1145, 1145, 512, 515';"
+                          "document.getElementById('height').value = '1.7';")  # fmt: skip
+    before = lifts(driver)
+    driver.find_element(By.ID, "file").send_keys("\n".join(str(p) for p in paths))
+    wait_lift(driver, before)
+    assert driver.execute_script("return document.getElementById('trajectory-figure').hidden") is False
+    rows = [
+        np.array(json.loads(p.read_text())["people"][0]["pose_keypoints_2d"]).reshape(-1, 3) for p in paths
+    ]
+    camera = {"focal_px": [1145.0, 1145.0], "principal_point_px": [512.0, 515.0]}
+    poses = [{"keypoints": r[:, :2].tolist(), "confidence": r[:, 2].tolist()} for r in rows]
+    body = {"format": "body25", "intrinsics": camera, "person_height_m": 1.7, "poses": poses}
+    reply = lift_api(page_url, tracked(body, list(range(8)), page_mode(driver), 30.0))
+    markers = []
+    for k in (0, 7):
+        go_to(driver, k)
+        root = reply["poses"][k]["root_camera_m"]
+        assert text_of(driver, "num-root") == f"{', '.join(f'{v:.3f}' for v in root)} m (height: given)"
+        markers.append(pixels(driver, "trajectory")["imputed"])
+        if k == 0:
+            driver.save_screenshot(str(SHOTS / "trajectory.png"))
+    assert markers[0]["count"] > 60 and markers[1]["count"] > 60, markers
+    assert markers[1]["x"] - markers[0]["x"] > 40  # the current root moved right on the top view
+    assert reply["poses"][7]["root_camera_m"][0] - reply["poses"][0]["root_camera_m"][0] > 0.5
+    driver.find_element(By.ID, "trajectory").screenshot(str(SHOTS / "trajectory-top-view.png"))
+    before = lifts(driver)
+    driver.execute_script("const h = document.getElementById('height'); h.value = '1750';"
+                          "h.dispatchEvent(new Event('change'));")  # fmt: skip
+    wait_for(driver, "return document.getElementById('height-error').textContent.length > 0")
+    assert "millimetres? divide by 1000" in text_of(driver, "height-error")
+    driver.execute_script("const i = document.getElementById('intrinsics'); i.value = '1145, 512';"
+                          "i.dispatchEvent(new Event('change'));")  # fmt: skip
+    wait_for(driver, "return document.getElementById('intrinsics-error').textContent.length > 0")
+    assert "expected fx, fy, cx, cy" in text_of(driver, "intrinsics-error") and lifts(driver) == before
+    driver.save_screenshot(str(SHOTS / "trajectory-errors.png"))

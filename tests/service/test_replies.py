@@ -58,7 +58,11 @@ def test_optional_fields_are_the_optional_ones_of_every_carrier() -> None:
         "warnings"  # a list: empty, never absent
     }
     proto = lifter_pb2.PoseResult.DESCRIPTOR.fields_by_name
-    assert optional == {name for name in NAMES if proto[name].has_presence}
+    # a repeated proto field has no presence: an optional vector is unset by being empty
+    vectors = {f.name for f in FIELDS if f.optional and len(f.shape) == 1}
+    assert vectors == {"root_camera_m"}
+    assert optional - vectors == {name for name in NAMES if proto[name].has_presence}
+    assert all(len(getattr(lifter_pb2.PoseResult(), name)) == 0 for name in vectors)  # repeated: empty
 
 
 def test_each_field_has_its_declared_shape_and_kind_per_pose(lifter: Lifter) -> None:
@@ -71,6 +75,9 @@ def test_each_field_has_its_declared_shape_and_kind_per_pose(lifter: Lifter) -> 
             continue
         if field.kind is str:
             assert len(value) == 3 and all(isinstance(w, str) for row in value for w in row), field.name
+            continue
+        if field.optional and isinstance(value, list):  # per pose: a vector of its shape, or None
+            assert len(value) == 3 and all(v is None or np.shape(v) == field.shape for v in value), field.name
             continue
         if value is None:
             assert field.optional, field.name
@@ -128,3 +135,43 @@ def test_replies_refuse_columns_other_than_the_declared_fields() -> None:
 
 def test_a_prediction_is_only_the_models_outputs() -> None:
     assert [f for f in Prediction.__dataclass_fields__] == ["pose_3d", "camera", "failed", "plausibility"]
+
+
+def test_root_camera_m_places_a_known_pose_where_it_stood(lifter: Lifter) -> None:
+    """A pose seen through a pinhole camera at a known root: the answer, scaled to the pose's own
+    skeleton height, is placed near that root; without intrinsics there is no root."""
+    pose = lifter.lift(POSE_2D[None].astype(np.float32), np.ones((1, 17), bool)).pose_3d[0].astype(np.float64)
+    root = np.array([400.0, 250.0, 5200.0])  # mm, off the optical axis
+    world = pose + root  # the model's own answer as the person: its reprojection is the input
+    pixels = world[:, :2] / world[:, 2:] * FOCAL_PX + np.asarray(CENTRE_PX)
+    height = float(geometry.skeleton_height(pose[None])[0]) / 1000.0
+    poses = [
+        PoseInput(pixels, np.ones(17, bool), intrinsics=INTRINSICS),
+        PoseInput(pixels, np.ones(17, bool), intrinsics=INTRINSICS, person_height_m=1.25 * height),
+        PoseInput(pixels, np.ones(17, bool)),
+    ]
+    replies = replies_of(lifter, prepare_poses(poses, limits_of(Settings())).check())
+    rows = replies.to_json()
+    assert [r["root_height_source"] for r in rows] == ["template", "given", None]
+    template, given = np.array(rows[0]["root_camera_m"]), np.array(rows[1]["root_camera_m"])
+    assert np.linalg.norm(template * 1000 - root) < 0.05 * root[2]
+    # a quarter taller than the answer: a quarter farther along the same ray
+    np.testing.assert_allclose(given, 1.25 * template, rtol=1e-3)
+    assert rows[2]["root_camera_m"] is None and not replies.to_proto()[2].root_camera_m
+    assert len(replies.to_proto()[0].root_camera_m) == 3
+
+
+def test_root_translation_inverts_a_pinhole_projection() -> None:
+    rng = np.random.default_rng(0)
+    pose = rng.normal(0, 300, (4, 17, 3))
+    pose -= pose[:, :1]
+    root = np.array([[0, 0, 3000], [-500, 200, 4000], [900, -100, 6000], [10, 10, 2500.0]])
+    world = pose + root[:, None]
+    camera = np.array([[1000.0, 1010.0, 500.0, 480.0]] * 4)
+    pixels = world[..., :2] / world[..., 2:] * camera[:, None, :2] + camera[:, None, 2:]
+    visible = np.ones((4, 17), bool)
+    visible[1, 3:9] = False  # hidden joints are left out
+    pixels[1, 3:9] = np.nan
+    np.testing.assert_allclose(geometry.root_translation(pixels, visible, pose, camera), root, atol=1e-6)
+    visible[2, 1:] = False  # one joint cannot place a root
+    assert np.isnan(geometry.root_translation(pixels, visible, pose, camera)[2]).all()

@@ -290,3 +290,23 @@ def test_a_track_without_frames_is_dropped_while_its_stream_stays_open(temporal:
     results = list(temporal.stub.LiftStream(messages()))
     assert len(results) == 9 and results[8].pose.temporal
     assert open_tracks == [2, 0, 0]
+
+
+def test_temporal_answers_carry_the_root_over_http_and_a_stream(temporal: Temporal) -> None:
+    """With intrinsics (and a height), a tracked clip's temporal answers place each root as single
+    poses do; a stream's frames with the same camera get the same roots as the causal request."""
+    points = clip(20, 2.0)
+    camera = {"focal_px": [1145.0, 1145.0], "principal_point_px": [512.0, 515.0]}
+    http = lift(temporal.client, points, "causal", intrinsics=camera, person_height_m=1.6)
+    assert all(r["temporal"] and r["root_height_source"] == "given" for r in http)
+    roots = np.array([r["root_camera_m"] for r in http])
+    assert (roots[:, 2] > 1.0).all() and np.isfinite(roots).all()
+    sent = frames(points)
+    for frame in sent:
+        frame.pose.intrinsics.CopyFrom(lifter_pb2.CameraIntrinsics(fx=1145.0, fy=1145.0, cx=512.0, cy=515.0))
+        frame.pose.person_height_m = 1.6
+    streamed = list(temporal.stub.LiftStream(iter(sent)))
+    assert all(r.pose.temporal and r.pose.root_height_source == "given" for r in streamed)
+    np.testing.assert_allclose([list(r.pose.root_camera_m) for r in streamed], roots, atol=2e-3)
+    alone = lift(temporal.client, points, "causal")  # no intrinsics: no root
+    assert all(r["root_camera_m"] is None and r["root_height_source"] is None for r in alone)

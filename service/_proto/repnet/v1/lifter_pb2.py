@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16repnet/v1/lifter.proto\x12\trepnet.v1\"\xab\x01\n\x06Pose2D\x12\x11\n\tkeypoints\x18\x01 \x03(\x02\x12\x12\n\nconfidence\x18\x02 \x03(\x02\x12\x0f\n\x07missing\x18\x03 \x03(\x08\x12\x0e\n\x06\x66ormat\x18\x04 \x01(\t\x12/\n\nintrinsics\x18\x05 \x01(\x0b\x32\x1b.repnet.v1.CameraIntrinsics\x12(\n\nimage_size\x18\x06 \x01(\x0b\x32\x14.repnet.v1.ImageSize\"*\n\tImageSize\x12\r\n\x05width\x18\x01 \x01(\x02\x12\x0e\n\x06height\x18\x02 \x01(\x02\"B\n\x10\x43\x61meraIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x02\x12\n\n\x02\x66y\x18\x02 \x01(\x02\x12\n\n\x02\x63x\x18\x03 \x01(\x02\x12\n\n\x02\x63y\x18\x04 \x01(\x02\"\xd6\x01\n\x0bLiftRequest\x12 \n\x05poses\x18\x01 \x03(\x0b\x32\x11.repnet.v1.Pose2D\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x12/\n\nintrinsics\x18\x04 \x01(\x0b\x32\x1b.repnet.v1.CameraIntrinsics\x12(\n\nimage_size\x18\x05 \x01(\x0b\x32\x14.repnet.v1.ImageSizeB\x17\n\x15_confidence_threshold\"\xc2\x02\n\nPoseResult\x12\x0f\n\x07pose_3d\x18\x01 \x03(\x02\x12\x16\n\x0epose_3d_camera\x18\x02 \x03(\x02\x12\x0e\n\x06\x63\x61mera\x18\x03 \x03(\x02\x12\r\n\x05scale\x18\x04 \x01(\x02\x12\x10\n\x08rotation\x18\x05 \x03(\x02\x12\x14\n\x0creprojection\x18\x06 \x03(\x02\x12\x1d\n\x15reprojection_error_px\x18\x07 \x01(\x02\x12\x0f\n\x07visible\x18\x08 \x03(\x08\x12\x0f\n\x07imputed\x18\t \x03(\x08\x12\x0f\n\x07\x64\x65rived\x18\n \x03(\x08\x12\x19\n\x0cplausibility\x18\x0b \x01(\x02H\x00\x88\x01\x01\x12\x10\n\x08warnings\x18\x0c \x03(\t\x12\x10\n\x08temporal\x18\r \x01(\x08\x12\x15\n\x08track_id\x18\x0e \x01(\tH\x01\x88\x01\x01\x42\x0f\n\r_plausibilityB\x0b\n\t_track_id\"V\n\x0cLiftResponse\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0e\n\x06joints\x18\x02 \x03(\t\x12$\n\x05poses\x18\x03 \x03(\x0b\x32\x15.repnet.v1.PoseResult\"\xc1\x01\n\tLiftFrame\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x1f\n\x04pose\x18\x02 \x01(\x0b\x32\x11.repnet.v1.Pose2D\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x12\x10\n\x08track_id\x18\x04 \x01(\t\x12\x0b\n\x03\x66ps\x18\x05 \x01(\x02\x12&\n\x06people\x18\x06 \x03(\x0b\x32\x16.repnet.v1.TrackedPoseB\x17\n\x15_confidence_threshold\"@\n\x0bTrackedPose\x12\x10\n\x08track_id\x18\x01 \x01(\t\x12\x1f\n\x04pose\x18\x02 \x01(\x0b\x32\x11.repnet.v1.Pose2D\"y\n\x0cPersonResult\x12\x10\n\x08track_id\x18\x01 \x01(\t\x12%\n\x04pose\x18\x02 \x01(\x0b\x32\x15.repnet.v1.PoseResultH\x00\x12&\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x15.repnet.v1.FrameErrorH\x00\x42\x08\n\x06result\"o\n\x0e\x46ieldViolation\x12\r\n\x05\x66ield\x18\x01 \x01(\t\x12\x0e\n\x06reason\x18\x02 \x01(\t\x12\x0c\n\x04\x63ode\x18\x03 \x01(\t\x12\x12\n\njoint_name\x18\x04 \x01(\t\x12\x12\n\x05joint\x18\x05 \x01(\x05H\x00\x88\x01\x01\x42\x08\n\x06_joint\"Z\n\nFrameError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12-\n\nviolations\x18\x03 \x03(\x0b\x32\x19.repnet.v1.FieldViolation\"\xb7\x01\n\x0fLiftFrameResult\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12%\n\x04pose\x18\x03 \x01(\x0b\x32\x15.repnet.v1.PoseResultH\x00\x12&\n\x05\x65rror\x18\x04 \x01(\x0b\x32\x15.repnet.v1.FrameErrorH\x00\x12\'\n\x06people\x18\x05 \x03(\x0b\x32\x17.repnet.v1.PersonResultB\x08\n\x06result2\x89\x01\n\nPoseLifter\x12\x37\n\x04Lift\x12\x16.repnet.v1.LiftRequest\x1a\x17.repnet.v1.LiftResponse\x12\x42\n\nLiftStream\x12\x14.repnet.v1.LiftFrame\x1a\x1a.repnet.v1.LiftFrameResult(\x01\x30\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16repnet/v1/lifter.proto\x12\trepnet.v1\"\xdd\x01\n\x06Pose2D\x12\x11\n\tkeypoints\x18\x01 \x03(\x02\x12\x12\n\nconfidence\x18\x02 \x03(\x02\x12\x0f\n\x07missing\x18\x03 \x03(\x08\x12\x0e\n\x06\x66ormat\x18\x04 \x01(\t\x12/\n\nintrinsics\x18\x05 \x01(\x0b\x32\x1b.repnet.v1.CameraIntrinsics\x12(\n\nimage_size\x18\x06 \x01(\x0b\x32\x14.repnet.v1.ImageSize\x12\x1c\n\x0fperson_height_m\x18\n \x01(\x02H\x00\x88\x01\x01\x42\x12\n\x10_person_height_m\"*\n\tImageSize\x12\r\n\x05width\x18\x01 \x01(\x02\x12\x0e\n\x06height\x18\x02 \x01(\x02\"B\n\x10\x43\x61meraIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x02\x12\n\n\x02\x66y\x18\x02 \x01(\x02\x12\n\n\x02\x63x\x18\x03 \x01(\x02\x12\n\n\x02\x63y\x18\x04 \x01(\x02\"\x88\x02\n\x0bLiftRequest\x12 \n\x05poses\x18\x01 \x03(\x0b\x32\x11.repnet.v1.Pose2D\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x12/\n\nintrinsics\x18\x04 \x01(\x0b\x32\x1b.repnet.v1.CameraIntrinsics\x12(\n\nimage_size\x18\x05 \x01(\x0b\x32\x14.repnet.v1.ImageSize\x12\x1c\n\x0fperson_height_m\x18\n \x01(\x02H\x01\x88\x01\x01\x42\x17\n\x15_confidence_thresholdB\x12\n\x10_person_height_m\"\x91\x03\n\nPoseResult\x12\x0f\n\x07pose_3d\x18\x01 \x03(\x02\x12\x16\n\x0epose_3d_camera\x18\x02 \x03(\x02\x12\x0e\n\x06\x63\x61mera\x18\x03 \x03(\x02\x12\r\n\x05scale\x18\x04 \x01(\x02\x12\x10\n\x08rotation\x18\x05 \x03(\x02\x12\x14\n\x0creprojection\x18\x06 \x03(\x02\x12\x1d\n\x15reprojection_error_px\x18\x07 \x01(\x02\x12\x0f\n\x07visible\x18\x08 \x03(\x08\x12\x0f\n\x07imputed\x18\t \x03(\x08\x12\x0f\n\x07\x64\x65rived\x18\n \x03(\x08\x12\x19\n\x0cplausibility\x18\x0b \x01(\x02H\x00\x88\x01\x01\x12\x10\n\x08warnings\x18\x0c \x03(\t\x12\x10\n\x08temporal\x18\r \x01(\x08\x12\x15\n\x08track_id\x18\x0e \x01(\tH\x01\x88\x01\x01\x12\x15\n\rroot_camera_m\x18\x0f \x03(\x02\x12\x1f\n\x12root_height_source\x18\x10 \x01(\tH\x02\x88\x01\x01\x42\x0f\n\r_plausibilityB\x0b\n\t_track_idB\x15\n\x13_root_height_source\"V\n\x0cLiftResponse\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0e\n\x06joints\x18\x02 \x03(\t\x12$\n\x05poses\x18\x03 \x03(\x0b\x32\x15.repnet.v1.PoseResult\"\xc1\x01\n\tLiftFrame\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x1f\n\x04pose\x18\x02 \x01(\x0b\x32\x11.repnet.v1.Pose2D\x12!\n\x14\x63onfidence_threshold\x18\x03 \x01(\x02H\x00\x88\x01\x01\x12\x10\n\x08track_id\x18\x04 \x01(\t\x12\x0b\n\x03\x66ps\x18\x05 \x01(\x02\x12&\n\x06people\x18\x06 \x03(\x0b\x32\x16.repnet.v1.TrackedPoseB\x17\n\x15_confidence_threshold\"@\n\x0bTrackedPose\x12\x10\n\x08track_id\x18\x01 \x01(\t\x12\x1f\n\x04pose\x18\x02 \x01(\x0b\x32\x11.repnet.v1.Pose2D\"y\n\x0cPersonResult\x12\x10\n\x08track_id\x18\x01 \x01(\t\x12%\n\x04pose\x18\x02 \x01(\x0b\x32\x15.repnet.v1.PoseResultH\x00\x12&\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x15.repnet.v1.FrameErrorH\x00\x42\x08\n\x06result\"o\n\x0e\x46ieldViolation\x12\r\n\x05\x66ield\x18\x01 \x01(\t\x12\x0e\n\x06reason\x18\x02 \x01(\t\x12\x0c\n\x04\x63ode\x18\x03 \x01(\t\x12\x12\n\njoint_name\x18\x04 \x01(\t\x12\x12\n\x05joint\x18\x05 \x01(\x05H\x00\x88\x01\x01\x42\x08\n\x06_joint\"Z\n\nFrameError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12-\n\nviolations\x18\x03 \x03(\x0b\x32\x19.repnet.v1.FieldViolation\"\xb7\x01\n\x0fLiftFrameResult\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12%\n\x04pose\x18\x03 \x01(\x0b\x32\x15.repnet.v1.PoseResultH\x00\x12&\n\x05\x65rror\x18\x04 \x01(\x0b\x32\x15.repnet.v1.FrameErrorH\x00\x12\'\n\x06people\x18\x05 \x03(\x0b\x32\x17.repnet.v1.PersonResultB\x08\n\x06result2\x89\x01\n\nPoseLifter\x12\x37\n\x04Lift\x12\x16.repnet.v1.LiftRequest\x1a\x17.repnet.v1.LiftResponse\x12\x42\n\nLiftStream\x12\x14.repnet.v1.LiftFrame\x1a\x1a.repnet.v1.LiftFrameResult(\x01\x30\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,29 +32,29 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'repnet.v1.lifter_pb2', _glo
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_POSE2D']._serialized_start=38
-  _globals['_POSE2D']._serialized_end=209
-  _globals['_IMAGESIZE']._serialized_start=211
-  _globals['_IMAGESIZE']._serialized_end=253
-  _globals['_CAMERAINTRINSICS']._serialized_start=255
-  _globals['_CAMERAINTRINSICS']._serialized_end=321
-  _globals['_LIFTREQUEST']._serialized_start=324
-  _globals['_LIFTREQUEST']._serialized_end=538
-  _globals['_POSERESULT']._serialized_start=541
-  _globals['_POSERESULT']._serialized_end=863
-  _globals['_LIFTRESPONSE']._serialized_start=865
-  _globals['_LIFTRESPONSE']._serialized_end=951
-  _globals['_LIFTFRAME']._serialized_start=954
-  _globals['_LIFTFRAME']._serialized_end=1147
-  _globals['_TRACKEDPOSE']._serialized_start=1149
-  _globals['_TRACKEDPOSE']._serialized_end=1213
-  _globals['_PERSONRESULT']._serialized_start=1215
-  _globals['_PERSONRESULT']._serialized_end=1336
-  _globals['_FIELDVIOLATION']._serialized_start=1338
-  _globals['_FIELDVIOLATION']._serialized_end=1449
-  _globals['_FRAMEERROR']._serialized_start=1451
-  _globals['_FRAMEERROR']._serialized_end=1541
-  _globals['_LIFTFRAMERESULT']._serialized_start=1544
-  _globals['_LIFTFRAMERESULT']._serialized_end=1727
-  _globals['_POSELIFTER']._serialized_start=1730
-  _globals['_POSELIFTER']._serialized_end=1867
+  _globals['_POSE2D']._serialized_end=259
+  _globals['_IMAGESIZE']._serialized_start=261
+  _globals['_IMAGESIZE']._serialized_end=303
+  _globals['_CAMERAINTRINSICS']._serialized_start=305
+  _globals['_CAMERAINTRINSICS']._serialized_end=371
+  _globals['_LIFTREQUEST']._serialized_start=374
+  _globals['_LIFTREQUEST']._serialized_end=638
+  _globals['_POSERESULT']._serialized_start=641
+  _globals['_POSERESULT']._serialized_end=1042
+  _globals['_LIFTRESPONSE']._serialized_start=1044
+  _globals['_LIFTRESPONSE']._serialized_end=1130
+  _globals['_LIFTFRAME']._serialized_start=1133
+  _globals['_LIFTFRAME']._serialized_end=1326
+  _globals['_TRACKEDPOSE']._serialized_start=1328
+  _globals['_TRACKEDPOSE']._serialized_end=1392
+  _globals['_PERSONRESULT']._serialized_start=1394
+  _globals['_PERSONRESULT']._serialized_end=1515
+  _globals['_FIELDVIOLATION']._serialized_start=1517
+  _globals['_FIELDVIOLATION']._serialized_end=1628
+  _globals['_FRAMEERROR']._serialized_start=1630
+  _globals['_FRAMEERROR']._serialized_end=1720
+  _globals['_LIFTFRAMERESULT']._serialized_start=1723
+  _globals['_LIFTFRAMERESULT']._serialized_end=1906
+  _globals['_POSELIFTER']._serialized_start=1909
+  _globals['_POSELIFTER']._serialized_end=2046
 # @@protoc_insertion_point(module_scope)

@@ -7,20 +7,22 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class Pose2D(_message.Message):
-    __slots__ = ("keypoints", "confidence", "missing", "format", "intrinsics", "image_size")
+    __slots__ = ("keypoints", "confidence", "missing", "format", "intrinsics", "image_size", "person_height_m")
     KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
     MISSING_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
     IMAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
+    PERSON_HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
     keypoints: _containers.RepeatedScalarFieldContainer[float]
     confidence: _containers.RepeatedScalarFieldContainer[float]
     missing: _containers.RepeatedScalarFieldContainer[bool]
     format: str
     intrinsics: CameraIntrinsics
     image_size: ImageSize
-    def __init__(self, keypoints: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., missing: _Optional[_Iterable[bool]] = ..., format: _Optional[str] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ...) -> None: ...
+    person_height_m: float
+    def __init__(self, keypoints: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., missing: _Optional[_Iterable[bool]] = ..., format: _Optional[str] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., person_height_m: _Optional[float] = ...) -> None: ...
 
 class ImageSize(_message.Message):
     __slots__ = ("width", "height")
@@ -43,21 +45,23 @@ class CameraIntrinsics(_message.Message):
     def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ...) -> None: ...
 
 class LiftRequest(_message.Message):
-    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics", "image_size")
+    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics", "image_size", "person_height_m")
     POSES_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
     IMAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
+    PERSON_HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
     poses: _containers.RepeatedCompositeFieldContainer[Pose2D]
     format: str
     confidence_threshold: float
     intrinsics: CameraIntrinsics
     image_size: ImageSize
-    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ...) -> None: ...
+    person_height_m: float
+    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., person_height_m: _Optional[float] = ...) -> None: ...
 
 class PoseResult(_message.Message):
-    __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings", "temporal", "track_id")
+    __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings", "temporal", "track_id", "root_camera_m", "root_height_source")
     POSE_3D_FIELD_NUMBER: _ClassVar[int]
     POSE_3D_CAMERA_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
@@ -72,6 +76,8 @@ class PoseResult(_message.Message):
     WARNINGS_FIELD_NUMBER: _ClassVar[int]
     TEMPORAL_FIELD_NUMBER: _ClassVar[int]
     TRACK_ID_FIELD_NUMBER: _ClassVar[int]
+    ROOT_CAMERA_M_FIELD_NUMBER: _ClassVar[int]
+    ROOT_HEIGHT_SOURCE_FIELD_NUMBER: _ClassVar[int]
     pose_3d: _containers.RepeatedScalarFieldContainer[float]
     pose_3d_camera: _containers.RepeatedScalarFieldContainer[float]
     camera: _containers.RepeatedScalarFieldContainer[float]
@@ -86,7 +92,9 @@ class PoseResult(_message.Message):
     warnings: _containers.RepeatedScalarFieldContainer[str]
     temporal: bool
     track_id: str
-    def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ..., plausibility: _Optional[float] = ..., warnings: _Optional[_Iterable[str]] = ..., temporal: _Optional[bool] = ..., track_id: _Optional[str] = ...) -> None: ...
+    root_camera_m: _containers.RepeatedScalarFieldContainer[float]
+    root_height_source: str
+    def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ..., plausibility: _Optional[float] = ..., warnings: _Optional[_Iterable[str]] = ..., temporal: _Optional[bool] = ..., track_id: _Optional[str] = ..., root_camera_m: _Optional[_Iterable[float]] = ..., root_height_source: _Optional[str] = ...) -> None: ...
 
 class LiftResponse(_message.Message):
     __slots__ = ("model_id", "joints", "poses")
