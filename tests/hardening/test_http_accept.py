@@ -33,6 +33,8 @@ def test_fresh_connections_are_answered_while_many_clients_keep_the_server_busy(
     found, _ = asyncio.run(overload("127.0.0.1", server.http_port, CLIENTS, SECONDS, 1, ramp=1.0))
     assert sum(found.statuses.values()) > CLIENTS, found.statuses  # the load did run
     assert set(found.statuses) <= {"200", "503"}, found.statuses  # no resets, no timeouts
-    assert len(found.probes) >= 8, found.probes  # one every 0.25 s, unless they hang
+    # one every 0.25 s after the last answer: 8 or more on a quiet machine, fewer when the probes take
+    # ~1 s on a loaded one; a hung probe shows as late (None or > PROBE_TIMEOUT_S) below
+    assert len(found.probes) >= 3, found.probes
     late = [p for p in found.probes if p is None or p > PROBE_TIMEOUT_S]
     assert not late, found.probes
