@@ -11,7 +11,7 @@ from typing import Any
 import grpc
 
 from service._proto.repnet.v1 import lifter_pb2
-from service.catalog import MODEL_FIELD, Catalog
+from service.catalog import Catalog
 from service.engine import Engine, offload
 from service.errors import (
     MAX_ERROR_ITEMS,
@@ -259,7 +259,7 @@ class PoseLifterServicer:
             if (wrong := self.models.violation(message.model, tracked)) is not None:
                 raise InvalidKeypoints([wrong])
         except InvalidKeypoints as err:
-            known = err.violations[0].field != MODEL_FIELD  # an unknown name is not echoed as an id
+            known = model in self.models.engines  # an unknown name is never echoed as a model_id
             return Frame(frame_id, read_at, error=err, model=model if known else self.models.default)
         fps = float(message.fps)
         if not several:

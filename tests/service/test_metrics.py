@@ -21,7 +21,8 @@ NAMES = {
     "repnet_in_flight_requests", "repnet_open_streams", "repnet_batch_queue_wait_seconds",
     "repnet_inference_seconds", "repnet_batch_size_poses", "repnet_batch_queue_poses", "repnet_model_info",
     "repnet_pose_plausibility_ratio", "repnet_request_parse_seconds", "repnet_idle_streams_closed_total",
-    "repnet_model_output_errors_total", "repnet_open_tracks", "repnet_track_state_bytes", "repnet_lifted_poses_total",
+    "repnet_model_output_errors_total", "repnet_open_tracks", "repnet_track_state_bytes",
+    "repnet_lifted_poses_total",
 }  # fmt: skip
 
 
