@@ -3,6 +3,7 @@ model, batches of one model each, temporal lifting over its base model only, sta
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import threading
@@ -21,6 +22,9 @@ from prometheus_client import CollectorRegistry
 from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 from service.app import build_service, limits_of, main
 from service.catalog import Catalog
+from service.cli import EXIT_REJECTED
+from service.cli import main as repnet
+from service.client import LiftClient
 from service.config import BUNDLED_CAUSAL, BUNDLED_MODEL, Settings
 from service.engine import Engine
 from service.errors import InvalidKeypoints, ModelLoadError, Overloaded
@@ -28,6 +32,7 @@ from service.keypoints import PoseInput, prepare_poses
 from service.lifter import Lifter, Prediction
 from service.metrics import Metrics
 from service.startup import load_dir_lifters
+from service.stream_client import StreamClient
 from tests.conftest import POSE_2D, LiveService, live_settings, running_service
 from tests.service.invalid_inputs import to_proto_pose
 
@@ -280,3 +285,22 @@ def test_a_model_that_fails_its_check_stops_the_start(tmp_path: Path, lifter: Li
         load_dir_lifters(Settings(model_dir=tmp_path), lifter)
     with pytest.raises(ModelLoadError, match="not a directory"):
         load_dir_lifters(Settings(model_dir=tmp_path / "missing"), lifter)
+
+
+def test_clients_and_cli_name_a_model(
+    served: LiveService, lifter: Lifter, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with LiftClient(served.http_url, model=ALT) as client:
+        assert client.lift(POSE_2D).model_id == ALT
+        assert client.model()["model_id"] == ALT
+    with LiftClient(served.http_url) as client:
+        assert client.lift(POSE_2D).model_id == lifter.info.model_id
+    with StreamClient(served.grpc_target, model=ALT, timeout=20) as stream:
+        assert stream.lift_batch(POSE_2D[None])[0].model_id == ALT
+        assert [r.result.model_id for r in stream.stream([POSE_2D, POSE_2D]) if r.result] == [ALT, ALT]
+    poses = tmp_path / "poses.json"
+    poses.write_text(json.dumps({"keypoints": POSE_2D.tolist()}))
+    assert repnet(["lift", str(poses), "--url", served.http_url, "--model", ALT]) == 0
+    assert json.loads(capsys.readouterr().out)["model_id"] == ALT
+    assert repnet(["lift", str(poses), "--url", served.http_url, "--model", "nope"]) == EXIT_REJECTED
+    assert "unknown model 'nope'" in capsys.readouterr().err
