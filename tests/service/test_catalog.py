@@ -3,6 +3,7 @@ model, batches of one model each, temporal lifting over its base model only, sta
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import shutil
@@ -24,7 +25,7 @@ from service.app import build_service, limits_of, main
 from service.catalog import Catalog
 from service.cli import EXIT_REJECTED
 from service.cli import main as repnet
-from service.client import LiftClient
+from service.client import AsyncLiftClient, LiftClient
 from service.config import BUNDLED_CAUSAL, BUNDLED_MODEL, Settings
 from service.engine import Engine
 from service.errors import InvalidKeypoints, ModelLoadError, Overloaded
@@ -295,6 +296,12 @@ def test_clients_and_cli_name_a_model(
         assert client.model()["model_id"] == ALT
     with LiftClient(served.http_url) as client:
         assert client.lift(POSE_2D).model_id == lifter.info.model_id
+
+    async def lift_async() -> str:
+        async with AsyncLiftClient(served.http_url, model=ALT) as client:
+            return (await client.lift(POSE_2D)).model_id
+
+    assert asyncio.run(lift_async()) == ALT
     with StreamClient(served.grpc_target, model=ALT, timeout=20) as stream:
         assert stream.lift_batch(POSE_2D[None])[0].model_id == ALT
         assert [r.result.model_id for r in stream.stream([POSE_2D, POSE_2D]) if r.result] == [ALT, ALT]
