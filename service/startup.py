@@ -92,7 +92,7 @@ def load_temporal_lifters(settings: Settings, lifter: Lifter) -> dict[str, Tempo
     if not settings.temporal:
         return {}
     found: dict[str, TemporalLifter] = {}
-    base = file_sha256(lifter.path)
+    base = file_sha256(settings.model_path)  # the default model's file, which `lifter` was loaded from
     for mode, path, bundled in (
         ("causal", settings.causal_model_path, BUNDLED_CAUSAL),
         ("offline", settings.offline_model_path, BUNDLED_OFFLINE),
@@ -106,7 +106,7 @@ def load_temporal_lifters(settings: Settings, lifter: Lifter) -> dict[str, Tempo
         if temporal.base_model_sha256 != base:
             message = (
                 f"{path}: trained on the answers of the single-frame model with sha256 "
-                f"{temporal.base_model_sha256[:12]}, not of {lifter.path.name} ({base[:12]})"
+                f"{temporal.base_model_sha256[:12]}, not of {settings.model_path.name} ({base[:12]})"
             )
             if path == bundled:
                 log.warning("%s: the %s temporal model is left out", message, mode)
