@@ -1,9 +1,9 @@
-"""Composition root: Settings -> Lifter -> Metrics -> Engine -> HTTP app + gRPC server, and main()."""
+"""Composition root: Settings -> Lifters -> Metrics -> Engines (one per model) -> HTTP app + gRPC
+server, and main()."""
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import logging
 import signal
 import sys
@@ -12,118 +12,28 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from types import FrameType
 
-import numpy as np
 import uvicorn
 from fastapi import FastAPI
 from prometheus_client import CollectorRegistry
 from pydantic import ValidationError
 
 from service.auth import ApiKeys
-from service.config import BUNDLED_CAUSAL, BUNDLED_OFFLINE, Settings
-from service.engine import Engine, TemporalEngine
+from service.catalog import Catalog
+from service.config import Settings
+from service.engine import Engine
 from service.errors import ModelLoadError
-from service.formats import MODEL_JOINTS
 from service.grpc_server import GrpcServer, create_server, read_tls
 from service.http_api import create_app
 from service.http_server import HttpServer, http_config, raise_open_file_limit
 from service.keypoints import Limits
 from service.lifter import Lifter
 from service.metrics import Metrics
-from service.schemas import EXAMPLE_KEYPOINTS
-from service.temporal import TemporalLifter
-from service.tracking import TemporalModels, camera_poses
-from service.tracks import TrackBudget
+from service.startup import file_sha256, known_poses, load_dir_lifters, load_lifter, load_temporal
+from service.tracking import TemporalModels
+
+__all__ = ["Service", "build_service", "known_poses", "load_lifter", "load_temporal", "main"]
 
 log = logging.getLogger("service")
-
-
-def load_lifter(settings: Settings) -> Lifter:
-    """The model from settings.model_path; ModelLoadError if it is not the h36m17 model formats expect."""
-    lifter = Lifter.load(settings.model_path, settings)
-    if lifter.info.joint_names != MODEL_JOINTS:
-        raise ModelLoadError(
-            f"{settings.model_path}: joints {list(lifter.info.joint_names)} are not the h36m17 joints "
-            f"{list(MODEL_JOINTS)} that the keypoint formats map onto"
-        )
-    lifter.check_outputs(*known_poses())
-    return lifter
-
-
-def load_temporal_lifters(settings: Settings, lifter: Lifter) -> dict[str, TemporalLifter]:
-    """The temporal models of the settings by mode, checked: each must be the mode its setting names,
-    trained on the answers of the loaded single-frame model (its sha256) and pass its start-up check. A
-    bundled temporal model that is missing or belongs to another single-frame model is left out with
-    a warning; a temporal model named in the settings that does not fit stops the start."""
-    if not settings.temporal:
-        return {}
-    found: dict[str, TemporalLifter] = {}
-    base = hashlib.sha256(settings.model_path.read_bytes()).hexdigest()
-    for mode, path, bundled in (
-        ("causal", settings.causal_model_path, BUNDLED_CAUSAL),
-        ("offline", settings.offline_model_path, BUNDLED_OFFLINE),
-    ):
-        if path == bundled and not path.is_file():
-            log.warning("no %s temporal model (%s): tracked poses are lifted alone", mode, path)
-            continue
-        temporal = TemporalLifter.load(path, settings)
-        if temporal.mode != mode:
-            raise ModelLoadError(f"{path}: a {temporal.mode} temporal model, set as the {mode} one")
-        if temporal.base_model_sha256 != base:
-            message = (
-                f"{path}: trained on the answers of the single-frame model with sha256 "
-                f"{temporal.base_model_sha256[:12]}, not of {settings.model_path.name} ({base[:12]})"
-            )
-            if path == bundled:
-                log.warning("%s: the %s temporal model is left out", message, mode)
-                continue
-            raise ModelLoadError(message)
-        check_temporal(temporal, lifter)
-        found[mode] = temporal
-    return found
-
-
-def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> TemporalModels | None:
-    """The temporal models of the settings (load_temporal_lifters), each behind its own batcher, and
-    the bounds on their tracks; None without any."""
-    lifters = load_temporal_lifters(settings, lifter)
-    if not lifters:
-        return None
-    engines = {
-        mode: TemporalEngine(
-            temporal,
-            max_batch=settings.max_batch,
-            max_wait_s=settings.max_wait_ms / 1000,
-            queue_size=settings.queue_size,
-        )
-        for mode, temporal in lifters.items()
-    }
-    budget = TrackBudget(settings.max_tracks, metrics.set_tracks)
-    return TemporalModels(
-        engines,
-        budget,
-        settings.stream_max_tracks,
-        settings.track_idle_s,
-        min(settings.max_temporal_poses, settings.queue_size),  # a larger request could never be queued
-    )
-
-
-def check_temporal(temporal: TemporalLifter, lifter: Lifter) -> None:
-    """The temporal model's start-up check on the single-frame answers to the known poses."""
-    points, visibility = known_poses()
-    prediction = lifter.lift(points, visibility)
-    poses = camera_poses(prediction, np.arange(len(points)))
-    keypoints = np.where(visibility[..., None], points, 0.0).astype(np.float32)
-    temporal.check_outputs(poses, keypoints, visibility.astype(np.float32))
-
-
-def known_poses() -> tuple[np.ndarray, np.ndarray]:
-    """The check every model passes at start: the OpenAPI example person (N, 17, 2) px, its mirror
-    image, and the person without spine and head (as COCO detectors give it), with visibility."""
-    person = np.array(EXAMPLE_KEYPOINTS, dtype=np.float32)  # (17, 2)
-    mirrored = person * [-1.0, 1.0] + [2 * person[:, 0].mean(), 0.0]
-    visibility = np.ones((3, len(MODEL_JOINTS)), dtype=bool)
-    visibility[2, [MODEL_JOINTS.index("spine"), MODEL_JOINTS.index("head")]] = False
-    return np.stack([person, mirrored, person]).astype(np.float32), visibility
 
 
 def limits_of(settings: Settings) -> Limits:
@@ -138,10 +48,10 @@ def limits_of(settings: Settings) -> Limits:
 
 @dataclass
 class Service:
-    """Both servers on one Engine (one onnxruntime session), and their orderly shutdown."""
+    """Both servers on one Engine per model (one onnxruntime session each), and their orderly shutdown."""
 
     settings: Settings
-    engine: Engine
+    models: Catalog
     metrics: Metrics
     app: FastAPI
     grpc_server: GrpcServer
@@ -151,6 +61,11 @@ class Service:
     _grpc_stopped: threading.Event | None = None
     _delay: threading.Timer | None = None
 
+    @property
+    def engine(self) -> Engine:
+        """The default model's batcher."""
+        return self.models.default_engine
+
     def begin_shutdown(self) -> None:
         """Report not ready (HTTP /readyz 503, gRPC health NOT_SERVING); after shutdown_delay_s
         (time for load balancers to notice) stop accepting and drain."""
@@ -158,7 +73,7 @@ class Service:
             return
         self._stopping.set()
         log.info("shutting down: draining in-flight requests (grace %.1f s)", self.settings.shutdown_grace_s)
-        self.engine.stop_serving()
+        self.models.stop_serving()
         self.grpc_server.health.enter_graceful_shutdown()
         if self.settings.shutdown_delay_s > 0:
             self._delay = threading.Timer(self.settings.shutdown_delay_s, self.stop_accepting)
@@ -179,8 +94,8 @@ class Service:
         """Serve until begin_shutdown, drain, then return the exit status."""
         self.grpc_server.start()
         log.info(
-            "model %s: HTTP on %s:%d, gRPC on %s:%d",
-            self.engine.lifter.info.model_id,
+            "models %s: HTTP on %s:%d, gRPC on %s:%d",
+            self.models.known(),
             self.settings.host,
             self.settings.http_port,
             self.settings.host,
@@ -197,7 +112,7 @@ class Service:
         self.stop_accepting()  # in case uvicorn failed before the shutdown delay ran out
         if self._grpc_stopped is not None:
             self._grpc_stopped.wait(self.settings.shutdown_grace_s + 1)
-        self.engine.close(self.settings.shutdown_grace_s)
+        self.models.close(self.settings.shutdown_grace_s)
         for temporal in self.temporal.engines.values() if self.temporal is not None else ():
             temporal.close(self.settings.shutdown_grace_s)
         log.info("stopped; requests answered: %s", answered_requests(self.metrics))
@@ -228,7 +143,7 @@ def build_engine(lifter: Lifter, metrics: Metrics, settings: Settings) -> Engine
 
 
 def build_app(
-    engine: Engine,
+    engine: Engine | Catalog,
     metrics: Metrics,
     settings: Settings,
     temporal: TemporalModels | None = None,
@@ -248,7 +163,7 @@ def build_app(
 
 
 def build_grpc_server(
-    engine: Engine,
+    engine: Engine | Catalog,
     metrics: Metrics,
     settings: Settings,
     temporal: TemporalModels | None = None,
@@ -273,17 +188,21 @@ def build_grpc_server(
 
 
 def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
-    """Load the model (unless given) and wire both servers; nothing is started yet."""
+    """Load the default model (unless given), the models of model_dir and the temporal models, and
+    wire both servers; nothing is started yet."""
     lifter = lifter or load_lifter(settings)
+    lifters = [lifter, *load_dir_lifters(settings, lifter)]
     metrics = Metrics(CollectorRegistry())
-    metrics.set_model(lifter.info.model_id, lifter.info.skeleton)
-    engine = build_engine(lifter, metrics, settings)
+    metrics.set_models([(m.info.model_id, m.info.skeleton) for m in lifters])
+    engines = {m.info.model_id: build_engine(m, metrics, settings) for m in lifters}
     temporal = load_temporal(settings, lifter, metrics)
+    sha256 = {m.info.model_id: file_sha256(m.path) for m in lifters}
+    models = Catalog(engines, None if temporal is None else lifter.info.model_id, sha256)
     api_keys = None if settings.api_keys_file is None else ApiKeys.read(settings.api_keys_file)
-    app = build_app(engine, metrics, settings, temporal, api_keys)
-    grpc_server = build_grpc_server(engine, metrics, settings, temporal, api_keys)
+    app = build_app(models, metrics, settings, temporal, api_keys)
+    grpc_server = build_grpc_server(models, metrics, settings, temporal, api_keys)
     http = HttpServer(http_config(app, settings))
-    return Service(settings, engine, metrics, app, grpc_server, http, temporal)
+    return Service(settings, models, metrics, app, grpc_server, http, temporal)
 
 
 def parse_settings(argv: Sequence[str] | None) -> Settings:

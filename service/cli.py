@@ -97,10 +97,11 @@ def run_lift(args: argparse.Namespace) -> int:
     remote = (
         None
         if args.local
-        else RemoteLifter(args.url, args.timeout, args.batch_size, args.api_key, args.ca_file)
+        else RemoteLifter(args.url, args.timeout, args.batch_size, args.api_key, args.ca_file, args.model)
     )
     try:
-        lifter = local_lifter(args.model, args.batch_size) if remote is None else remote
+        model = None if args.model is None else Path(args.model)  # --local: an ONNX file
+        lifter = local_lifter(model, args.batch_size) if remote is None else remote
         choice = choose(poses, args.temporal, args.fps, lifter.temporal_modes, say)
         ids = tracks_of(poses, choice)
         batch = batch_of(
@@ -211,7 +212,11 @@ def build_parser() -> argparse.ArgumentParser:
                       "(MediaPipe [x, y, z, visibility] rows): they are multiplied by it")  # fmt: skip
     lift.add_argument("--url", default=DEFAULT_URL, help=f"service URL (default {DEFAULT_URL})")
     lift.add_argument("--local", action="store_true", help="run the ONNX model in this process, no service")
-    lift.add_argument("--model", type=Path, help="ONNX model for --local (default: the bundled one)")
+    lift.add_argument(
+        "--model",
+        help="the model: a model_id the service serves (GET /v1/models; default: "
+        "its default model), or with --local an ONNX file (default: the bundled one)",
+    )
     lift.add_argument("--confidence-threshold", type=float, help="joints below it count as missing")
     lift.add_argument(
         "--intrinsics",
@@ -264,9 +269,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return serve(argv[1:])
     args = build_parser().parse_args(argv)
-    if args.command == "lift" and args.model is not None and not args.local:
-        print("repnet: error: --model needs --local", file=sys.stderr)
-        return EXIT_USAGE
     if args.command == "lift" and args.batch_size < 1:
         print("repnet: error: --batch-size must be at least 1", file=sys.stderr)
         return EXIT_USAGE

@@ -40,12 +40,21 @@ class Lifter(Protocol):
 
 class RemoteLifter:
     """The service at `url`, through LiftClient (requests of `batch` poses; temporal ones as long
-    as the service takes), with `api_key` and the CA file of an https:// service."""
+    as the service takes), with `api_key`, the CA file of an https:// service and the `model` each
+    request names (None: the service's default)."""
 
     def __init__(
-        self, url: str, timeout: float, batch: int, api_key: str | None = None, ca_file: Path | None = None
+        self,
+        url: str,
+        timeout: float,
+        batch: int,
+        api_key: str | None = None,
+        ca_file: Path | None = None,
+        model: str | None = None,
     ) -> None:
-        self.client = LiftClient(url, timeout=timeout, batch_size=batch, api_key=api_key, ca_file=ca_file)
+        self.client = LiftClient(
+            url, timeout=timeout, batch_size=batch, api_key=api_key, ca_file=ca_file, model=model
+        )
 
     def temporal_modes(self) -> tuple[str, ...]:
         """The modes of the service's temporal models (GET /v1/model)."""

@@ -8,6 +8,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -53,9 +54,21 @@ def connection_options(api_key: str | None, ca_file: str | Path | None) -> dict[
 class _HttpBase:
     """Settings and request building shared by the sync and async clients."""
 
-    def __init__(self, url: str, timeout: float, retries: int, backoff: float, batch_size: int) -> None:
+    def __init__(
+        self, url: str, timeout: float, retries: int, backoff: float, batch_size: int, model: str | None
+    ) -> None:
         self.url, self.timeout, self.retries, self.backoff = url, timeout, retries, backoff
         self.batch_size = batch_size
+        self.model_id = model  # the model every request names (None: the service's default)
+
+    def _body(self, batch: Batch, part: Part) -> dict[str, Any]:
+        """The POST /lift body of the poses of `part`, naming the client's model."""
+        body = batch.body(part)
+        return body if self.model_id is None else {**body, "model": self.model_id}
+
+    def _model_path(self) -> str:
+        """GET /v1/model of the client's model."""
+        return "/v1/model" if self.model_id is None else f"/v1/model?model={quote(self.model_id)}"
 
     def _batch(self, keypoints: ArrayLike, format: str, confidence: ArrayLike | None,
                confidence_threshold: float | None, intrinsics: Sequence[float] | None, temporal: str,
@@ -105,14 +118,15 @@ class LiftClient(_HttpBase):
 
     503 answers (queue full, model not ready) and refused connections are retried `retries` times
     with exponential backoff; every other failure raises LiftClientError at once. `api_key`: sent as
-    a bearer token (a server with REPNET_API_KEYS_FILE); `ca_file`: the CA of an https:// server.
+    a bearer token (a server with REPNET_API_KEYS_FILE); `ca_file`: the CA of an https:// server;
+    `model`: the model_id every request names (GET /v1/models; None: the service's default).
     """
 
     def __init__(self, url: str = DEFAULT_URL, *, timeout: float = 10.0, retries: int = 3,
                  backoff: float = 0.1, batch_size: int = DEFAULT_BATCH,
                  transport: httpx.BaseTransport | None = None, api_key: str | None = None,
-                 ca_file: str | Path | None = None) -> None:  # fmt: skip
-        super().__init__(url, timeout, retries, backoff, batch_size)
+                 ca_file: str | Path | None = None, model: str | None = None) -> None:  # fmt: skip
+        super().__init__(url, timeout, retries, backoff, batch_size, model)
         options = connection_options(api_key, ca_file)
         self._http = httpx.Client(base_url=url, timeout=timeout, transport=transport, **options)
 
@@ -172,13 +186,13 @@ class LiftClient(_HttpBase):
         parts = self._parts(batch, None if temporal == "off" else self.model())
 
         def lift(part: Part) -> list[LiftResult]:
-            return parse_response(self._send("POST", "/lift", batch.body(part)), part)
+            return parse_response(self._send("POST", "/lift", self._body(batch, part)), part)
 
         return lift_parts(len(batch.points), parts, lift, progress)
 
     def model(self) -> dict[str, Any]:
-        """GET /v1/model: joints, formats, limits and the model's metadata."""
-        response = self._send("GET", "/v1/model")
+        """GET /v1/model (of the client's model): joints, formats, limits and the model's metadata."""
+        response = self._send("GET", self._model_path())
         if response.status_code != 200:
             raise http_error(response)
         result: dict[str, Any] = response.json()
@@ -198,8 +212,8 @@ class AsyncLiftClient(_HttpBase):
     def __init__(self, url: str = DEFAULT_URL, *, timeout: float = 10.0, retries: int = 3,
                  backoff: float = 0.1, batch_size: int = DEFAULT_BATCH, max_concurrency: int = 8,
                  transport: httpx.AsyncBaseTransport | None = None, api_key: str | None = None,
-                 ca_file: str | Path | None = None) -> None:  # fmt: skip
-        super().__init__(url, timeout, retries, backoff, batch_size)
+                 ca_file: str | Path | None = None, model: str | None = None) -> None:  # fmt: skip
+        super().__init__(url, timeout, retries, backoff, batch_size, model)
         self.max_concurrency = max_concurrency
         options = connection_options(api_key, ca_file)
         self._http = httpx.AsyncClient(base_url=url, timeout=timeout, transport=transport, **options)
@@ -256,7 +270,7 @@ class AsyncLiftClient(_HttpBase):
 
         async def post(part: Part) -> list[LiftResult]:
             async with slots:
-                results = parse_response(await self._send("POST", "/lift", batch.body(part)), part)
+                results = parse_response(await self._send("POST", "/lift", self._body(batch, part)), part)
             if progress is not None:
                 progress(int(part.keep.sum()))
             return results
@@ -265,8 +279,8 @@ class AsyncLiftClient(_HttpBase):
         return assemble(len(batch.points), parts, answers)
 
     async def model(self) -> dict[str, Any]:
-        """GET /v1/model: joints, formats, limits, temporal models and the model's metadata."""
-        response = await self._send("GET", "/v1/model")
+        """GET /v1/model (of the client's model): joints, formats, limits, temporal models, metadata."""
+        response = await self._send("GET", self._model_path())
         if response.status_code != 200:
             raise http_error(response)
         result: dict[str, Any] = response.json()

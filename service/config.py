@@ -23,6 +23,12 @@ class Settings(BaseSettings):
     model_path: Path = Field(
         default=BUNDLED_MODEL, description="ONNX model file (the bundled model by default)"
     )
+    model_dir: Path | None = Field(
+        default=None,
+        description="folder of more single-frame ONNX models (*.onnx) served beside model_path, which "
+        "stays the default; a request names one by its model_id (GET /v1/models). Each is checked at "
+        "start: one that fails stops the start",
+    )
     host: str = Field(
         default="127.0.0.1",
         description="address both servers bind to (this machine only; the container image sets "

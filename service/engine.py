@@ -86,6 +86,7 @@ class Batcher(Generic[In, Out]):
         if max_batch < 1 or queue_size < 1 or max_wait_s < 0:
             raise ValueError("max_batch and queue_size must be >= 1 and max_wait_s >= 0")
         self.metrics = metrics
+        self.model = name  # the model it runs: its metrics' `model` label, its thread's name
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
         self.queue_size = queue_size
@@ -234,7 +235,7 @@ class Batcher(Generic[In, Out]):
 
     def _set_depth(self) -> None:
         if self.metrics is not None:
-            self.metrics.queue_depth.set(self._queued)
+            self.metrics.queue_depth.labels(model=self.model).set(self._queued)
 
     def _take_batch(self) -> list[_Chunk[In, Out]]:
         """Block until a batch is due, then take it from the queue; [] once closed and empty.
@@ -276,7 +277,7 @@ class Batcher(Generic[In, Out]):
         start = time.monotonic()
         if self.metrics is not None:
             for chunk in batch:
-                self.metrics.queue_wait_seconds.labels(transport=chunk.transport).observe(
+                self.metrics.queue_wait_seconds.labels(model=self.model, transport=chunk.transport).observe(
                     start - chunk.enqueued
                 )
         try:
@@ -286,8 +287,10 @@ class Batcher(Generic[In, Out]):
                 chunk.future.set_exception(err)
             return
         if self.metrics is not None:
-            self.metrics.inference_seconds.observe(time.monotonic() - start)
-            self.metrics.batch_size.observe(len(answer))
+            self.metrics.inference_seconds.labels(model=self.model).observe(time.monotonic() - start)
+            self.metrics.batch_size.labels(model=self.model).observe(len(answer))
+            for chunk in batch:
+                self.metrics.lifted_poses.labels(model=self.model, transport=chunk.transport).inc(len(chunk))
             self._observe(answer)
         offset = 0
         for chunk in batch:  # rows the model failed on are marked in the answer (failed)
@@ -297,14 +300,16 @@ class Batcher(Generic[In, Out]):
 
 
 class Engine(Batcher[ModelInput, Prediction]):
-    """The single-frame model's batcher: ModelInputs in, Predictions out."""
+    """A single-frame model's batcher: ModelInputs in, Predictions out; its metrics are labelled
+    with the model's id (its runs hold only that model's poses)."""
 
     def __init__(
         self, lifter: Lifter, metrics: Metrics | None, *, max_batch: int, max_wait_s: float, queue_size: int
     ) -> None:
         self.lifter = lifter
+        model = lifter.info.model_id
         super().__init__(
-            metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size, name="batcher"
+            metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size, name=model
         )
 
     def _run(self, parts: list[ModelInput]) -> Prediction:
@@ -315,7 +320,7 @@ class Engine(Batcher[ModelInput, Prediction]):
 
     def _observe(self, answer: Prediction) -> None:
         if self.metrics is not None and answer.plausibility is not None and not answer.failed.any():
-            self.metrics.observe_plausibility(answer.plausibility)
+            self.metrics.observe_plausibility(self.model, answer.plausibility)
 
 
 class TemporalEngine(Batcher[Windows, TemporalAnswer]):

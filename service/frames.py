@@ -36,6 +36,7 @@ class Frame:
     track_id: str = ""
     fps: float = 0.0  # frames per second, given for tracked poses
     people: tuple[Person, ...] | None = None  # a frame of several people instead of `pose`
+    model: str = ""  # the id of the model that lifts it (a known one; empty: the default)
 
     def persons(self) -> tuple[Person, ...]:
         """Its people: `people`, or the one of `pose`; none when the frame has an error."""
@@ -80,6 +81,11 @@ class Group:
     futures: list[Future[Prediction]] = field(default_factory=list)  # the runs of its valid poses
     failure: LiftError | None = None  # why its valid poses get no reply (queue full, a failed run)
     temporal: TemporalRows | None = None  # the temporal model's answers to its tracked poses
+
+    @property
+    def model(self) -> str:
+        """The model of its frames (a group holds one model's frames: StreamState.take)."""
+        return self.frames[0].model
 
     def done(self) -> bool:
         """Every run of the group has finished (a group without runs at once)."""

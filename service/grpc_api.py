@@ -11,6 +11,7 @@ from typing import Any
 import grpc
 
 from service._proto.repnet.v1 import lifter_pb2
+from service.catalog import Catalog
 from service.engine import Engine, offload
 from service.errors import (
     MAX_ERROR_ITEMS,
@@ -128,7 +129,7 @@ class PoseLifterServicer:
 
     def __init__(
         self,
-        engine: Engine,
+        engine: Engine | Catalog,
         metrics: Metrics,
         limits: Limits,
         *,
@@ -138,7 +139,7 @@ class PoseLifterServicer:
         stream_idle_timeout_s: float,
         temporal: TemporalModels | None = None,
     ) -> None:
-        self.engine = engine
+        self.models = Catalog.of(engine, temporal is not None)  # a request's `model` picks one
         self.metrics = metrics
         self.limits = limits
         self.stream_window = stream_window
@@ -146,8 +147,7 @@ class PoseLifterServicer:
         self.max_streams = max_streams
         self.stream_idle_timeout_s = stream_idle_timeout_s
         self.temporal = temporal
-        self.model_id = engine.lifter.info.model_id
-        self.joints = list(engine.lifter.info.joint_names)
+        self.joints = list(self.models.default_engine.lifter.info.joint_names)  # every model's (app.py)
         self._unary = 0  # Lift calls in progress; both counters live on the server's one event loop
         self._streams = 0  # LiftStream calls open
 
@@ -166,8 +166,9 @@ class PoseLifterServicer:
         try:
             with self.metrics.track(TRANSPORT, "Lift"):
                 with self.metrics.parsing(TRANSPORT):
+                    engine = self.models.pick(request.model)
                     inputs = await offload(count, self._prepare_request, request)
-                prediction = await self.engine.lift_async(inputs, TRANSPORT)
+                prediction = await engine.lift_async(inputs, TRANSPORT)
                 results = await offload(count, proto_replies, inputs, prediction)
         except LiftError as err:
             if isinstance(err, ModelOutputError):  # counted by track(); one line, no traceback
@@ -178,7 +179,7 @@ class PoseLifterServicer:
             await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_MESSAGE)
         finally:
             self._unary -= 1
-        return lifter_pb2.LiftResponse(model_id=self.model_id, joints=self.joints, poses=results)
+        return lifter_pb2.LiftResponse(model_id=engine.model, joints=self.joints, poses=results)
 
     def _prepare_request(self, request: lifter_pb2.LiftRequest) -> ModelInput:
         default = request.intrinsics if request.HasField("intrinsics") else None
@@ -216,7 +217,7 @@ class PoseLifterServicer:
         self.metrics.open_streams.inc()
         answers = answer_stream(
             frames(),
-            self.engine,
+            self.models,
             self.limits,
             self._results,
             window=self.stream_window,
@@ -249,22 +250,33 @@ class PoseLifterServicer:
         checked), or why it has none."""
         read_at = time.perf_counter()
         frame_id, several = message.frame_id, len(message.people) > 0
+        model = message.model or self.models.default
         try:
             threshold = message.confidence_threshold if message.HasField("confidence_threshold") else None
             cut = check_threshold(threshold, self.limits)
             if found := frame_violations(message, self.limits.max_request_poses):
                 raise InvalidKeypoints(found)
+            tracked = self.temporal is not None and (several or bool(message.track_id))
+            if (wrong := self.models.violation(message.model, tracked)) is not None:
+                raise InvalidKeypoints([wrong])
         except InvalidKeypoints as err:
-            return Frame(frame_id, read_at, error=err)
+            known = model in self.models.engines  # an unknown name is never echoed as a model_id
+            return Frame(frame_id, read_at, error=err, model=model if known else self.models.default)
         fps = float(message.fps)
         if not several:
             try:
                 pose = to_pose_input(message.pose, message.pose.format or DEFAULT_FORMAT, None)
             except InvalidKeypoints as err:
                 named = InvalidKeypoints([v.within(POSE_FIELD) for v in err.violations])
-                return Frame(frame_id, read_at, error=named)
+                return Frame(frame_id, read_at, error=named, model=model)
             return Frame(
-                frame_id, read_at, replace(pose, confidence_threshold=cut), None, message.track_id, fps
+                frame_id,
+                read_at,
+                replace(pose, confidence_threshold=cut),
+                None,
+                message.track_id,
+                fps,
+                model=model,
             )
         people = []
         for k, person in enumerate(message.people):
@@ -276,14 +288,14 @@ class PoseLifterServicer:
                 people.append(Person(person.track_id, f"{field}.pose", error=named))
                 continue
             people.append(Person(person.track_id, f"{field}.pose", replace(pose, confidence_threshold=cut)))
-        return Frame(frame_id, read_at, track_id="", fps=fps, people=tuple(people))
+        return Frame(frame_id, read_at, track_id="", fps=fps, people=tuple(people), model=model)
 
     def _results(self, answered: Answers) -> list[tuple[lifter_pb2.LiftFrameResult, Answer]]:
         """A group's LiftFrameResults in frame order, each beside its answer."""
         poses = answered.replies.to_proto() if answered.replies is not None else []
         out = []
         for answer in answered.items:
-            result = lifter_pb2.LiftFrameResult(frame_id=answer.frame.frame_id, model_id=self.model_id)
+            result = lifter_pb2.LiftFrameResult(frame_id=answer.frame.frame_id, model_id=answer.frame.model)
             if isinstance(answer.outcome, LiftError):
                 result.error.CopyFrom(frame_error(answer.outcome))
             elif answer.outcome is not None:

@@ -18,6 +18,7 @@ from grpc_reflection.v1alpha import reflection
 
 from service._proto.repnet.v1 import lifter_pb2
 from service.auth import UNAUTHENTICATED_MESSAGE, ApiKeys
+from service.catalog import Catalog
 from service.engine import Engine
 from service.errors import Violation
 from service.grpc_api import SERVICE_NAME, TRANSPORT, PoseLifterServicer
@@ -228,7 +229,7 @@ def add_servicer(servicer: PoseLifterServicer, server: grpc.aio.Server) -> None:
 
 
 def create_server(
-    engine: Engine,
+    engine: Engine | Catalog,
     metrics: Metrics,
     limits: Limits,
     address: str,
@@ -278,7 +279,7 @@ def create_server(
             raise OSError(f"cannot bind the gRPC server to {address}: {err}") from err
         if port == 0:
             raise OSError(f"cannot bind the gRPC server to {address}")
-        await status.set_status(engine.ready)
+        await status.set_status(servicer.models.ready)
         return server, port
 
     return GrpcServer(build)

@@ -1,4 +1,4 @@
-"""HTTP adapter: create_app(engine, metrics, limits) with /lift, health, model info and /metrics."""
+"""HTTP adapter: create_app(models, metrics, limits) with /lift, health, model info and /metrics."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from service.api_docs import add_docs
 from service.auth import ApiKeys
+from service.catalog import Catalog
 from service.engine import Engine, offload
 from service.errors import InvalidKeypoints, Violation
 from service.formats import FORMATS
@@ -25,7 +26,7 @@ from service.http_middleware import (
     LoadShedMiddleware,
     SecurityHeadersMiddleware,
 )
-from service.http_models import ModelDescription, describe_model
+from service.http_models import add_model_routes
 from service.http_temporal import lift_temporal
 from service.keypoints import Limits, ModelInput, PoseInput, prepare_request
 from service.lifter import ModelInfo, Prediction
@@ -145,7 +146,7 @@ def add_middleware(
 
 
 def create_app(
-    engine: Engine,
+    engine: Engine | Catalog,
     metrics: Metrics,
     limits: Limits,
     *,
@@ -155,11 +156,12 @@ def create_app(
     api_keys: ApiKeys | None = None,
     temporal: TemporalModels | None = None,
 ) -> FastAPI:
-    """The FastAPI app; it shares `engine` (and so the onnxruntime session) with the gRPC server.
-    `ui`: also serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
+    """The FastAPI app; it shares `engine` (one model's batcher, or a Catalog of several: a
+    request's `model` picks one) with the gRPC server, and so the onnxruntime sessions. `ui`: also
+    serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
     requests in progress, the next is answered 503 at once. `api_keys`: POST /lift and /v1/* need
     one of them (None: open)."""
-    info = engine.lifter.info
+    models = Catalog.of(engine, temporal is not None)
     app = FastAPI(
         title="RepNet pose lifting",
         version="1.0.0",
@@ -181,6 +183,7 @@ def create_app(
         """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
         count = len(request.poses)
         started = getattr(http.state, STARTED_KEY, None)  # since the body arrived
+        engine = models.pick(request.model, temporal=request.temporal != "off")
         if request.temporal != "off":
 
             def read(i: int) -> PoseInput:
@@ -191,7 +194,7 @@ def create_app(
         with metrics.parsing("http", started):
             inputs = await offload(count, _prepare, request, limits)
         prediction = await engine.lift_async(inputs, "http")
-        return await offload(count, reply_of, info, inputs, prediction, request)
+        return await offload(count, reply_of, engine.lifter.info, inputs, prediction, request)
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:
@@ -203,17 +206,15 @@ def create_app(
         responses={503: {"model": ErrorResponse}},
     )
     async def readyz() -> Response:
-        if not engine.ready:
+        if not models.ready:
             return JSONResponse({"detail": "shutting down"}, status_code=503)
-        return JSONResponse({"status": "ready", "model_id": info.model_id})
+        return JSONResponse({"status": "ready", "model_id": models.default})
 
     # HEAD: 200 without a body (uvicorn writes none for HEAD)
     app.add_api_route("/healthz", healthz, methods=["HEAD"], include_in_schema=False)
     app.add_api_route("/readyz", readyz, methods=["HEAD"], include_in_schema=False)
 
-    @app.get("/v1/model", response_model=ModelDescription, summary="Model, joints, formats and limits")
-    async def model() -> ModelDescription:
-        return describe_model(info, limits, engine, max_body_bytes, temporal)
+    add_model_routes(app, models, limits, max_body_bytes, temporal, {422: ERRORS[422]})
 
     @app.get("/metrics", summary="Prometheus metrics", response_class=Response)
     async def prometheus() -> Response:

@@ -1,12 +1,15 @@
-"""What GET /v1/model says: its schema (the model, its joints and formats, the limits, the loaded
-temporal models' contracts, its public metadata) and how it is filled in."""
+"""What GET /v1/model and GET /v1/models say: their schemas (the model, its joints and formats,
+the limits, the loaded temporal models' contracts, its public metadata; every model served with
+its lineage) and how they are filled in."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from fastapi import FastAPI
 from pydantic import BaseModel, Field
 
+from service.catalog import Catalog
 from service.engine import Engine
 from service.formats import FORMATS
 from service.keypoints import Limits
@@ -136,3 +139,76 @@ def describe_model(
         evaluation=info.evaluation,
         metadata=info.public_metadata,
     )
+
+
+class ModelSummary(BaseModel):
+    """One model of GET /v1/models."""
+
+    model_id: str = Field(description="The name a request gives in `model` to be lifted by it.")
+    default: bool = Field(description="A request that names no model gets this one.")
+    skeleton: str
+    sha256: str = Field("", description="The model file's sha256 (what a derived model's lineage names).")
+    temporal: bool = Field(
+        description="Requests with `temporal` causal or offline (and tracked stream frames) may name "
+        "it: the loaded temporal models were trained on its answers."
+    )
+    plausibility: bool = Field(description="The model gives each pose a `plausibility`.")
+    evaluation: dict[str, Any] = Field(description="Evaluation figures embedded in the model.")
+    metadata: dict[str, str] = Field(
+        description="Every ONNX metadata entry (its lineage: parent model, command, data hashes), "
+        "with paths of the machine that built the model cut as in GET /v1/model."
+    )
+
+
+class ModelList(BaseModel):
+    """What `GET /v1/models` returns."""
+
+    default: str = Field(description="The model_id of the default model.")
+    models: list[ModelSummary] = Field(description="Every model served, the default first.")
+
+
+def describe_models(models: Catalog) -> ModelList:
+    """What GET /v1/models says: each model served, with its lineage, the default first."""
+    found = []
+    for model_id, engine in models.engines.items():
+        info = engine.lifter.info
+        found.append(
+            ModelSummary(
+                model_id=model_id,
+                default=model_id == models.default,
+                skeleton=info.skeleton,
+                sha256=models.sha256.get(model_id, ""),
+                temporal=model_id == models.temporal_base,
+                plausibility=engine.lifter.has_plausibility,
+                evaluation=info.evaluation,
+                metadata=info.public_metadata,
+            )
+        )
+    return ModelList(default=models.default, models=found)
+
+
+def add_model_routes(
+    app: FastAPI,
+    models: Catalog,
+    limits: Limits,
+    max_body_bytes: int,
+    temporal: TemporalModels | None,
+    errors: dict[int | str, dict[str, Any]],
+) -> None:
+    """GET /v1/model (the default model, or `?model=`) and GET /v1/models (every model)."""
+
+    summary = "Model, joints, formats and limits"
+
+    @app.get("/v1/model", response_model=ModelDescription, responses=errors, summary=summary)
+    async def model(model: str | None = None) -> ModelDescription:
+        """The default model, or the one `?model=` names (a model_id of GET /v1/models)."""
+        chosen = models.pick(model)
+        runs_temporal = chosen.lifter.info.model_id == models.temporal_base
+        return describe_model(
+            chosen.lifter.info, limits, chosen, max_body_bytes, temporal if runs_temporal else None
+        )
+
+    @app.get("/v1/models", response_model=ModelList, summary="Every model served, with its lineage")
+    async def list_models() -> ModelList:
+        """The models a request may name in `model`, the default first, each with its metadata."""
+        return describe_models(models)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.app import limits_of, load_lifter, load_temporal_lifters
+from service.app import limits_of
 from service.chunks import Part, Progress, batches, lift_parts, split_clip
 from service.config import Settings
 from service.errors import InvalidKeypoints, LiftError
@@ -18,6 +18,7 @@ from service.lift_body import Batch
 from service.lift_result import LiftClientError, LiftResult
 from service.lifter import Prediction
 from service.replies import TemporalRows, build_replies
+from service.startup import load_lifter, load_temporal_lifters
 from service.temporal import TemporalAnswer, TemporalLifter
 from service.tracking import answer_rows, clip_plan, clip_violations
 

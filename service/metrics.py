@@ -106,20 +106,22 @@ class Metrics:
         )
         self.queue_wait_seconds = Histogram(
             "repnet_batch_queue_wait_seconds",
-            "Time a chunk of poses waited in the batch queue.",
-            ["transport"],
+            "Time a chunk of poses waited in its model's batch queue.",
+            ["model", "transport"],
             buckets=LATENCY_BUCKETS,
             registry=registry,
         )
         self.inference_seconds = Histogram(
             "repnet_inference_seconds",
             "Time of one model run (a whole batch): onnxruntime, masking and the non-finite check.",
+            ["model"],
             buckets=LATENCY_BUCKETS,
             registry=registry,
         )
         self.batch_size = Histogram(
             "repnet_batch_size_poses",
             "Poses per onnxruntime run, after dynamic batching.",
+            ["model"],
             buckets=BATCH_BUCKETS,
             registry=registry,
         )
@@ -127,28 +129,47 @@ class Metrics:
             "repnet_pose_plausibility_ratio",
             "Plausibility of each lifted pose (the model's calibrated critic score in [0, 1]); "
             "empty when the model has no plausibility output.",
+            ["model"],
             buckets=PLAUSIBILITY_BUCKETS,
             registry=registry,
         )
         self.queue_depth = Gauge(
-            "repnet_batch_queue_poses", "Poses waiting in the batch queue now.", registry=registry
+            "repnet_batch_queue_poses",
+            "Poses waiting in a model's batch queue now.",
+            ["model"],
+            registry=registry,
+        )
+        self.lifted_poses = Counter(
+            "repnet_lifted_poses",
+            "Poses lifted by a model (every run's poses, counted when the run ends).",
+            ["model", "transport"],
+            registry=registry,
         )
         self.model_info = Gauge(
             "repnet_model_info",
-            "The loaded model (value 1), labelled by its id and skeleton.",
-            ["model_id", "skeleton"],
+            "The loaded single-frame models (value 1 each), labelled by id and skeleton; default "
+            "is true for the model a request that names none gets.",
+            ["model_id", "skeleton", "default"],
             registry=registry,
         )
 
     def set_model(self, model_id: str, skeleton: str) -> None:
-        """Label repnet_model_info with the loaded model."""
-        self.model_info.clear()
-        self.model_info.labels(model_id=model_id, skeleton=skeleton).set(1)
+        """Label repnet_model_info with the one loaded model (the default)."""
+        self.set_models([(model_id, skeleton)])
 
-    def observe_plausibility(self, values: Iterable[float]) -> None:
+    def set_models(self, models: Sequence[tuple[str, str]]) -> None:
+        """Label repnet_model_info with the loaded models (model_id, skeleton), the default first.
+        Only these ids ever label a metric: the `model` label's values are bounded by the models
+        loaded at start, never by what requests name."""
+        self.model_info.clear()
+        for k, (model_id, skeleton) in enumerate(models):
+            self.model_info.labels(model_id=model_id, skeleton=skeleton, default=str(k == 0).lower()).set(1)
+
+    def observe_plausibility(self, model: str, values: Iterable[float]) -> None:
         """One observation per pose (N,): a Python loop, run only for models with the output."""
+        histogram = self.plausibility.labels(model=model)
         for value in values:
-            self.plausibility.observe(float(value))
+            histogram.observe(float(value))
 
     def reject(self, transport: str, violations: Sequence[Violation]) -> None:
         """Count a rejected input: once per reason it broke."""

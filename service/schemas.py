@@ -227,6 +227,12 @@ class LiftRequest(BaseModel):
     fps: Annotated[float, Strict()] | None = Field(
         None, description="Frames per second of the tracks, in (0, 240]; needed with `temporal`."
     )
+    model: str | None = Field(
+        None,
+        description="The model to lift with: a `model_id` that GET /v1/models lists (default: the "
+        "service's default model). An unknown one is a 422 naming the known ones; `temporal` causal "
+        "or offline runs over the model the temporal models were trained on only.",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -234,10 +240,9 @@ class LiftRequest(BaseModel):
         if (hint := raw_output_hint(data)) is not None:
             raise PydanticCustomError(DETECTOR_OUTPUT, hint)
         if isinstance(data, dict) and "poses" not in data and "keypoints" in data:
-            pose = {k: v for k, v in data.items() if k not in ("confidence_threshold",)}
-            batch = {"poses": [pose]}
-            if "confidence_threshold" in data:
-                batch["confidence_threshold"] = data["confidence_threshold"]
+            request_level = ("confidence_threshold", "model")
+            batch = {"poses": [{k: v for k, v in data.items() if k not in request_level}]}
+            batch.update({k: data[k] for k in request_level if k in data})
             return batch
         reject_unknown_keys(cls, data)
         return data

@@ -11,6 +11,7 @@ from collections.abc import AsyncGenerator, AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
+from service.catalog import Catalog
 from service.engine import Engine, TemporalEngine, offload
 from service.errors import LiftError, ModelOutputError
 from service.frames import POSE_FIELD, Answer, Answers, Frame, Group, Person
@@ -44,9 +45,10 @@ class StreamState:
     At most `window` frames are held from read to answer (the reader waits for room: backpressure).
     Frames are taken only while none of the stream's groups waits for a run, so the frames that
     arrive during a run become the next groups (at most `max_group` poses each, a frame with more
-    people a group of its own): the cost per frame stays small, and one stream fills batches
-    instead of waiting for each frame's run. Counting poses, not frames, keeps every group within
-    the batch queue, however many people its frames carry.
+    people a group of its own; a frame for another model than the frame before starts a new group):
+    the cost per frame stays small, and one stream fills batches instead of waiting for each
+    frame's run. Counting poses, not frames, keeps every group within the batch queue, however many
+    people its frames carry.
     """
 
     def __init__(self, window: int, max_group: int) -> None:
@@ -82,7 +84,7 @@ class StreamState:
         poses = 0
         for frame in frames:
             count = len(frame.persons())
-            if taken and poses + count > self.max_group:
+            if taken and (poses + count > self.max_group or frame.model != taken[-1].model):
                 groups.append(Group(taken))
                 taken, poses = [], 0
             taken.append(frame)
@@ -104,8 +106,10 @@ class StreamState:
         self.held -= len(group.frames)
 
 
-async def _start(group: Group, engine: Engine, limits: Limits, transport: str) -> None:
-    """Prepare the group's poses (off the event loop when many) and queue the valid ones as one request."""
+async def _start(group: Group, models: Catalog, limits: Limits, transport: str) -> None:
+    """Prepare the group's poses (off the event loop when many) and queue the valid ones as one
+    request to the group's model."""
+    engine = models.engines.get(group.model) or models.default_engine  # frames name known models
     poses = group.poses()
     if not poses:
         return
@@ -253,7 +257,7 @@ class _Reader:
 
 async def answer_stream(
     frames: AsyncIterator[Frame],
-    engine: Engine,
+    engine: Engine | Catalog,
     limits: Limits,
     encode: Callable[[Answers], R],
     *,
@@ -271,7 +275,8 @@ async def answer_stream(
     a frame for the tracks' idle_s is dropped (whether the stream sends other frames or none), and
     the stream's tracks are freed when it ends.
     """
-    reader = _Reader(frames, StreamState(window, engine.max_batch))
+    models = Catalog.of(engine, temporal is not None)
+    reader = _Reader(frames, StreamState(window, models.default_engine.max_batch))
     state = reader.state
     table = None if temporal is None else temporal.table()
     tracking = (
@@ -282,7 +287,7 @@ async def answer_stream(
             reader.wake.clear()
             if state.can_take():
                 for taken in state.take():
-                    await _start(taken, engine, limits, transport)
+                    await _start(taken, models, limits, transport)
                     reader.watch(taken)
             while (group := state.answerable()) is not None:
                 yield await _finish(group, encode, tracking)

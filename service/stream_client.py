@@ -167,13 +167,16 @@ class StreamClient:
     `target` is host:port, or `dns:///name:port` to spread calls over every address the name
     resolves to (round_robin; e.g. the headless Service of deploy/k8s: one connection per pod).
     `api_key`: sent as `authorization: Bearer KEY` metadata; `tls`: a TLS channel, whose server
-    certificate chains to `ca_file` (PEM; None: the system's CAs).
+    certificate chains to `ca_file` (PEM; None: the system's CAs). `model`: the model_id every
+    request and frame names (GET /v1/models; None: the service's default).
     """
 
     def __init__(self, target: str = DEFAULT_TARGET, *, timeout: float | None = None, retries: int = 3,
                  backoff: float = 0.1, max_message_bytes: int = 4 << 20, api_key: str | None = None,
-                 tls: bool = False, ca_file: str | Path | None = None) -> None:  # fmt: skip
+                 tls: bool = False, ca_file: str | Path | None = None,
+                 model: str | None = None) -> None:  # fmt: skip
         self.target, self.timeout, self.retries, self.backoff = target, timeout, retries, backoff
+        self.model_id = model or ""
         options = [
             ("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.lb_policy_name", "round_robin"),  # pick_first, the default, calls one address only
@@ -216,9 +219,11 @@ class StreamClient:
             i = 0
             try:
                 for i, frame in enumerate(frames):
-                    yield _frame_message(
+                    message = _frame_message(
                         i, frame, format, confidence_threshold, fps, (intrinsics, person_height_m)
                     )
+                    message.model = self.model_id
+                    yield message
             except Exception as err:  # gRPC would swallow it on its own thread: raised below
                 unsent.append(LiftClientError(f"frame {i} cannot be sent: {getattr(err, 'message', err)}"))
 
@@ -242,7 +247,7 @@ class StreamClient:
         camera = (intrinsics, person_height_m)
         poses = [_placed(_pose_proto(p, None if conf is None else conf[i], format), camera)
                  for i, p in enumerate(points)]  # fmt: skip
-        request = lifter_pb2.LiftRequest(poses=poses, format=format,
+        request = lifter_pb2.LiftRequest(poses=poses, format=format, model=self.model_id,
                                          confidence_threshold=confidence_threshold)  # fmt: skip
         for attempt in range(self.retries + 1):
             try:

@@ -137,7 +137,10 @@ def test_burst_beyond_the_queue_is_refused_fast_and_the_server_recovers(slow_ser
 
         value = slow_service.metrics.registry.get_sample_value
         deadline = time.monotonic() + 10
-        while value("repnet_batch_queue_poses") or value("repnet_in_flight_requests", {"transport": "http"}):
+        model = {"model": slow_service.models.default}
+        while value("repnet_batch_queue_poses", model) or value(
+            "repnet_in_flight_requests", {"transport": "http"}
+        ):
             assert time.monotonic() < deadline, "the queue never drained"
             time.sleep(0.02)
         assert value(

@@ -150,7 +150,6 @@ def test_confidence_column_marks_low_joints_missing(tmp_path: Path) -> None:
         ('{"keypoints": [[1, 2], [3, "a"]]}', [], "keypoints[0][1]"),
         ("[[1, 2]]", ["--format", "coco17"], "format coco17 has 17"),
         ("not json", [], "bad.json"),
-        (json.dumps(POSE_2D.tolist()), ["--model", "x.onnx"], "--model needs --local"),
     ],
 )
 def test_bad_usage_exits_2_with_a_message(

@@ -49,7 +49,7 @@ def wait_until(condition: Callable[[], bool], what: str) -> None:
 
 
 def queued(registry: CollectorRegistry) -> float:
-    return registry.get_sample_value("repnet_batch_queue_poses") or 0.0
+    return sum(s.value for m in registry.collect() if m.name == "repnet_batch_queue_poses" for s in m.samples)
 
 
 def test_concurrent_http_and_grpc_requests_share_one_run(
@@ -71,13 +71,16 @@ def test_concurrent_http_and_grpc_requests_share_one_run(
         answers += [f.result().json()["poses"][0]["pose_3d"] for f in http]
         answers += [np.reshape(f.result().poses[0].pose_3d, (17, 3)) for f in rpc]
     assert gated.batches == [1, 6]
-    assert registry.get_sample_value("repnet_batch_size_poses_bucket", {"le": "4.0"}) == 1  # one batch > 4
-    assert registry.get_sample_value("repnet_batch_size_poses_count") == 2
+    model = {"model": lifter.info.model_id}
+    assert registry.get_sample_value("repnet_batch_size_poses_bucket", {"le": "4.0", **model}) == 1  # one > 4
+    assert registry.get_sample_value("repnet_batch_size_poses_count", model) == 2
     for i, answer in enumerate(answers):  # each caller gets the answer to its own pose
         alone = lifter.lift(model_input(variant(i)).keypoints_2d, np.ones((1, 17), bool)).pose_3d[0]
         np.testing.assert_allclose(answer, alone, rtol=1e-4, atol=1e-2)
     for transport in ("http", "grpc"):
-        assert registry.get_sample_value("repnet_batch_queue_wait_seconds_count", {"transport": transport})
+        assert registry.get_sample_value(
+            "repnet_batch_queue_wait_seconds_count", {"transport": transport, **model}
+        )
 
 
 def _request(points: np.ndarray) -> Any:

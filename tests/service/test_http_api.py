@@ -191,13 +191,17 @@ def test_metrics_count_requests_rejections_and_batches(
     assert value("repnet_request_duration_seconds_count", transport="http", method="Lift", outcome="ok") == 1
     assert value("repnet_rejected_inputs_total", transport="http", reason="non_finite") == 1
     assert value("repnet_rejected_inputs_total", transport="http", reason="empty_batch") == 1
-    assert value("repnet_batch_size_poses_count") == 1 and value("repnet_batch_size_poses_sum") == 1
-    assert value("repnet_inference_seconds_count") == 1
-    assert value("repnet_batch_queue_wait_seconds_count", transport="http") == 1
+    model = client.get("/v1/model").json()["model_id"]  # a model's work is labelled with its id
+    assert value("repnet_batch_size_poses_count", model=model) == 1
+    assert value("repnet_batch_size_poses_sum", model=model) == 1
+    assert value("repnet_inference_seconds_count", model=model) == 1
+    assert value("repnet_batch_queue_wait_seconds_count", model=model, transport="http") == 1
+    assert value("repnet_lifted_poses_total", model=model, transport="http") == 1
     assert value("repnet_in_flight_requests", transport="http") == 0
     text = client.get("/metrics").text
     assert 'repnet_requests_total{method="Lift",outcome="ok",transport="http"} 1.0' in text
-    assert 'repnet_model_info{model_id="' in text and "repnet_batch_queue_poses 0.0" in text
+    assert f'repnet_model_info{{default="true",model_id="{model}"' in text
+    assert f'repnet_batch_queue_poses{{model="{model}"}} 0.0' in text
 
 
 def test_reply_renderer_keeps_every_value_and_never_writes_invalid_json() -> None:

@@ -22,6 +22,7 @@ NAMES = {
     "repnet_inference_seconds", "repnet_batch_size_poses", "repnet_batch_queue_poses", "repnet_model_info",
     "repnet_pose_plausibility_ratio", "repnet_request_parse_seconds", "repnet_idle_streams_closed_total",
     "repnet_model_output_errors_total", "repnet_open_tracks", "repnet_track_state_bytes",
+    "repnet_lifted_poses_total",
 }  # fmt: skip
 
 
@@ -79,7 +80,7 @@ def test_model_info_names_the_current_model(registry: CollectorRegistry) -> None
     metrics.set_model("old", "h36m17")
     metrics.set_model("repnet-h36m-v1", "h36m17")
     text = generate_latest(registry).decode()
-    assert 'repnet_model_info{model_id="repnet-h36m-v1",skeleton="h36m17"} 1.0' in text
+    assert 'repnet_model_info{default="true",model_id="repnet-h36m-v1",skeleton="h36m17"} 1.0' in text
     assert 'model_id="old"' not in text
 
 

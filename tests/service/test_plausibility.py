@@ -153,9 +153,12 @@ def test_http_reply_carries_plausibility_across_chunks(
     pose_3d = np.array([r["pose_3d"] for r in results])
     got = np.array([r["plausibility"] for r in results])
     np.testing.assert_allclose(got, expected_plausibility(pose_3d), atol=1e-5)
-    assert registry.get_sample_value("repnet_pose_plausibility_ratio_count") == 10
-    assert registry.get_sample_value("repnet_pose_plausibility_ratio_sum") == pytest.approx(got.sum(), 1e-5)
-    below_half = registry.get_sample_value("repnet_pose_plausibility_ratio_bucket", {"le": "0.5"})
+    model = {"model": plausible.info.model_id}
+    assert registry.get_sample_value("repnet_pose_plausibility_ratio_count", model) == 10
+    assert registry.get_sample_value("repnet_pose_plausibility_ratio_sum", model) == pytest.approx(
+        got.sum(), 1e-5
+    )
+    below_half = registry.get_sample_value("repnet_pose_plausibility_ratio_bucket", {"le": "0.5", **model})
     assert below_half == int((got <= 0.5).sum())
     model = client.get("/v1/model").json()
     assert model["plausibility"] is True and model["plausibility_calibration"] == CALIBRATION
@@ -168,7 +171,10 @@ def test_http_plausibility_is_null_without_the_output(
     reply = client.post("/lift", json=_body(poses(6)))
     assert reply.status_code == 200, reply.text
     assert [r["plausibility"] for r in reply.json()["poses"]] == [None] * 6
-    assert registry.get_sample_value("repnet_pose_plausibility_ratio_count") == 0
+    assert (
+        registry.get_sample_value("repnet_pose_plausibility_ratio_count", {"model": plain.info.model_id})
+        is None
+    )
     model = client.get("/v1/model").json()
     assert model["plausibility"] is False and model["plausibility_calibration"] is None
 

@@ -67,6 +67,15 @@ def test_the_window_bounds_what_a_stream_holds_from_read_to_answer() -> None:
     assert state.held == 1 and state.has_room() and state.answerable() is second
 
 
+def test_a_group_holds_the_frames_of_one_model() -> None:
+    state = StreamState(window=8, max_group=8)
+    for i, model in enumerate(["a", "a", "b", "a", ""]):
+        state.add(replace(frame(i), model=model))
+    groups = state.take()  # a run is of one model: a frame for another starts a new group
+    assert [[f.frame_id for f in g.frames] for g in groups] == [[0, 1], [2], [3], [4]]
+    assert [g.model for g in groups] == ["a", "b", "a", ""]
+
+
 def test_frames_read_during_a_run_wait_for_it_and_become_the_next_group() -> None:
     state = StreamState(window=8, max_group=8)
     state.add(frame(0))

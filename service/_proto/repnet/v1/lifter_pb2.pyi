@@ -45,20 +45,22 @@ class CameraIntrinsics(_message.Message):
     def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ...) -> None: ...
 
 class LiftRequest(_message.Message):
-    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics", "image_size", "person_height_m")
+    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics", "image_size", "model", "person_height_m")
     POSES_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
     IMAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
     PERSON_HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
     poses: _containers.RepeatedCompositeFieldContainer[Pose2D]
     format: str
     confidence_threshold: float
     intrinsics: CameraIntrinsics
     image_size: ImageSize
+    model: str
     person_height_m: float
-    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., person_height_m: _Optional[float] = ...) -> None: ...
+    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., model: _Optional[str] = ..., person_height_m: _Optional[float] = ...) -> None: ...
 
 class PoseResult(_message.Message):
     __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings", "temporal", "track_id", "root_camera_m", "root_height_source")
@@ -107,20 +109,22 @@ class LiftResponse(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., joints: _Optional[_Iterable[str]] = ..., poses: _Optional[_Iterable[_Union[PoseResult, _Mapping]]] = ...) -> None: ...
 
 class LiftFrame(_message.Message):
-    __slots__ = ("frame_id", "pose", "confidence_threshold", "track_id", "fps", "people")
+    __slots__ = ("frame_id", "pose", "confidence_threshold", "track_id", "fps", "people", "model")
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
     TRACK_ID_FIELD_NUMBER: _ClassVar[int]
     FPS_FIELD_NUMBER: _ClassVar[int]
     PEOPLE_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
     frame_id: int
     pose: Pose2D
     confidence_threshold: float
     track_id: str
     fps: float
     people: _containers.RepeatedCompositeFieldContainer[TrackedPose]
-    def __init__(self, frame_id: _Optional[int] = ..., pose: _Optional[_Union[Pose2D, _Mapping]] = ..., confidence_threshold: _Optional[float] = ..., track_id: _Optional[str] = ..., fps: _Optional[float] = ..., people: _Optional[_Iterable[_Union[TrackedPose, _Mapping]]] = ...) -> None: ...
+    model: str
+    def __init__(self, frame_id: _Optional[int] = ..., pose: _Optional[_Union[Pose2D, _Mapping]] = ..., confidence_threshold: _Optional[float] = ..., track_id: _Optional[str] = ..., fps: _Optional[float] = ..., people: _Optional[_Iterable[_Union[TrackedPose, _Mapping]]] = ..., model: _Optional[str] = ...) -> None: ...
 
 class TrackedPose(_message.Message):
     __slots__ = ("track_id", "pose")
