@@ -145,12 +145,17 @@ def _format(text: str) -> str:
     return text
 
 
+def _number(text: str) -> float:
+    """A flag's number; NaN (which every range check refuses) when it is not one."""
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
 def _size(text: str) -> float:
     """One value of --image-size: a number of pixels > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
+    value = _number(text)
     if not 0 < value < math.inf:
         raise argparse.ArgumentTypeError(f"expected a number of pixels > 0, got {text!r}")
     return value
@@ -158,10 +163,7 @@ def _size(text: str) -> float:
 
 def _fps(text: str) -> float:
     """--fps: a number in (0, 240]."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
+    value = _number(text)
     if not 0 < value <= MAX_FPS:
         raise argparse.ArgumentTypeError(f"expected frames per second in (0, {MAX_FPS:g}], got {text!r}")
     return value

@@ -197,7 +197,8 @@ class ValidationSet:
     centre: np.ndarray | None = None
 
 
-def _split(n: int, val_fraction: float) -> int:
+def sequence_split(n: int, val_fraction: float) -> int:
+    """The first held-out frame of an n-frame sequence: its last val_fraction is validation."""
     return int(round(n * (1.0 - val_fraction)))
 
 
@@ -233,7 +234,7 @@ def build_training_sets(
     val: dict[str, list[tuple[np.ndarray, ...]]] = {"gt": [], "sh": []}
     for key, seq in sorted(poses.items()):
         subject = key.split("/")[0]
-        split = _split(len(seq), val_fraction)
+        split = sequence_split(len(seq), val_fraction)
         train_3d.append(seq[:split:frame_step])
         for cam_id, cam in cameras[subject].items():
             gt_cam = world_to_camera(seq, cam)

@@ -14,8 +14,8 @@ detections (ValidationClip).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -86,30 +86,39 @@ class Residuals:
         return errors[start : start + frames], seen[start : start + frames]
 
 
-def sequence_split(length: int, val_fraction: float) -> int:
-    """The first held-out frame of a sequence (data.build_training_sets' split)."""
-    return int(round(length * (1.0 - val_fraction)))
+def detected_sequences(data_dir: Path) -> Iterator[tuple[str, np.ndarray, data.Camera, np.ndarray]]:
+    """Each training-subject sequence seen by a camera with Stacked-Hourglass detections, in name
+    order: ("S1/Walking/54138969", its 3D world poses, the camera, the (F, 16, 2) detections)."""
+    cameras = data.load_cameras(data_dir)
+    poses = data.load_poses(data_dir, "train")
+    detections = data.load_detections(data_dir / data.SH_TRAIN_FILE)
+    for key, sequence in sorted(poses.items()):
+        for cam_id, camera in cameras[key.split("/")[0]].items():
+            found = detections.get(f"{key}/{cam_id}")
+            if found is not None:
+                yield f"{key}/{cam_id}", sequence, camera, found
 
 
 def residuals(data_dir: Path, val_fraction: float = 0.1) -> Residuals:
     """The detector errors of the training split (never of the held-out tails)."""
-    cameras = data.load_cameras(data_dir)
-    poses = data.load_poses(data_dir, "train")
-    detections = data.load_detections(data_dir / data.SH_TRAIN_FILE)
     streams = []
-    for key, sequence in sorted(poses.items()):
-        split = sequence_split(len(sequence), val_fraction)
-        for cam_id, camera in cameras[key.split("/")[0]].items():
-            found = detections.get(f"{key}/{cam_id}")
-            if found is None:
-                continue
-            n = min(len(found), split)
-            points, seen = data.mpii_to_h36m(found[:n])
-            truth = data.project_to_pixels(sequence[:n], camera)
-            errors = (points - truth) / np.maximum(pose_spread(truth, seen), 1e-6)[:, None, None]
-            errors[seen < 0.5] = 0.0
-            streams.append((errors.astype(np.float32), seen.astype(np.float32)))
+    for _, sequence, camera, found in detected_sequences(data_dir):
+        n = min(len(found), data.sequence_split(len(sequence), val_fraction))
+        points, seen = data.mpii_to_h36m(found[:n])
+        truth = data.project_to_pixels(sequence[:n], camera)
+        errors = (points - truth) / np.maximum(pose_spread(truth, seen), 1e-6)[:, None, None]
+        errors[seen < 0.5] = 0.0
+        streams.append((errors.astype(np.float32), seen.astype(np.float32)))
     return Residuals(tuple(streams))
+
+
+def with_residuals(pool: data.TrainingPool, data_dir: Path, val_fraction: float) -> data.TrainingPool:
+    """The pool with the detector errors of the training frames (every sequence and camera), for
+    TrainConfig.detector_error_prob."""
+    streams = residuals(data_dir, val_fraction).streams
+    errors = np.concatenate([e for e, _ in streams]).astype(np.float32)
+    seen = np.concatenate([v for _, v in streams]).astype(np.float32)
+    return replace(pool, detector_errors=errors, detector_visible=seen)
 
 
 @dataclass(frozen=True)
@@ -205,7 +214,7 @@ def synthesize(
 def training_sequences(data_dir: Path, val_fraction: float = 0.1) -> list[np.ndarray]:
     """The training split of every training sequence: (n, J, 3) world mm at SOURCE_HZ."""
     poses = data.load_poses(data_dir, "train")
-    return [seq[: sequence_split(len(seq), val_fraction)] for _, seq in sorted(poses.items())]
+    return [seq[: data.sequence_split(len(seq), val_fraction)] for _, seq in sorted(poses.items())]
 
 
 @dataclass(frozen=True)
@@ -230,38 +239,31 @@ def validation_clips(
     """The held-out tails of the training subjects with Stacked-Hourglass detections, one clip per
     sequence and camera. kind: "sh25" the detections at their 25 Hz; "sh50" the detections and the
     truth upsampled to 50 Hz (Catmull-Rom); "gt25" the projected truth at 25 Hz."""
-    cameras = data.load_cameras(data_dir)
-    poses = data.load_poses(data_dir, "train")
-    detections = data.load_detections(data_dir / data.SH_TRAIN_FILE)
     clips = []
-    for key, sequence in sorted(poses.items()):
-        split = sequence_split(len(sequence), val_fraction)
-        for cam_id, camera in cameras[key.split("/")[0]].items():
-            found = detections.get(f"{key}/{cam_id}")
-            if found is None or min(len(found), len(sequence)) - split < min_frames:
-                continue
-            n = min(len(found), len(sequence))
-            world = sequence[split:n].astype(np.float64)
-            source, source_format = found[split:n].astype(np.float64), "mpii16"
-            points, seen = data.mpii_to_h36m(found[split:n])
-            fps = SOURCE_HZ
-            if kind == "gt25":
-                points, seen = data.project_to_pixels(world, camera), np.ones_like(seen)
-                source, source_format = points.astype(np.float64), "h36m17"
-            elif kind == "sh50":
-                up = np.arange(2 * len(world) - 1) / 2.0
-                world, points = catmull_rom(world, up), catmull_rom(points.astype(np.float64), up)
-                source = catmull_rom(source, up)
-                seen, fps = np.repeat(seen[:1], len(up), axis=0), 2 * SOURCE_HZ
-            elif kind != "sh25":
-                raise ValueError(f"validation clips are sh25, sh50 or gt25, got {kind!r}")
-            truth = data.world_to_camera(world, camera)
-            truth = truth - truth[:, skeleton.ROOT : skeleton.ROOT + 1]
-            name = f"{key}/{cam_id}"
-            clips.append(
-                ValidationClip(
-                    name, points.astype(np.float32), seen, fps, truth.astype(np.float32),
-                    source.astype(np.float32), source_format,
-                )
-            )  # fmt: skip
+    for name, sequence, camera, found in detected_sequences(data_dir):
+        split, n = data.sequence_split(len(sequence), val_fraction), min(len(found), len(sequence))
+        if n - split < min_frames:
+            continue
+        world = sequence[split:n].astype(np.float64)
+        source, source_format = found[split:n].astype(np.float64), "mpii16"
+        points, seen = data.mpii_to_h36m(found[split:n])
+        fps = SOURCE_HZ
+        if kind == "gt25":
+            points, seen = data.project_to_pixels(world, camera), np.ones_like(seen)
+            source, source_format = points.astype(np.float64), "h36m17"
+        elif kind == "sh50":
+            up = np.arange(2 * len(world) - 1) / 2.0
+            world, points = catmull_rom(world, up), catmull_rom(points.astype(np.float64), up)
+            source = catmull_rom(source, up)
+            seen, fps = np.repeat(seen[:1], len(up), axis=0), 2 * SOURCE_HZ
+        elif kind != "sh25":
+            raise ValueError(f"validation clips are sh25, sh50 or gt25, got {kind!r}")
+        truth = data.world_to_camera(world, camera)
+        truth = truth - truth[:, skeleton.ROOT : skeleton.ROOT + 1]
+        clips.append(
+            ValidationClip(
+                name, points.astype(np.float32), seen, fps, truth.astype(np.float32),
+                source.astype(np.float32), source_format,
+            )
+        )  # fmt: skip
     return clips

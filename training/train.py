@@ -19,7 +19,6 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, TextIO
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -160,7 +159,7 @@ def train(
     pool, held_out = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)
     val_sets = validation_sets(config, held_out)
     if config.detector_error_prob > 0:
-        pool = with_residuals(pool, data_dir, config.val_fraction)
+        pool = sequences.with_residuals(pool, data_dir, config.val_fraction)
     hashes = lineage.data_hashes(data_dir, data.training_files(config.inputs))
     log.info(
         "training on %s: %d 3D poses, %d 2D poses, device %s",
@@ -209,14 +208,6 @@ def _initialise(trainer: Trainer, state: dict[str, Any], init_from: str) -> None
         init_from,
         state["step"],
     )
-
-
-def with_residuals(pool: data.TrainingPool, data_dir: Path, val_fraction: float) -> data.TrainingPool:
-    """The pool with the detector errors of the training frames (every sequence and camera)."""
-    streams = sequences.residuals(data_dir, val_fraction).streams
-    errors = np.concatenate([e for e, _ in streams]).astype(np.float32)
-    seen = np.concatenate([v for _, v in streams]).astype(np.float32)
-    return dataclasses.replace(pool, detector_errors=errors, detector_visible=seen)
 
 
 def _truncate_history(path: Path, step: int) -> None:
