@@ -7,14 +7,13 @@ import importlib
 import json
 import math
 import os
-import re
 import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
-import numpy as np
-
+from service.adapt_input import add_parser as add_adapt_parser
+from service.adapt_input import format_error, resolve_format
 from service.cli_lift import (
     RemoteLifter,
     batch_of,
@@ -26,8 +25,8 @@ from service.cli_lift import (
     warn_about,
 )
 from service.client import DEFAULT_URL, LiftClientError
-from service.errors import ModelLoadError, echo
-from service.formats import FORMATS, MODEL_PARENTS, alias_of, format_table, hint_for
+from service.errors import ModelLoadError
+from service.formats import FORMATS, MODEL_PARENTS, format_table
 from service.lift_body import Intrinsics
 from service.lift_output import WRITERS, Lifted, check_output, write_output
 from service.pose_file import InputFileError, Poses, load_poses, read_input
@@ -85,15 +84,7 @@ def run_lift(args: argparse.Namespace) -> int:
         check_output(args.output)
     size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
     poses = read_input(args.input, lambda files: _progress(files, "file"), size)
-    fmt = args.format or poses.format or "h36m17"
-    if fmt not in FORMATS:
-        raise InputFileError(_format_error(fmt))
-    if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
-        first = poses.points[0]
-        hint = hint_for(first, ~np.isnan(first).any(axis=1), fmt) or "; pick the format with --format"
-        hint = re.sub(r'send format "(\w+)"', r"use --format \1", hint)
-        raise InputFileError(f"{args.input}: poses have {poses.points.shape[1]} joints, format {fmt} has "
-                             f"{len(FORMATS[fmt].joint_names)}{hint}")  # fmt: skip
+    fmt = resolve_format(poses, args.format, args.input)
     remote = (
         None
         if args.local
@@ -131,17 +122,10 @@ def run_lift(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _format_error(name: str) -> str:
-    """Why `name` is no format, with the one it may mean."""
-    alias = alias_of(name)
-    means = f"; for {FORMATS[alias].description} use --format {alias}" if alias else ""
-    return f"unknown format {echo(name)}; expected one of {', '.join(FORMATS)}{means}"
-
-
 def _format(text: str) -> str:
     """--format: a format's name."""
     if text not in FORMATS:
-        raise argparse.ArgumentTypeError(_format_error(text))
+        raise argparse.ArgumentTypeError(format_error(text))
     return text
 
 
@@ -260,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--track", help="animate this track's poses (the output's track_id) instead")
     plot.add_argument("--fps", type=int, default=10, help="frames per second of an animation (default 10)")
     sub.add_parser("formats", help="print how each keypoint format maps onto the model's 17 joints")
+    add_adapt_parser(sub, _size, _format)
     return parser
 
 
@@ -271,13 +256,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return serve(argv[1:])
     args = build_parser().parse_args(argv)
+    if args.command == "adapt":  # its lineage records the command
+        args.command_line = ["repnet", *argv]
     if args.command == "lift" and args.batch_size < 1:
         print("repnet: error: --batch-size must be at least 1", file=sys.stderr)
         return EXIT_USAGE
     if args.command == "plot" and args.fps < 1:
         print("repnet: error: --fps must be at least 1", file=sys.stderr)
         return EXIT_USAGE
-    commands = {"lift": run_lift, "plot": run_plot, "formats": run_formats}
+    commands = {"lift": run_lift, "plot": run_plot, "formats": run_formats, "adapt": run_adapt}
     try:
         return commands[args.command](args)
     except (InputFileError, ModelLoadError) as err:
@@ -293,6 +280,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ImportError as err:
         print(f"repnet: error: {err.name or err} is needed: {install_hint()}", file=sys.stderr)
         return EXIT_USAGE
+
+
+def run_adapt(args: argparse.Namespace) -> int:
+    """`repnet adapt`: training.adapt_cli, which needs the `train` extra (torch)."""
+    try:
+        adapt = importlib.import_module("training.adapt_cli")
+    except ImportError as err:
+        hint = "pip install 'repnet[train]', or pip install -e '.[train]' in a checkout"
+        print(f"repnet: error: adapt needs the train extra ({err.name} is missing): {hint}", file=sys.stderr)
+        return EXIT_USAGE
+    return int(adapt.run(args))
 
 
 def install_hint() -> str:

@@ -110,6 +110,9 @@ class Trainer:
             raise ValueError(f"critic_fakes must be generator or corrupted, got {config.critic_fakes!r}")
         self._critic_only_fakes = fake_sources[config.critic_fakes]
         self.phases = self._phases()
+        # A frozen model whose answers to the synthetic 2D (before detector errors and occlusions)
+        # replace the synthetic truth as the target: distillation (training.adapt); None: the truth.
+        self.teacher: torch.nn.Module | None = None
 
     def _phases(self) -> tuple[Phase, ...]:
         """The run's phases in order, each with the step method chosen for it."""
@@ -244,6 +247,10 @@ class Trainer:
             config.limb_turn_deg,
             config.limb_turn_prob,
         )
+        if self.teacher is not None:
+            with torch.no_grad():
+                every = torch.ones(pixels.shape[:2], device=self.device)
+                target = self.teacher(pixels.to(self.device), every)[0] / MM_PER_UNIT
         visible = augment_visibility(torch.ones(pixels.shape[:2]), config, self.gen)
         pixels, visible = with_detector_errors(pixels, visible, self.pool, config, self.gen)
         visible = visible.to(self.device)

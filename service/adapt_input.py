@@ -1,0 +1,158 @@
+"""The 2D poses `repnet adapt` learns from: every file `repnet lift` reads, through the service's own
+input rules, as the model's 17 joints (the poses a request would reject are skipped, and counted)."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.config import Settings
+from service.errors import echo
+from service.formats import FORMATS, alias_of, hint_for
+from service.keypoints import Limits, PoseInput, prepare_poses
+from service.pose_file import InputFileError, Poses, Progress, read_input
+
+
+def format_error(name: str) -> str:
+    """Why `name` is no format, with the one it may mean."""
+    alias = alias_of(name)
+    means = f"; for {FORMATS[alias].description} use --format {alias}" if alias else ""
+    return f"unknown format {echo(name)}; expected one of {', '.join(FORMATS)}{means}"
+
+
+def resolve_format(poses: Poses, given: str | None, source: str) -> str:
+    """The keypoint format of a file's poses: `given` (--format), else the file's, else h36m17;
+    InputFileError when the poses' joint count is not that format's, with a hint at the right one."""
+    fmt = given or poses.format or "h36m17"
+    if fmt not in FORMATS:
+        raise InputFileError(format_error(fmt))
+    if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
+        first = poses.points[0]
+        hint = hint_for(first, ~np.isnan(first).any(axis=1), fmt) or "; pick the format with --format"
+        hint = re.sub(r'send format "(\w+)"', r"use --format \1", hint)
+        raise InputFileError(
+            f"{source}: poses have {poses.points.shape[1]} joints, format {fmt} has "
+            f"{len(FORMATS[fmt].joint_names)}{hint}"
+        )
+    return fmt
+
+
+@dataclass(frozen=True)
+class AdaptInput:
+    """The usable poses of every input, in input order, in the model's joints."""
+
+    points: np.ndarray  # (N, 17, 2) float32 px, 0 where not visible
+    visible: np.ndarray  # (N, 17) float32 in {0, 1}
+    counts: tuple[int, ...]  # usable poses per input
+    skipped: int  # poses the service's input rules reject (too few joints, out of range, ...)
+
+
+def read_adapt_input(
+    specs: Sequence[str],
+    fmt: str | None,
+    threshold: float | None,
+    image_size: tuple[float, float] | None,
+    progress: Progress,
+) -> AdaptInput:
+    """Read each input (a file, a folder or a glob of frame files) and keep the poses the service
+    would lift, converted to the model's joints as a request converts them."""
+    settings = Settings()
+    limits = Limits(
+        max_request_poses=1 << 62,
+        min_visible_joints=settings.min_visible_joints,
+        confidence_threshold=settings.confidence_threshold,
+        max_coordinate=settings.max_coordinate,
+    )
+    points, visible, counts, skipped = [], [], [], 0
+    for spec in specs:
+        poses = read_input(spec, progress, image_size)
+        if not len(poses.points):
+            raise InputFileError(f"{spec}: no poses")
+        name = resolve_format(poses, fmt, spec)
+        conf = poses.confidence
+        inputs = [
+            PoseInput(p, ~np.isnan(p).any(axis=1), None if conf is None else conf[i], name)
+            for i, p in enumerate(poses.points)
+        ]
+        prepared = prepare_poses(inputs, limits, threshold)
+        kept = prepared.inputs
+        skipped += sum(1 for found in prepared.violations if found)
+        points.append(kept.keypoints_2d.astype(np.float32))
+        visible.append(kept.visible.astype(np.float32))
+        counts.append(len(kept))
+    total = sum(counts)
+    if total == 0:
+        raise InputFileError("no usable poses in the inputs (each needs enough visible joints)")
+    return AdaptInput(np.concatenate(points), np.concatenate(visible), tuple(counts), skipped)
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: Any, fmt: Any) -> None:
+    """`repnet adapt`'s flags (its work is training.adapt_cli's, with the `train` extra). size and
+    fmt: the --image-size and --format value parsers `repnet lift` uses."""
+    adapt = sub.add_parser(
+        "adapt",
+        help="adapt a model to your own unlabeled 2D detections (needs the train extra)",
+        description="Fine-tune a model on 2D poses alone, the paper's weak supervision: no 3D is needed. "
+        "Writes an ONNX model the service serves (--model-path, REPNET_MODEL_DIR) and prints a report "
+        "on a held-out part of the inputs; a model that got worse there is not written (--force).",
+    )
+    adapt.add_argument("input", nargs="+", help="files, folders or globs `repnet lift` reads")
+    adapt.add_argument("-o", "--output", type=Path, required=True, help="the adapted model (.onnx)")
+    adapt.add_argument("--model", help="the model to adapt (an .onnx file; default: the bundled one)")
+    adapt.add_argument("--model-id", help="the adapted model's id (default: the output's name)")
+    adapt.add_argument(
+        "--format", type=fmt, metavar="FORMAT", help="keypoint format (default: file's, h36m17)"
+    )
+    adapt.add_argument(
+        "--image-size", type=size, nargs=2, metavar=("W", "H"),
+        help="width and height in px of normalised [0, 1] inputs (MediaPipe rows)",
+    )  # fmt: skip
+    adapt.add_argument("--confidence-threshold", type=float, help="joints below it count as missing")
+    adapt.add_argument("--minutes", type=_positive(float), help="wall-time limit (default 25); "
+                       "the run checkpoints, --resume goes on")  # fmt: skip
+    adapt.add_argument("--steps", type=_positive(int), help="training steps in all (default 3000)")
+    adapt.add_argument("--threads", type=_positive(int), default=0, help="torch threads (default: all cores)")
+    adapt.add_argument("--resume", action="store_true", help="go on from the last checkpoint of this run")
+    adapt.add_argument(
+        "--holdout-fraction", type=_fraction, default=0.1,
+        help="the last fraction of each input held out for the report (default 0.1)",
+    )  # fmt: skip
+    adapt.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    adapt.add_argument("--force", action="store_true", help="write the model even when it got worse")
+    adapt.add_argument(
+        "--run-dir", type=Path, help="checkpoint folder (default: one in ~/.cache/repnet/adapt)"
+    )
+    adapt.add_argument(
+        "--prior-poses", type=_positive(int), default=100_000,
+        help="3D poses drawn from the shipped pose prior for the run (default 100000)",
+    )  # fmt: skip
+    adapt.set_defaults(command_line=None)
+
+
+def _positive(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or value <= 0:
+            raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}")
+        return value
+
+    return parse
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
+    return value

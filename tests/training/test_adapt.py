@@ -1,0 +1,185 @@
+"""`repnet adapt`: end to end on a tiny model, lineage, the service loading the result, resume bit for
+bit, the refusal of a worse model, and the pieces (holdout split, residuals, the pose prior)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from service.cli import main as repnet
+from service.config import Settings
+from service.startup import load_lifter
+from training import adapt_report, checkpoint, lineage, metrics, prior, skeleton, synthetic
+from training.adapt import answer, split_holdout
+from training.adapt_report import Figures, read_metadata, worse
+from training.camera import masked_centre, project_weak_perspective
+from training.config import RepNetConfig
+from training.model import MM_PER_UNIT, RepNet, normalize_keypoints
+
+FAST = ["--threads", "1", "--prior-poses", "2000"]
+
+
+@pytest.fixture(scope="module")
+def parent() -> Path:
+    """The bundled model: mirror-averaged, with a calibrated critic."""
+    return Settings().model_path
+
+
+@pytest.fixture(scope="module")
+def poses_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """300 prior poses seen by random cameras, a few joints missing: a user's unlabeled 2D."""
+    gen = torch.Generator().manual_seed(0)
+    world = torch.from_numpy(prior.PosePrior.load().sample(300, np.random.default_rng(2))).double()
+    rot, position = synthetic.random_views(len(world), gen)
+    pixels = synthetic.project(world, rot, position).numpy()
+    rng = np.random.default_rng(3)
+    pixels += rng.normal(0, 3.0, pixels.shape)
+    pixels[rng.random(pixels.shape[:2]) < 0.05] = np.nan
+    path = tmp_path_factory.mktemp("input") / "detections.npz"
+    np.savez(path, keypoints=pixels, format="h36m17")
+    return path
+
+
+def adapt(poses: Path, parent: Path, out: Path, *flags: str) -> int:
+    return repnet(["adapt", str(poses), "-o", str(out), "--model", str(parent), *FAST, *flags])
+
+
+def test_adapt_writes_a_model_the_service_serves_with_its_lineage(
+    poses_file: Path, parent: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "mine.onnx"
+    assert adapt(poses_file, parent, out, "--steps", "4", "--run-dir", str(tmp_path / "run"), "--force") == 0
+    printed = capsys.readouterr().out
+    assert "reprojection error (px)" in printed and "held-out poses: 30" in printed
+    meta = read_metadata(out)
+    record = json.loads(meta["lineage"])
+    assert record["model_id"] == meta["model_id"] == "mine"
+    assert record["parent"] == {
+        "model_id": read_metadata(parent)["model_id"],
+        "sha256": lineage.file_sha256(parent),
+    }
+    assert record["inputs"] == [{"input": "detections.npz", "sha256": lineage.file_sha256(poses_file)}]
+    assert record["command"].startswith("repnet adapt ") and str(tmp_path) not in record["command"]
+    assert record["steps"] == 4 and record["poses"] == 270 and record["holdout_poses"] == 30
+    assert set(record["report"]["before"]) == {
+        "reprojection_px",
+        "plausibility",
+        "symmetry_mm",
+        "bone_std_mm",
+    }
+    lifter = load_lifter(Settings(model_path=out))  # the service's own loading and start-up check
+    points = np.nan_to_num(np.load(poses_file)["keypoints"][:5]).astype(np.float32)
+    prediction = lifter.lift(points, np.ones((5, 17), bool))
+    assert lifter.info.model_id == "mine" and np.isfinite(prediction.pose_3d).all()
+
+
+def test_adapt_resumes_bit_for_bit(poses_file: Path, parent: Path, tmp_path: Path) -> None:
+    straight, halves = tmp_path / "straight", tmp_path / "halves"
+    assert (
+        adapt(poses_file, parent, tmp_path / "a.onnx", "--steps", "6", "--run-dir", str(straight), "--force")
+        == 0
+    )
+    assert (
+        adapt(poses_file, parent, tmp_path / "b.onnx", "--steps", "3", "--run-dir", str(halves), "--force")
+        == 0
+    )
+    resumed = ["--steps", "6", "--run-dir", str(halves), "--resume", "--force"]
+    assert adapt(poses_file, parent, tmp_path / "b.onnx", *resumed) == 0
+    one, two = (torch.load(d / "adapt.pt", weights_only=False) for d in (straight, halves))
+    assert one["step"] == two["step"] == 6
+    for part in ("generator", "critic", "opt_g"):
+        flat_one = torch.nn.utils.parameters_to_vector([t for t in _tensors(one["trainer"][part])])
+        flat_two = torch.nn.utils.parameters_to_vector([t for t in _tensors(two["trainer"][part])])
+        assert torch.equal(flat_one, flat_two), part
+    parent_weights = checkpoint.load(parent)["generator"]
+    trained = two["trainer"]["generator"]
+    assert any(not torch.equal(trained[k], v) for k, v in parent_weights.items())  # it did train
+
+
+def _tensors(state: object) -> list[torch.Tensor]:
+    """Every tensor of a (nested) state dict, in a fixed order."""
+    if isinstance(state, torch.Tensor):
+        return [state.flatten().double()]
+    if isinstance(state, dict):
+        return [t for k in sorted(state, key=str) for t in _tensors(state[k])]
+    if isinstance(state, (list, tuple)):
+        return [t for item in state for t in _tensors(item)]
+    return []
+
+
+def test_resume_with_other_settings_is_refused(
+    poses_file: Path, parent: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = ["--run-dir", str(tmp_path / "run"), "--force"]
+    assert adapt(poses_file, parent, tmp_path / "a.onnx", "--steps", "2", *run) == 0
+    assert (
+        adapt(poses_file, parent, tmp_path / "a.onnx", "--steps", "4", "--seed", "1", "--resume", *run) == 2
+    )
+    assert "seed=0" in capsys.readouterr().err
+
+
+def test_a_worse_model_is_not_written_unless_forced(
+    poses_file: Path, parent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    # Any change at all counts as worse: the adapted model cannot pass.
+    monkeypatch.setattr(adapt_report, "TOLERANCE", dict.fromkeys(adapt_report.TOLERANCE, -1e9))
+    out = tmp_path / "worse.onnx"
+    assert adapt(poses_file, parent, out, "--steps", "2", "--run-dir", str(tmp_path / "run")) == 1
+    assert not out.exists() and "not written" in capsys.readouterr().err
+    assert adapt(poses_file, parent, out, "--steps", "2", "--run-dir", str(tmp_path / "run"), "--force") == 0
+    assert json.loads(read_metadata(out)["lineage"])["refused_but_forced"]
+
+
+def test_worse_names_each_figure_that_got_worse() -> None:
+    before = Figures(reprojection_px=10.0, plausibility=0.5, symmetry_mm=5.0, bone_std_mm=3.0)
+    assert worse(before, Figures(10.9, 0.49, 5.9, 3.9)) == []
+    found = worse(before, Figures(11.5, 0.4, 7.0, 4.5))
+    assert [r.split()[0] for r in found] == ["reprojection", "plausibility", "symmetry", "bone-length"]
+
+
+def test_bad_flags_are_named(
+    poses_file: Path, parent: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        adapt(poses_file, parent, tmp_path / "a.onnx", "--holdout-fraction", "1.5")
+    assert exit_info.value.code == 2 and "--holdout-fraction" in capsys.readouterr().err
+    assert adapt(poses_file, parent, tmp_path / "a.json") == 2
+    assert ".onnx" in capsys.readouterr().err
+
+
+def test_holdout_is_the_tail_of_each_input() -> None:
+    held = split_holdout([10, 5, 1], 0.2)
+    assert held.tolist() == [False] * 8 + [True] * 2 + [False] * 4 + [True] + [False]
+    assert not split_holdout([10], 0.0).any()
+
+
+def test_residuals_are_the_input_minus_the_reprojection_and_zero_at_hidden_joints() -> None:
+    torch.manual_seed(0)
+    generator = RepNet(RepNetConfig(width=32)).eval()
+    rng = np.random.default_rng(0)
+    points = (rng.normal(size=(8, 17, 2)) * 80 + 400).astype(np.float32)
+    visible = (rng.random((8, 17)) > 0.2).astype(np.float32)
+    pose, camera, residual = answer(generator, points, visible, mirror_average=False)
+    with torch.no_grad():
+        w = normalize_keypoints(torch.from_numpy(points), torch.from_numpy(visible))
+        x, k = generator(w, torch.from_numpy(visible))
+        expected = (w - masked_centre(project_weak_perspective(k, x), torch.from_numpy(visible))).numpy()
+    assert np.allclose(pose, x.numpy() * MM_PER_UNIT, atol=1e-3)
+    assert np.allclose(residual[visible > 0], expected[visible > 0], atol=1e-5)
+    assert (residual[visible == 0] == 0).all()
+
+
+def test_prior_poses_are_whole_people() -> None:
+    model = prior.PosePrior.load()
+    poses = model.sample(2000, np.random.default_rng(0))
+    assert poses.shape == (2000, skeleton.NUM_JOINTS, 3) and np.isfinite(poses).all()
+    assert metrics.symmetry_error(poses).max() < 0.05  # mm: a left limb as long as the right one
+    lengths = np.linalg.norm(poses[:, 1:] - poses[:, list(skeleton.PARENTS[1:])], axis=-1)
+    ratio = lengths / model.mean_lengths
+    assert 0.7 < ratio.min() and ratio.max() < 1.4
+    assert np.median(poses[:, 10, 2] - poses[:, 3, 2]) > 1000  # head above ankle: Z up, standing

@@ -1,0 +1,170 @@
+"""`repnet adapt INPUT... -o adapted.onnx`: adapt a model to the user's own unlabeled 2D detections.
+
+service.cli defines the flags (so `repnet adapt --help` works without torch) and calls run() here;
+this needs the `train` extra. The steps are training.adapt's; the report, the refusal of a worse
+model and the export are training.adapt_report's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shlex
+import sys
+import time
+from dataclasses import asdict
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from service.adapt_input import read_adapt_input
+from service.config import Settings
+from training import checkpoint, lineage
+from training.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
+from training.adapt_report import (
+    export_adapted,
+    measure,
+    parent_scorer,
+    read_metadata,
+    render,
+    report_record,
+    worse,
+)
+from training.export import load_generator
+
+PROBE_POSES = 256  # held-out poses the progress bar's figures are measured on
+PROBE_EVERY = 50  # steps between two such measurements
+
+
+def say(message: str) -> None:
+    """A line on stderr."""
+    print(f"repnet adapt: {message}", file=sys.stderr, flush=True)
+
+
+def input_hashes(specs: list[str]) -> list[dict[str, str]]:
+    """sha256 of each input: of the file, or of a folder's (or glob's) files by name and content."""
+    out = []
+    for spec in specs:
+        path = Path(spec)
+        if path.is_file():
+            out.append({"input": path.name, "sha256": lineage.file_sha256(path)})
+            continue
+        files = sorted(path.iterdir()) if path.is_dir() else sorted(Path().glob(spec))
+        h = hashlib.sha256()
+        for f in (f for f in files if f.is_file()):
+            h.update(f.name.encode() + b"\0" + lineage.file_sha256(f).encode())
+        out.append({"input": path.name or spec, "sha256": h.hexdigest(), "files": str(len(files))})
+    return out
+
+
+def run_dir(args: argparse.Namespace, parent_sha: str, inputs_sha: str) -> Path:
+    """Where the run checkpoints: --run-dir, else a folder of the cache named by the output, the
+    parent and the inputs (so --resume finds it again)."""
+    if args.run_dir is not None:
+        return Path(args.run_dir)
+    key = hashlib.sha256(f"{args.output.resolve()}|{parent_sha}|{inputs_sha}".encode()).hexdigest()[:12]
+    return lineage.cache_dir() / "adapt" / f"{args.output.stem}-{key}"
+
+
+def _config(args: argparse.Namespace) -> AdaptConfig:
+    defaults = AdaptConfig()
+    return AdaptConfig(
+        steps=args.steps if args.steps is not None else defaults.steps,
+        minutes=args.minutes if args.minutes is not None else defaults.minutes,
+        holdout_fraction=args.holdout_fraction,
+        prior_poses=args.prior_poses,
+        seed=args.seed,
+    )
+
+
+def _progress(adaptation: Adaptation, probe: tuple[np.ndarray, np.ndarray], scorer: Any, bar: tqdm) -> Any:
+    """The on_step callback: the bar moves every step and shows the held-out probe's reprojection
+    error (px) and plausibility every PROBE_EVERY steps."""
+
+    def on_step(step: int, _terms: Any) -> None:
+        bar.update(1)
+        if step % PROBE_EVERY == 0 and len(probe[0]):
+            f = measure(adaptation.trainer.generator, scorer, probe[0], probe[1], adaptation.mirror_average)
+            bar.set_postfix(reproj_px=f"{f.reprojection_px:.2f}", plausibility=f"{f.plausibility:.3f}")
+
+    return on_step
+
+
+def run(args: argparse.Namespace) -> int:
+    """The command: read, adapt, report, refuse or write. 0 written, 1 refused (worse), 2 usage."""
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.output.suffix != ".onnx":
+        say(f"-o {args.output}: the adapted model is an .onnx file")
+        return 2
+    size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
+    data = read_adapt_input(args.input, args.format, args.confidence_threshold, size, lambda files: files)
+    held = split_holdout(list(data.counts), args.holdout_fraction)
+    train = (data.points[~held], data.visible[~held])
+    test = (data.points[held], data.visible[held]) if held.any() else train
+    say(f"{len(data.points)} poses ({data.skipped} skipped by the input rules): {len(train[0])} to adapt on, "
+        f"{int(held.sum())} held out")  # fmt: skip
+    parent_path = Path(args.model) if args.model else Settings().model_path
+    meta = read_metadata(parent_path)
+    parent = checkpoint.load(parent_path)
+    scorer = parent_scorer(parent, meta)
+    mirror = bool(json.loads(meta.get("mirror_average", "false")))
+    config = _config(args)
+    parent_sha = lineage.file_sha256(parent_path)
+    folder = run_dir(args, parent_sha, digest(*train))
+    adaptation = Adaptation(config, parent, *train, mirror_average=mirror, threads=args.threads)
+    state = folder / "adapt.pt"
+    if args.resume and state.is_file():
+        try:
+            adaptation.load(state)
+        except ConfigMismatch as err:
+            say(f"error: {err}")
+            return 2
+        say(f"resumed {state} at step {adaptation.step} of {config.steps}")
+    elif args.resume:
+        say(f"nothing to resume in {folder}: starting afresh")
+    probe = (test[0][:PROBE_POSES], test[1][:PROBE_POSES])
+    started = adaptation.step
+    with tqdm(total=config.steps, initial=adaptation.step, desc="adapt", unit="step", file=sys.stderr) as bar:
+        done = adaptation.run(config.minutes, state, on_step=_progress(adaptation, probe, scorer, bar))
+    steps = adaptation.step - started
+    rate = steps * config.batch_size / max(adaptation.elapsed, 1e-9) if steps else 0.0
+    say(f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
+        f"({rate:.0f} samples/s){'' if done else '; run again with --resume to go on'}")  # fmt: skip
+    before_model, _ = load_generator(parent_path)
+    before = measure(before_model, scorer, *test, mirror)
+    after = measure(adaptation.trainer.generator, scorer, *test, mirror)
+    print(render(before, after, len(test[0])))
+    reasons = worse(before, after)
+    if reasons and not args.force:
+        say("not written: the adapted model is worse on the held-out poses (" + "; ".join(reasons) + "); "
+            "--force writes it anyway")  # fmt: skip
+        return 1
+    record = {
+        "model_id": args.model_id or args.output.stem,
+        "parent": {"model_id": meta.get("model_id", parent_path.stem), "sha256": parent_sha},
+        "command": lineage.path_free(shlex.join(args.command_line or ["repnet", *sys.argv[1:]]), Path.cwd()),
+        "inputs": input_hashes(list(args.input)),
+        "poses": int(len(train[0])),
+        "holdout_poses": int(held.sum()),
+        "steps": adaptation.step,
+        "wall_time_s": round(adaptation.elapsed, 1),
+        "samples_per_s": round(rate, 1),
+        "config": asdict(config),
+        "report": report_record(before, after, len(test[0])),
+        "refused_but_forced": reasons,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "parent_lineage": json.loads(meta["lineage"]) if "lineage" in meta else None,
+    }
+    start = time.monotonic()
+    diff = export_adapted(adaptation.trainer.generator, scorer, meta, args.output, record, mirror)
+    took = time.monotonic() - start
+    model = record["model_id"]
+    say(f"wrote {args.output} (model {model}, torch vs onnxruntime {diff:.1e} mm, {took:.1f} s): "
+        "serve it with --model-path or from REPNET_MODEL_DIR")  # fmt: skip
+    return 0

@@ -1,0 +1,137 @@
+"""What `repnet adapt` says and writes at the end: figures on the held-out part of the user's 2D
+before and after, the rule that refuses a worse model, and the adapted ONNX with its lineage.
+
+The figures need no 3D truth: how far the answer's reprojection K X lies from the 2D (px), how
+plausible the parent's critic finds the answers (the parent's scorer for both, so the numbers
+compare), and two properties a person's skeleton has: left equals right (symmetry, mm) and a
+track's limbs keep their length (bone-length spread over the held-out poses, mm).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from training import metrics
+from training.adapt import answer
+from training.export import check_parity, export_onnx, load_critic
+from training.model import MM_PER_UNIT, Plausibility, RepNet
+from training.sequences import pose_spread
+
+
+@dataclass(frozen=True)
+class Figures:
+    """One model's figures on the held-out 2D."""
+
+    reprojection_px: float  # mean over visible joints of |W - K X| in pixels
+    plausibility: float  # mean of the parent's plausibility in [0, 1]
+    symmetry_mm: float  # mean |left - right| limb length
+    bone_std_mm: float  # mean over limbs of the std of its length over the poses
+
+
+# How much worse a figure may get before the model is refused (reprojection: a share of the parent's).
+TOLERANCE = {"reprojection_px": 0.10, "plausibility": 0.02, "symmetry_mm": 1.0, "bone_std_mm": 1.0}
+
+
+def read_metadata(path: Path) -> dict[str, str]:
+    """The custom metadata of an ONNX model."""
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    return {prop.key: prop.value for prop in model.metadata_props}
+
+
+def parent_scorer(state: dict[str, Any], meta: dict[str, str]) -> Plausibility:
+    """The parent's plausibility (its critic, calibration table and bone range) as a module."""
+    if not state.get("critic") or "plausibility_calibration" not in meta:
+        raise ValueError(
+            "the parent model has no plausibility critic: adapt needs one (export with a critic)"
+        )
+    table = json.loads(meta["plausibility_calibration"])
+    scores = torch.tensor(table["critic_scores_at_quantiles"], dtype=torch.float32)
+    bones = None
+    if "bone_length_range_mm" in table:
+        ranges = table["bone_length_range_mm"]
+        bones = torch.tensor([ranges["shortest"], ranges["longest"]], dtype=torch.float32) / MM_PER_UNIT
+    return Plausibility(load_critic(state), scores, bones).eval()
+
+
+def measure(
+    generator: RepNet, scorer: Plausibility, points: np.ndarray, visible: np.ndarray, mirror_average: bool
+) -> Figures:
+    """A generator's figures on (N, J, 2) pixel points and (N, J) visibility."""
+    pose, _, residual = answer(generator, points, visible, mirror_average)
+    spread = pose_spread(points * visible[..., None], visible)  # px per unit of the normalised input
+    per_joint = np.linalg.norm(residual, axis=-1) * spread[:, None]  # (N, J) px, 0 where hidden
+    with torch.no_grad():
+        plausible = scorer(torch.from_numpy(pose) / MM_PER_UNIT).numpy()
+    return Figures(
+        reprojection_px=float(per_joint.sum() / max(visible.sum(), 1.0)),
+        plausibility=float(plausible.mean()),
+        symmetry_mm=float(metrics.symmetry_error(pose).mean()),
+        bone_std_mm=float(metrics.limb_length_std(pose).mean()),
+    )
+
+
+def worse(before: Figures, after: Figures) -> list[str]:
+    """The figures that got worse beyond TOLERANCE, in words (empty: the model may be written)."""
+    reasons = []
+    if after.reprojection_px > before.reprojection_px * (1 + TOLERANCE["reprojection_px"]):
+        reasons.append(
+            f"reprojection error rose from {before.reprojection_px:.2f} to {after.reprojection_px:.2f} px"
+        )
+    if after.plausibility < before.plausibility - TOLERANCE["plausibility"]:
+        reasons.append(f"plausibility fell from {before.plausibility:.3f} to {after.plausibility:.3f}")
+    if after.symmetry_mm > before.symmetry_mm + TOLERANCE["symmetry_mm"]:
+        reasons.append(f"symmetry error rose from {before.symmetry_mm:.1f} to {after.symmetry_mm:.1f} mm")
+    if after.bone_std_mm > before.bone_std_mm + TOLERANCE["bone_std_mm"]:
+        reasons.append(f"bone-length spread rose from {before.bone_std_mm:.1f} to {after.bone_std_mm:.1f} mm")
+    return reasons
+
+
+def render(before: Figures, after: Figures, poses: int) -> str:
+    """The before/after table the command prints."""
+    rows = [
+        ("reprojection error (px)", "reprojection_px", 2),
+        ("plausibility (parent's critic)", "plausibility", 3),
+        ("symmetry error (mm)", "symmetry_mm", 1),
+        ("bone-length spread (mm)", "bone_std_mm", 1),
+    ]
+    lines = [f"held-out poses: {poses}", f"{'':32}{'before':>10}{'after':>10}"]
+    for label, key, digits in rows:
+        lines.append(f"{label:32}{getattr(before, key):>10.{digits}f}{getattr(after, key):>10.{digits}f}")
+    return "\n".join(lines)
+
+
+def export_adapted(
+    generator: RepNet,
+    scorer: Plausibility,
+    parent_meta: dict[str, str],
+    output: Path,
+    lineage: dict[str, Any],
+    mirror_average: bool,
+) -> float:
+    """Write the adapted generator with the parent's plausibility and metadata, its own model id
+    and lineage (lineage["model_id"]); returns torch vs onnxruntime's max |diff| (mm)."""
+    meta = dict(parent_meta)
+    meta["model_id"] = lineage["model_id"]
+    meta["train_command"] = lineage["command"]
+    parent_data = parent_meta.get("training_data", "")
+    meta["training_data"] = f"{parent_data}; adapted (repnet adapt) on {lineage['poses']} unlabeled 2D poses"
+    meta["evaluation"] = json.dumps({"adapt_holdout": lineage["report"]})
+    meta["lineage"] = json.dumps(lineage)
+    export_onnx(generator.eval(), output, meta, scorer, mirror_average)
+    rng = np.random.default_rng(0)
+    points = (rng.normal(size=(64, 17, 2)) * 120 + 500).astype(np.float32)
+    visible = (rng.random((64, 17)) > 0.1).astype(np.float32)
+    return check_parity(generator, output, points, visible, mirror_average)
+
+
+def report_record(before: Figures, after: Figures, poses: int) -> dict[str, Any]:
+    """The report as the lineage keeps it."""
+    return {"poses": poses, "before": asdict(before), "after": asdict(after)}
