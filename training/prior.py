@@ -23,6 +23,10 @@ import numpy as np
 from training import skeleton
 
 PRIOR_FILE = Path(__file__).parent / "assets" / "pose_prior_h36m.npz"
+LICENCE = (
+    "A statistical model fitted to Human3.6M poses (Ionescu et al., TPAMI 2014): like the model "
+    "weights, academic, non-commercial research use only, under the Human3.6M licence."
+)
 
 
 def _side_free_bones() -> list[int]:
@@ -71,7 +75,7 @@ class PosePrior:
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """(n, J, 3) float32 poses in mm, Z up, facing +-Y, pelvis at the origin."""
-        component = rng.choice(len(self.weights), size=n, p=self.weights)
+        component = rng.choice(len(self.weights), size=n, p=self.weights / self.weights.sum())
         z = rng.standard_normal((n, self.means.shape[1]))
         codes = self.means[component] + np.einsum("nij,nj->ni", self.chol[component], z)
         directions = (codes @ self.pca_basis + self.pca_mean).reshape(n, -1, 3)
@@ -91,7 +95,8 @@ class PosePrior:
         """Write the prior as an .npz of its arrays."""
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {name: np.asarray(getattr(self, name)) for name in self.__dataclass_fields__}
-        np.savez_compressed(path, **{k: v.astype(np.float32) for k, v in arrays.items()})  # type: ignore[arg-type]
+        floats = {k: v.astype(np.float32) for k, v in arrays.items()}
+        np.savez_compressed(path, licence=np.array(LICENCE), **floats)  # type: ignore[arg-type]
 
     @classmethod
     def load(cls, path: Path = PRIOR_FILE) -> PosePrior:

@@ -17,8 +17,10 @@ import httpx
 import numpy as np
 import pytest
 
+from service.config import Settings
 from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
 from service.schemas import EXAMPLE_KEYPOINTS
+from service.startup import load_dir_lifters, load_lifter
 from tests.conftest import LiveService
 from tests.service.page_examples import detector_pose
 
@@ -99,6 +101,31 @@ def test_readme_detector_commands_run_as_written(live_service: LiveService, tmp_
                                                      "confidence": made["visibility"]}]}  # fmt: skip
     direct = httpx.post(f"{live_service.http_url}/lift", json=in_pixels, timeout=30).json()
     np.testing.assert_allclose(mediapipe["poses"][0]["pose_3d"], direct["poses"][0]["pose_3d"], atol=1e-3)
+
+
+def test_readme_adapt_commands_run_as_written(tmp_path: Path) -> None:
+    """README "Adapt it to your detector": the adapt command as printed on the README's OpenPose
+    folder, told to stop after two steps (the flags appended are the only change), and the folder it
+    wrote served beside the bundled model under the name the README gives."""
+    pytest.importorskip("torch", reason="repnet adapt needs the train extra")
+    lines = [line for line in fenced(README, "## Adapt it to your detector", "bash").splitlines()
+             if line.strip() and not line.startswith("#")]  # fmt: skip
+    assert [line.split()[0] for line in lines] == ["pip", "repnet", "REPNET_MODEL_DIR=models"]
+    assert ".[train]" in lines[0]
+    write_detector_outputs(tmp_path)
+    (tmp_path / "models").mkdir()
+    short = f" --steps 2 --prior-poses 2000 --threads 1 --force --run-dir {tmp_path / 'run'}"
+    command = (
+        lines[1].split("#")[0].strip().replace("repnet ", f"{sys.executable} -m service.cli ", 1) + short
+    )
+    done = subprocess.run(["bash", "-c", command], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
+    assert done.returncode == 0, (command, done.stdout, done.stderr)
+    assert "before" in done.stdout and "after" in done.stdout
+    settings = Settings(model_dir=tmp_path / "models")
+    served = load_dir_lifters(settings, load_lifter(settings))
+    assert [lifter.info.model_id for lifter in served] == ["adapted"]
+    assert '"model": "adapted"' in lines[2]
 
 
 def test_api_http_example_runs_as_written(live_service: LiveService) -> None:

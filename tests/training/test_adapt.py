@@ -183,3 +183,16 @@ def test_prior_poses_are_whole_people() -> None:
     ratio = lengths / model.mean_lengths
     assert 0.7 < ratio.min() and ratio.max() < 1.4
     assert np.median(poses[:, 10, 2] - poses[:, 3, 2]) > 1000  # head above ankle: Z up, standing
+
+
+def test_a_fitted_prior_round_trips_and_keeps_the_bone_lengths(tmp_path: Path) -> None:
+    poses = prior.PosePrior.load().sample(600, np.random.default_rng(4))
+    fitted = prior.fit(poses, components=2, dims=6)
+    fitted.save(tmp_path / "prior.npz")
+    again = prior.PosePrior.load(tmp_path / "prior.npz")
+    assert "research" in str(np.load(tmp_path / "prior.npz")["licence"])
+    assert np.allclose(again.mean_lengths, fitted.mean_lengths, rtol=1e-6)
+    lengths = np.linalg.norm(poses[:, 1:] - poses[:, list(skeleton.PARENTS[1:])], axis=-1)
+    assert np.allclose(again.mean_lengths, lengths.mean(axis=0), rtol=1e-3)
+    drawn = again.sample(50, np.random.default_rng(5))
+    assert drawn.shape == (50, skeleton.NUM_JOINTS, 3) and metrics.symmetry_error(drawn).max() < 0.05

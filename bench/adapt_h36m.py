@@ -1,0 +1,202 @@
+"""`repnet adapt` on Human3.6M domain shifts, scored against the 3D truth it never sees.
+
+    python -m bench.adapt_h36m --shift sh [--poses 50000] [--threads 2] [-- ADAPT FLAGS...]
+    python -m bench.adapt_h36m --shift high ...
+
+Shifts (the adapted-on 2D is always of S1 S5 S6 S7's training frames, never their 3D; the
+validation tails, training.data.build_training_sets, are never adapted on):
+- sh: the Stacked-Hourglass detections. Scored on the SH detections of the validation tails and
+  of all of S8 (a subject the adaptation never saw), and on GT 2D of the tails (the source).
+- high: GT 3D of those frames seen from high cameras (45-65 degrees down instead of -10..30, a
+  view the bundled model was not trained on, + N(0, 2 px)). Scored on the tails seen the same way
+  (other draws), and on GT 2D of the tails (the source).
+
+It writes the 2D to an NPZ the command reads as a user's file, runs `repnet adapt` on it (the
+command and its report are printed), then scores the bundled and the adapted model: P-II, P-I along
+the ray (where intrinsics exist), symmetry (mm). Choose on these validation figures, never S9/S11.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+if __package__ in (None, ""):  # `python bench/adapt_h36m.py`
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from service.cli import main as repnet
+from service.config import BUNDLED_MODEL
+from training import checkpoint, data, metrics, sequences, synthetic
+from training.config import RepNetConfig, TrainConfig
+from training.model import RepNet
+from training.validation import validate, validation_sets
+
+SOURCE = ("S1", "S5", "S6", "S7")
+HIGH_DEG = (45.0, 65.0)
+
+
+def high_views(world: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N, J, 3) world poses (mm, pelvis at the origin) seen from random high cameras: pixels (N, J, 2)
+    and the poses in each camera's frame (mm, pelvis at the origin)."""
+    saved = synthetic.ELEVATION_DEG
+    synthetic.ELEVATION_DEG = HIGH_DEG
+    try:
+        rot, position = synthetic.random_views(len(world), torch.Generator().manual_seed(seed))
+    finally:
+        synthetic.ELEVATION_DEG = saved
+    w = torch.from_numpy(world).double()
+    pixels = synthetic.project(w, rot, position).numpy()
+    camera = (w / 1000.0 @ rot.transpose(1, 2) + position[:, None]).numpy() * 1000.0
+    return pixels.astype(np.float32), (camera - camera[:, :1]).astype(np.float32)
+
+
+def sh_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
+    """The SH detections of the source subjects' training frames (about `poses` of them), and S8's."""
+    points: list[np.ndarray] = []
+    visible: list[np.ndarray] = []
+    s8: tuple[list[np.ndarray], ...] = ([], [], [])
+    found = list(sequences.detected_sequences(data_dir))
+    total = sum(
+        data.sequence_split(len(seq), 0.1) for name, seq, _, _ in found if name.split("/")[0] in SOURCE
+    )
+    step = max(1, total // poses)
+    for name, seq, camera, detections in found:
+        n = min(len(detections), len(seq))
+        pts, vis = data.mpii_to_h36m(detections[:n])
+        if name.split("/")[0] in SOURCE:
+            split = min(data.sequence_split(len(seq), 0.1), n)
+            points.append(pts[:split:step])
+            visible.append(vis[:split:step])
+        elif name.startswith("S8/"):
+            s8[0].append(data.world_to_camera(seq[:n:10], camera))
+            s8[1].append(pts[::10])
+            s8[2].append(vis[::10])
+    s8_set = data.ValidationSet(*(np.concatenate(a).astype(np.float32) for a in s8))
+    return np.concatenate(points), np.concatenate(visible), {"s8_sh": s8_set}
+
+
+def high_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
+    """The source subjects' training frames from high cameras, and the tails from other high ones."""
+    heads, tails = [], []
+    for key, seq in sorted(data.load_poses(data_dir, "train").items()):
+        split = data.sequence_split(len(seq), 0.1)
+        if key.split("/")[0] in SOURCE:
+            heads.append(seq[:split])
+        tails.append(seq[split::10])
+    world = np.concatenate(heads)
+    world = world[:: max(1, len(world) // poses)]
+    pixels, _ = high_views(world - world[:, :1], seed=1)
+    pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
+    tail = np.concatenate(tails)
+    tail_pixels, tail_camera = high_views(tail - tail[:, :1], seed=2)
+    high = data.ValidationSet(tail_camera, tail_pixels, np.ones(tail_pixels.shape[:2], np.float32))
+    return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high}
+
+
+def score(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[str, float]]:
+    """A model's validation figures (training.validation.validate on its generator, mirror-averaged
+    as the file says)."""
+    state = checkpoint.load(model)
+    generator = RepNet(RepNetConfig(**state["model_config"]))
+    generator.load_state_dict(state["generator"])
+    return {
+        kind: validate(generator, val, torch.device("cpu"), mirror_average=True) for kind, val in sets.items()
+    }
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Rank correlation of two (N,) arrays (ties broken by order)."""
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+def ranking(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[str, float]]:
+    """How the model's plausibility ranks its own errors on each set (onnxruntime, as served):
+    rank correlation with per-pose P-II, and the lowest plausibility decile's P-II over the
+    highest's."""
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(model), providers=["CPUExecutionProvider"])
+    out = {}
+    for kind, val in sets.items():
+        pose, plausible = session.run(
+            ["pose_3d", "plausibility"], {"keypoints_2d": val.points_2d, "visibility": val.visible}
+        )
+        errors = metrics.procrustes_errors(pose, val.poses_camera).mean(axis=1)
+        deciles = np.array_split(np.argsort(plausible, kind="stable"), 10)
+        out[kind] = {
+            "spearman": spearman(plausible, errors),
+            "decile_ratio": float(errors[deciles[0]].mean() / errors[deciles[-1]].mean()),
+        }
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Write the shift's 2D, run `repnet adapt` on it, score both models; prints and returns the table."""
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--shift", choices=["sh", "high"], default="sh")
+    parser.add_argument("--poses", type=int, default=50_000, help="2D poses to adapt on (default 50000)")
+    parser.add_argument(
+        "--data-dir", help="Human3.6M folder (default: $REPNET_H36M_DIR or ../shared/data/h36m)"
+    )
+    parser.add_argument(
+        "--work-dir", type=Path, default=Path("runs/bench/adapt"), help="input, model, report"
+    )
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("adapt_flags", nargs="*", help="more `repnet adapt` flags (after --)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    data_dir = data.resolve_data_dir(args.data_dir)
+    points, visible, extra = (sh_shift if args.shift == "sh" else high_shift)(data_dir, args.poses)
+    work = args.work_dir / args.shift
+    work.mkdir(parents=True, exist_ok=True)
+    keypoints = np.where(visible[..., None] > 0.5, points, np.nan)
+    np.savez(work / "input.npz", keypoints=keypoints, format="h36m17")
+    out = work / "adapted.onnx"
+    command = ["adapt", str(work / "input.npz"), "-o", str(out), "--threads", str(args.threads),
+               "--run-dir", str(work / "run"), *args.adapt_flags]  # fmt: skip
+    print("repnet " + " ".join(command), flush=True)
+    start = time.monotonic()
+    status = repnet(command)
+    took = time.monotonic() - start
+    _, held = data.build_training_sets(data_dir, "gt+sh")
+    sets = {**validation_sets(TrainConfig(val_size=4000, val_mirror=False, val_noise_px=0.0), held), **extra}
+    result: dict[str, Any] = {
+        "shift": args.shift,
+        "poses": len(points),
+        "status": status,
+        "wall_s": round(took, 1),
+    }
+    result["bundled"] = score(BUNDLED_MODEL, sets)
+    result["bundled_plausibility"] = ranking(BUNDLED_MODEL, sets)
+    if out.exists() and status == 0:
+        result["adapted"] = score(out, sets)
+        result["adapted_plausibility"] = ranking(out, sets)
+    for kind in sets:
+        before = result["bundled"][kind]
+        after = result.get("adapted", {}).get(kind, {})
+        line = f"{kind:8} P-II {before['pa_mpjpe']:6.2f}"
+        if after:
+            line += f" -> {after['pa_mpjpe']:6.2f} ({after['pa_mpjpe'] - before['pa_mpjpe']:+.2f})"
+            line += f"  symmetry {before['symmetry']:.1f} -> {after['symmetry']:.1f}"
+            rank = result["adapted_plausibility"][kind]
+            line += (
+                f"  plausibility-error rank corr {rank['spearman']:+.2f}, deciles {rank['decile_ratio']:.2f}x"
+            )
+        print(line)
+    print(f"adapt on {len(points)} poses: {took / 60:.1f} min wall (exit {status})")
+    (work / "result.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
