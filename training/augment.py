@@ -88,6 +88,19 @@ def corrupt_poses(poses: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return out - out[:, skeleton.ROOT : skeleton.ROOT + 1]
 
 
+def rescale_bones(poses: torch.Tensor, sigma: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """(N, J, 3) poses (metres) with every bone's length times 1 + N(0, sigma) and its direction kept,
+    sigma (N,) per pose: small, graded asymmetries and off-length bones, as a lifter's answer to
+    noisy 2D has (the joints below a bone move with it)."""
+    check_shape(poses, (None, skeleton.NUM_JOINTS, 3), "real poses (N, J, 3)")
+    factor = 1 + sigma[:, None] * torch.randn(poses.shape[:2], generator=gen, device=poses.device)
+    out = poses.clone()
+    for joint, parent in enumerate(skeleton.PARENTS):  # parents come before their children
+        if parent >= 0:
+            out[:, joint] = out[:, parent] + factor[:, joint, None] * (poses[:, joint] - poses[:, parent])
+    return out
+
+
 def with_detector_errors(
     pixels: torch.Tensor,
     visible: torch.Tensor,

@@ -25,7 +25,7 @@ PAPER = {"mpjpe": 50.9, "pa_mpjpe": 38.2, "symmetry_mean": 8.2, "noise_10_pa_mpj
 # corresponds to our 20 px.
 PAPER_NOISE_SCALE = 2.0
 NOISE_SIGMAS_PX: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 40.0)
-PLAUSIBILITY_NOISE_PX = 40.0  # second input of the P-II-by-plausibility table
+PLAUSIBILITY_NOISE_PX: tuple[float, ...] = (20.0, 40.0)  # noisy inputs of the P-II-by-plausibility tables
 OCCLUDED_COUNTS: tuple[int, ...] = (1, 2, 3)
 
 # (points, visible) -> (pose_3d, camera, plausibility or None)
@@ -131,6 +131,13 @@ def off_axis_floor(test: TestSet) -> dict[str, float]:
     }
 
 
+def plausibility_spearman(scores: Scores) -> float:
+    """Spearman's rank correlation of the plausibility output and the per-pose P-II: below 0 when
+    a lower score goes with a larger error."""
+    assert scores.plausibility is not None
+    return metrics.spearman(scores.plausibility, scores.p2.mean(axis=1))
+
+
 def plausibility_deciles(scores: Scores) -> list[dict[str, float]]:
     """P-II by decile of the plausibility output: does a low score flag a bad pose?"""
     assert scores.plausibility is not None
@@ -217,10 +224,9 @@ def robustness_tables(
         occlusion.append({"masked_joints": count, **row(points, visible, f"occlusion {count}")})
     tables: dict[str, Any] = {"noise": noise, "occlusion": occlusion}
     if scored[0.0].plausibility is not None:
-        tables["plausibility_deciles"] = {
-            f"noise_{sigma:g}px": plausibility_deciles(scored[sigma])
-            for sigma in (0.0, PLAUSIBILITY_NOISE_PX)
-        }
+        sigmas = (0.0, *PLAUSIBILITY_NOISE_PX)
+        tables["plausibility_deciles"] = {f"noise_{s:g}px": plausibility_deciles(scored[s]) for s in sigmas}
+        tables["plausibility_spearman"] = {f"noise_{s:g}px": plausibility_spearman(scored[s]) for s in sigmas}
     return tables
 
 
@@ -270,6 +276,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     }
     if scores.plausibility is not None:
         result["plausibility_deciles"] = plausibility_deciles(scores)
+        result["plausibility_spearman"] = plausibility_spearman(scores)
     if args.table_frame_step > 0:
         step = max(args.table_frame_step, args.frame_step)  # never denser than the main figures
         table_set = build_test_set(poses, cameras, None, step, tuple(args.cameras))

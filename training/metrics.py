@@ -193,3 +193,24 @@ def velocity_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """(n - 1,) MPJVE of a clip: mean per-joint norm of the difference of first time differences
     (mm / frame)."""
     return np.linalg.norm(np.diff(pred, axis=0) - np.diff(gt, axis=0), axis=-1).mean(axis=-1)
+
+
+def average_ranks(values: np.ndarray) -> np.ndarray:
+    """Ranks 1..n of a vector, ties given the mean of the ranks they span (as Spearman's needs)."""
+    order = np.argsort(values, kind="stable")
+    sorted_values = values[order]
+    starts = np.flatnonzero(np.r_[True, sorted_values[1:] != sorted_values[:-1]])
+    ends = np.r_[starts[1:], len(values)]  # one past each run of equal values
+    ranks = np.empty(len(values))
+    ranks[order] = np.repeat((starts + ends + 1) / 2.0, ends - starts)  # mean of ranks starts+1..ends
+    return ranks
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Spearman's rank correlation of two equal-length vectors: Pearson's of their average ranks
+    (0 when either is constant)."""
+    ra = average_ranks(np.asarray(a, np.float64))
+    rb = average_ranks(np.asarray(b, np.float64))
+    ra, rb = ra - ra.mean(), rb - rb.mean()
+    denominator = np.sqrt((ra**2).sum() * (rb**2).sum())
+    return float((ra * rb).sum() / denominator) if denominator > 0 else 0.0

@@ -166,19 +166,24 @@ def render_markdown(result: dict[str, Any]) -> str:
             ),
         ]
     deciles = {"GT 2D, all frames": result.get("plausibility_deciles")}
+    spearman = {"GT 2D, all frames": result.get("plausibility_spearman")}
     for name, rows in (tables or {}).get("plausibility_deciles", {}).items():
         sigma = name.removeprefix("noise_").removesuffix("px")
         if sigma != "0":
-            deciles[f"GT 2D + N(0, {sigma} px), frame step {tables['frame_step']}"] = rows  # type: ignore[index]
+            label = f"GT 2D + N(0, {sigma} px), frame step {tables['frame_step']}"  # type: ignore[index]
+            deciles[label] = rows
+            spearman[label] = tables.get("plausibility_spearman", {}).get(name)  # type: ignore[union-attr]
     if deciles["GT 2D, all frames"]:
         lines += [
             "",
             "### P-II by plausibility decile (mm): decile 1 holds the poses the critic finds least plausible",
         ]
         for label, rows in deciles.items():
+            rho = spearman[label]
+            ranked = "" if rho is None else f" (Spearman rank correlation with P-II {rho:+.3f})"
             lines += [
                 "",
-                f"{label}:",
+                f"{label}{ranked}:",
                 "",
                 *_table(
                     ["decile", "poses", "plausibility", "P-II", "symmetry"],

@@ -16,7 +16,13 @@ import numpy as np
 import torch
 
 from training import data, synthetic
-from training.augment import augment_visibility, corrupt_poses, sample_2d, with_detector_errors
+from training.augment import (
+    augment_visibility,
+    corrupt_poses,
+    rescale_bones,
+    sample_2d,
+    with_detector_errors,
+)
 from training.camera import camera_scale
 from training.config import RepNetConfig, TrainConfig
 from training.losses import bone_lengths, bone_loss, camera_loss, critic_loss, pose_loss, reprojection_loss
@@ -106,8 +112,13 @@ class Trainer:
         # Poses of the last generator step, judged by the next critic steps (reuse_fakes).
         self.fakes: torch.Tensor | None = None
         fake_sources = {"generator": self._no_fakes, "corrupted": self._corrupted_fakes}
+        fake_sources.update(lifted=self._lifted_fakes, paired=self._paired_fakes, graded=self._graded_fakes)
         if config.critic_fakes not in fake_sources:
-            raise ValueError(f"critic_fakes must be generator or corrupted, got {config.critic_fakes!r}")
+            raise ValueError(
+                f"critic_fakes must be one of {', '.join(fake_sources)}, got {config.critic_fakes!r}"
+            )
+        # Real poses of the next critic step when a fake source pairs them with its fakes (paired).
+        self.reals: torch.Tensor | None = None
         self._critic_only_fakes = fake_sources[config.critic_fakes]
         self.phases = self._phases()
         # A frozen model whose answers to the synthetic 2D (before detector errors and occlusions)
@@ -229,6 +240,64 @@ class Trainer:
         idx = torch.randint(0, len(self.real_pool), (self.config.batch_size,), generator=self.gen)
         return corrupt_poses(self.real_pool[idx.to(self.device)], self.gen)
 
+    def _answers(self, clean: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """The frozen generator's answers to batch_size frames of the pool's 2D (GT projections and
+        detections): with N(0, sigma) px noise, sigma ~ U(0, critic_noise_px) per pose, and
+        augment_visibility's hidden joints; with clean, also to the same 2D as it is (else None)."""
+        config, device, gen = self.config, self.device, self.gen
+        n = config.batch_size
+        idx = torch.randint(0, self.pool.points_2d.shape[0], (n,), generator=gen).numpy()
+        pixels = torch.from_numpy(self.pool.points_2d[idx]).to(device)
+        seen = torch.from_numpy(self.pool.visible[idx]).to(device)
+        visible = augment_visibility(seen, config, gen)
+        sigma = config.critic_noise_px * torch.rand(n, 1, 1, generator=gen, device=device)
+        noisy = pixels + sigma * torch.randn(pixels.shape, generator=gen, device=device)
+        with torch.no_grad():
+            answers, _ = self.generate(normalize_keypoints(noisy, visible), visible)
+            if not clean:
+                return None, answers
+            clean_answers, _ = self.generate(normalize_keypoints(pixels, seen), seen)
+        return clean_answers, answers
+
+    def _lifted_fakes(self) -> torch.Tensor:
+        """The generator's answers to noisy 2D (_answers); in a critic_corrupted_share of the batch,
+        corrupted real poses instead."""
+        _, lifted = self._answers(clean=False)
+        corrupted = self._corrupted_fakes()
+        take = (
+            torch.rand(len(lifted), generator=self.gen, device=self.device)
+            < self.config.critic_corrupted_share
+        )
+        return torch.where(take[:, None, None], corrupted, lifted)
+
+    def _paired_fakes(self) -> torch.Tensor:
+        """Pairs that differ only in what broke the fake: the generator's answer to a frame's 2D as
+        it is (real side) and to the same 2D with noise and hidden joints (fake side, _answers); in a
+        critic_corrupted_share of the batch, a real pose and its corrupted copy instead. The critic
+        learns what noise does to the generator's answers, not the generator's own signature, which
+        both sides share; sets self.reals for the next critic step."""
+        clean, noisy = self._answers(clean=True)
+        assert clean is not None
+        n, gen = len(noisy), self.gen
+        idx = torch.randint(0, len(self.real_pool), (n,), generator=gen).to(self.device)
+        real = self.real_pool[idx]
+        corrupted = corrupt_poses(real, gen)
+        take = (torch.rand(n, generator=gen, device=self.device) < self.config.critic_corrupted_share)[
+            :, None, None
+        ]
+        self.reals = torch.where(take, real, clean)
+        return torch.where(take, corrupted, noisy)
+
+    def _graded_fakes(self) -> torch.Tensor:
+        """Real poses with every bone 1 + N(0, sigma) times as long, sigma ~ U(0, critic_bone_sigma)
+        per pose (rescale_bones); in a critic_corrupted_share of the batch, corrupt_poses instead."""
+        n, gen, device = self.config.batch_size, self.gen, self.device
+        real = self.real_pool[torch.randint(0, len(self.real_pool), (n,), generator=gen).to(device)]
+        sigma = self.config.critic_bone_sigma * torch.rand(n, generator=gen, device=device)
+        graded, corrupted = rescale_bones(real, sigma, gen), corrupt_poses(real, gen)
+        take = torch.rand(n, generator=gen, device=device) < self.config.critic_corrupted_share
+        return torch.where(take[:, None, None], corrupted, graded)
+
     def synthetic_terms(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Warm-start loss on a synthetic batch: the pose error, and the reprojection of the
         true pose through the predicted camera plus the camera term (which teach the camera),
@@ -273,8 +342,11 @@ class Trainer:
             points, visible = sample_2d(self.pool, config, self.device, self.gen)
             with torch.no_grad():
                 self.fakes, _ = self.generate(points, visible)
-        idx = torch.randint(0, len(self.real_pool), (config.batch_size,), generator=self.gen).to(self.device)
-        loss_c, wasserstein = critic_loss(self.critic, self.real_pool[idx], self.fakes, config.gp_weight)
+        real, self.reals = self.reals, None
+        if real is None:
+            idx = torch.randint(0, len(self.real_pool), (config.batch_size,), generator=self.gen)
+            real = self.real_pool[idx.to(self.device)]
+        loss_c, wasserstein = critic_loss(self.critic, real, self.fakes, config.gp_weight)
         self.opt_c.zero_grad(set_to_none=True)
         loss_c.backward()  # type: ignore[no-untyped-call]
         self.opt_c.step()

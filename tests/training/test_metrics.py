@@ -174,3 +174,14 @@ def test_off_axis_errors_are_the_chords_of_the_turn_onto_the_ray() -> None:
     radius = np.linalg.norm(rooted[:, [0, 2]], axis=1)
     np.testing.assert_allclose(errors[0], 2.0 * radius * np.sin(angle / 2.0), atol=1e-9)
     np.testing.assert_allclose(errors[1], 0.0, atol=1e-12)
+
+
+def test_spearman_ranks_ties_by_their_mean_and_ignores_the_scale() -> None:
+    np.testing.assert_array_equal(metrics.average_ranks(np.array([10.0, 30.0, 20.0, 20.0])), [1, 4, 2.5, 2.5])
+    x = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    assert metrics.spearman(x, np.exp(x)) == pytest.approx(1.0)
+    assert metrics.spearman(x, -(x**3)) == pytest.approx(-1.0)
+    # ranks (1, 2, 3, 4) and (1.5, 1.5, 4, 3): Pearson of the centred ranks = 3.5 / sqrt(5 * 4.5)
+    tied = metrics.spearman(np.arange(4.0), np.array([0.0, 0.0, 9.0, 5.0]))
+    assert tied == pytest.approx(3.5 / np.sqrt(22.5))
+    assert metrics.spearman(x, np.ones(5)) == 0.0
