@@ -132,6 +132,18 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
         "--prior-poses", type=_positive(int), default=100_000,
         help="3D poses drawn from the shipped pose prior for the run (default 100000)",
     )  # fmt: skip
+    adapt.add_argument(
+        "--reprojection-weight", type=_non_negative,
+        help="weight of the paper's reprojection term on your 2D (default 0.1)",
+    )  # fmt: skip
+    adapt.add_argument(
+        "--adversarial-weight", type=_non_negative,
+        help="weight of the critic's Wasserstein term on the answers to your 2D (default 0.1)",
+    )  # fmt: skip
+    adapt.add_argument(
+        "--residuals", choices=["mean", "pose", "off"],
+        help="your detector's errors in the synthetic 2D: their mean per joint (default), each pose's, none",
+    )  # fmt: skip
     adapt.set_defaults(command_line=None)
 
 
@@ -146,6 +158,16 @@ def _positive(kind: type) -> Any:
         return value
 
     return parse
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
 
 
 def _fraction(text: str) -> float:

@@ -49,7 +49,7 @@ class AdaptConfig:
     residual_share: float = 0.5  # synthetic poses with the user's detector error
     # "pose": each such pose gets the error of one user pose; "mean": the mean error per joint
     # over the user's poses (the detector's systematic offsets only).
-    residual_mode: str = "pose"
+    residual_mode: str = "mean"
     residual_min: float = 0.8  # those errors scaled by U(min, max)
     residual_max: float = 1.2
     refresh_every: int = 1000  # measure the user's errors again with the adapted model; 0 = never

@@ -71,6 +71,10 @@ def run_dir(args: argparse.Namespace, parent_sha: str, inputs_sha: str) -> Path:
     return lineage.cache_dir() / "adapt" / f"{args.output.stem}-{key}"
 
 
+def _given(value: float | None, default: float) -> float:
+    return default if value is None else value
+
+
 def _config(args: argparse.Namespace) -> AdaptConfig:
     defaults = AdaptConfig()
     return AdaptConfig(
@@ -78,6 +82,10 @@ def _config(args: argparse.Namespace) -> AdaptConfig:
         minutes=args.minutes if args.minutes is not None else defaults.minutes,
         holdout_fraction=args.holdout_fraction,
         prior_poses=args.prior_poses,
+        reprojection_weight=_given(args.reprojection_weight, defaults.reprojection_weight),
+        adversarial_weight=_given(args.adversarial_weight, defaults.adversarial_weight),
+        residual_share=0.0 if args.residuals == "off" else defaults.residual_share,
+        residual_mode=args.residuals if args.residuals in ("mean", "pose") else defaults.residual_mode,
         seed=args.seed,
     )
 

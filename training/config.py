@@ -95,13 +95,13 @@ class TrainConfig:
     # what makes a pose implausible: garbage then scores as real.
     # "lifted": the frozen generator's own answers to noisy and detected training 2D (noise up to
     # critic_noise_px, hidden joints as mask_prob), with corrupted real poses in a
-    # critic_corrupted_share of each batch (Trainer._lifted_fakes); it learns the generator's
+    # critic_corrupted_share of each batch (critic_fakes.lifted); it learns the generator's
     # signature and ranks worse. "paired": each of those answers against the generator's answer to
     # the same 2D without the noise and the hidden joints on the real side, and corrupted real poses
     # against the same real poses (Trainer._paired_fakes), meant to teach what damage does, not the
     # signature both sides share (neither beat v2 by much: docs/RESULTS.md, critic round 2).
     # "graded": real poses with every bone rescaled by 1 + N(0, sigma), sigma ~ U(0, critic_bone_sigma)
-    # per pose, and corrupted ones in a critic_corrupted_share (Trainer._graded_fakes).
+    # per pose, and corrupted ones in a critic_corrupted_share (critic_fakes.graded).
     critic_fakes: str = "generator"
     critic_noise_px: float = 40.0
     critic_corrupted_share: float = 0.5

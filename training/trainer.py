@@ -15,11 +15,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import data, synthetic
+from training import critic_fakes, data, synthetic
 from training.augment import (
     augment_visibility,
-    corrupt_poses,
-    rescale_bones,
     sample_2d,
     with_detector_errors,
 )
@@ -111,15 +109,13 @@ class Trainer:
         self.opt_c = torch.optim.Adam(self.critic.parameters(), lr=config.lr, betas=betas, fused=fused)
         # Poses of the last generator step, judged by the next critic steps (reuse_fakes).
         self.fakes: torch.Tensor | None = None
-        fake_sources = {"generator": self._no_fakes, "corrupted": self._corrupted_fakes}
-        fake_sources.update(lifted=self._lifted_fakes, paired=self._paired_fakes, graded=self._graded_fakes)
-        if config.critic_fakes not in fake_sources:
+        if config.critic_fakes not in critic_fakes.SOURCES:
             raise ValueError(
-                f"critic_fakes must be one of {', '.join(fake_sources)}, got {config.critic_fakes!r}"
+                f"critic_fakes must be one of {', '.join(critic_fakes.SOURCES)}, got {config.critic_fakes!r}"
             )
         # Real poses of the next critic step when a fake source pairs them with its fakes (paired).
         self.reals: torch.Tensor | None = None
-        self._critic_only_fakes = fake_sources[config.critic_fakes]
+        self._critic_only_fakes = critic_fakes.SOURCES[config.critic_fakes]
         self.phases = self._phases()
         # A frozen model whose answers to the synthetic 2D (before detector errors and occlusions)
         # replace the synthetic truth as the target: distillation (training.adapt); None: the truth.
@@ -190,7 +186,7 @@ class Trainer:
         """critic_steps critic updates against critic_fakes, the generator frozen."""
         terms = self._zero_terms()
         for _ in range(self.config.critic_steps):
-            self.fakes = self._critic_only_fakes()
+            self.fakes = self._critic_only_fakes(self)
             terms["w_dist"] = self.critic_step()
         self.fakes = None
         return terms
@@ -230,73 +226,6 @@ class Trainer:
         # The next critic steps judge these poses: no generator pass of their own.
         self.fakes = pose.detach() if config.reuse_fakes else None
         return terms
-
-    def _no_fakes(self) -> torch.Tensor | None:
-        """Fakes of the frozen generator: critic_step generates fresh poses for every update."""
-        return None
-
-    def _corrupted_fakes(self) -> torch.Tensor:
-        """Real poses with a limb stretched or shrunk, joints swapped or jittered (corrupt_poses)."""
-        idx = torch.randint(0, len(self.real_pool), (self.config.batch_size,), generator=self.gen)
-        return corrupt_poses(self.real_pool[idx.to(self.device)], self.gen)
-
-    def _answers(self, clean: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """The frozen generator's answers to batch_size frames of the pool's 2D (GT projections and
-        detections): with N(0, sigma) px noise, sigma ~ U(0, critic_noise_px) per pose, and
-        augment_visibility's hidden joints; with clean, also to the same 2D as it is (else None)."""
-        config, device, gen = self.config, self.device, self.gen
-        n = config.batch_size
-        idx = torch.randint(0, self.pool.points_2d.shape[0], (n,), generator=gen).numpy()
-        pixels = torch.from_numpy(self.pool.points_2d[idx]).to(device)
-        seen = torch.from_numpy(self.pool.visible[idx]).to(device)
-        visible = augment_visibility(seen, config, gen)
-        sigma = config.critic_noise_px * torch.rand(n, 1, 1, generator=gen, device=device)
-        noisy = pixels + sigma * torch.randn(pixels.shape, generator=gen, device=device)
-        with torch.no_grad():
-            answers, _ = self.generate(normalize_keypoints(noisy, visible), visible)
-            if not clean:
-                return None, answers
-            clean_answers, _ = self.generate(normalize_keypoints(pixels, seen), seen)
-        return clean_answers, answers
-
-    def _lifted_fakes(self) -> torch.Tensor:
-        """The generator's answers to noisy 2D (_answers); in a critic_corrupted_share of the batch,
-        corrupted real poses instead."""
-        _, lifted = self._answers(clean=False)
-        corrupted = self._corrupted_fakes()
-        take = (
-            torch.rand(len(lifted), generator=self.gen, device=self.device)
-            < self.config.critic_corrupted_share
-        )
-        return torch.where(take[:, None, None], corrupted, lifted)
-
-    def _paired_fakes(self) -> torch.Tensor:
-        """Pairs that differ only in what broke the fake: the generator's answer to a frame's 2D as
-        it is (real side) and to the same 2D with noise and hidden joints (fake side, _answers); in a
-        critic_corrupted_share of the batch, a real pose and its corrupted copy instead. The critic
-        learns what noise does to the generator's answers, not the generator's own signature, which
-        both sides share; sets self.reals for the next critic step."""
-        clean, noisy = self._answers(clean=True)
-        assert clean is not None
-        n, gen = len(noisy), self.gen
-        idx = torch.randint(0, len(self.real_pool), (n,), generator=gen).to(self.device)
-        real = self.real_pool[idx]
-        corrupted = corrupt_poses(real, gen)
-        take = (torch.rand(n, generator=gen, device=self.device) < self.config.critic_corrupted_share)[
-            :, None, None
-        ]
-        self.reals = torch.where(take, real, clean)
-        return torch.where(take, corrupted, noisy)
-
-    def _graded_fakes(self) -> torch.Tensor:
-        """Real poses with every bone 1 + N(0, sigma) times as long, sigma ~ U(0, critic_bone_sigma)
-        per pose (rescale_bones); in a critic_corrupted_share of the batch, corrupt_poses instead."""
-        n, gen, device = self.config.batch_size, self.gen, self.device
-        real = self.real_pool[torch.randint(0, len(self.real_pool), (n,), generator=gen).to(device)]
-        sigma = self.config.critic_bone_sigma * torch.rand(n, generator=gen, device=device)
-        graded, corrupted = rescale_bones(real, sigma, gen), corrupt_poses(real, gen)
-        take = torch.rand(n, generator=gen, device=device) < self.config.critic_corrupted_share
-        return torch.where(take[:, None, None], corrupted, graded)
 
     def synthetic_terms(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Warm-start loss on a synthetic batch: the pose error, and the reprojection of the

@@ -387,7 +387,7 @@ def test_lifted_fakes_are_the_generators_answers_to_noisy_2d_mixed_with_corrupte
             return answer.expand(len(points), 17, 3), torch.zeros(len(points), 2, 3)
 
         critic_trainer.generate = generate
-        return critic_trainer._critic_only_fakes()
+        return critic_trainer._critic_only_fakes(critic_trainer)
 
     lifted = (fakes(0.0, 0.5) == answer).all(dim=(1, 2))
     assert 0.4 < lifted.float().mean() < 0.6  # the rest are corrupted real poses
@@ -418,7 +418,7 @@ def test_paired_fakes_set_each_damaged_answer_against_the_answer_to_the_same_cle
         return torch.cat([points, visible[..., None]], dim=2), torch.zeros(len(points), 2, 3)
 
     critic_trainer.generate = generate
-    fakes = critic_trainer._critic_only_fakes()
+    fakes = critic_trainer._critic_only_fakes(critic_trainer)
     reals = critic_trainer.reals
     assert reals is not None and reals.shape == fakes.shape == (256, 17, 3)
     answered = (reals[..., 2] == 1).all(dim=1)  # the generator's answers to the 2D as it is
@@ -450,7 +450,8 @@ def test_graded_fakes_are_real_poses_with_rescaled_bones_or_corrupted() -> None:
         config = TrainConfig(
             batch_size=400, critic_fakes="graded", critic_bone_sigma=0.2, critic_corrupted_share=share
         )
-        return trainer.Trainer(config, TINY, pool, CPU, torch.Generator().manual_seed(0))._critic_only_fakes()
+        made = trainer.Trainer(config, TINY, pool, CPU, torch.Generator().manual_seed(0))
+        return made._critic_only_fakes(made)
 
     real = torch.from_numpy(pool.poses_aligned / 1000)
     parents, children = (list(ends) for ends in zip(*skeleton.BONES, strict=True))
