@@ -116,7 +116,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
     adapt.add_argument("--confidence-threshold", type=float, help="joints below it count as missing")
     adapt.add_argument("--minutes", type=_positive(float), help="wall-time limit (default 25); "
                        "the run checkpoints, --resume goes on")  # fmt: skip
-    adapt.add_argument("--steps", type=_positive(int), help="training steps in all (default 3000)")
+    adapt.add_argument("--steps", type=_positive(int), help="training steps in all (default 500)")
     adapt.add_argument("--threads", type=_positive(int), default=0, help="torch threads (default: all cores)")
     adapt.add_argument("--resume", action="store_true", help="go on from the last checkpoint of this run")
     adapt.add_argument(

@@ -42,7 +42,7 @@ from training.trainer import Terms, Trainer
 class AdaptConfig:
     """One adaptation run. steps and minutes stop it; they may change on resume, nothing else may."""
 
-    steps: int = 3000
+    steps: int = 500
     minutes: float = 25.0  # wall-time limit of this call (checkpointed, --resume goes on); 0 = none
     lr: float = 3e-5  # constant: a stop at any step leaves a usable model
     batch_size: int = 256
@@ -53,13 +53,13 @@ class AdaptConfig:
     residual_min: float = 0.8  # those errors scaled by U(min, max)
     residual_max: float = 1.2
     refresh_every: int = 1000  # measure the user's errors again with the adapted model; 0 = never
-    reprojection_weight: float = 0.0  # the paper's terms on the user's 2D
+    reprojection_weight: float = 0.1  # the paper's terms on the user's 2D
     camera_weight: float = 1.0
-    adversarial_weight: float = 0.0
+    adversarial_weight: float = 0.1
     critic_steps: int = 1
-    critic_warmup: int = 0  # critic-only steps against the parent's answers before the generator moves
+    critic_warmup: int = 20  # critic-only steps against the parent's answers before the generator moves
     anchor_weight: float = 1.0  # the synthetic task beside the paper's terms (when their weights > 0)
-    bone_weight: float = 3.0
+    bone_weight: float = 10.0  # the bone-length prior, on the answers to the user's 2D too
     # The synthetic task's target: "parent", the parent's answer to the clean synthetic 2D
     # (distillation: the model keeps its answers, and learns to give them under the user's
     # errors); "truth", the prior's pose itself.

@@ -65,12 +65,8 @@ def test_adapt_writes_a_model_the_service_serves_with_its_lineage(
     assert record["inputs"] == [{"input": "detections.npz", "sha256": lineage.file_sha256(poses_file)}]
     assert record["command"].startswith("repnet adapt ") and str(tmp_path) not in record["command"]
     assert record["steps"] == 4 and record["poses"] == 270 and record["holdout_poses"] == 30
-    assert set(record["report"]["before"]) == {
-        "reprojection_px",
-        "plausibility",
-        "symmetry_mm",
-        "bone_std_mm",
-    }
+    figures = {"reprojection_px", "plausibility", "implausible_pct", "symmetry_mm", "bone_std_mm"}
+    assert set(record["report"]["before"]) == figures
     lifter = load_lifter(Settings(model_path=out))  # the service's own loading and start-up check
     points = np.nan_to_num(np.load(poses_file)["keypoints"][:5]).astype(np.float32)
     prediction = lifter.lift(points, np.ones((5, 17), bool))
@@ -79,18 +75,14 @@ def test_adapt_writes_a_model_the_service_serves_with_its_lineage(
 
 def test_adapt_resumes_bit_for_bit(poses_file: Path, parent: Path, tmp_path: Path) -> None:
     straight, halves = tmp_path / "straight", tmp_path / "halves"
-    assert (
-        adapt(poses_file, parent, tmp_path / "a.onnx", "--steps", "6", "--run-dir", str(straight), "--force")
-        == 0
-    )
-    assert (
-        adapt(poses_file, parent, tmp_path / "b.onnx", "--steps", "3", "--run-dir", str(halves), "--force")
-        == 0
-    )
-    resumed = ["--steps", "6", "--run-dir", str(halves), "--resume", "--force"]
-    assert adapt(poses_file, parent, tmp_path / "b.onnx", *resumed) == 0
+    # 20 critic-only steps (the warm-up), then both networks; the first half ends inside the warm-up.
+    run = ["--run-dir", str(straight), "--force"]
+    assert adapt(poses_file, parent, tmp_path / "a.onnx", "--steps", "23", *run) == 0
+    run = ["--run-dir", str(halves), "--force"]
+    assert adapt(poses_file, parent, tmp_path / "b.onnx", "--steps", "10", *run) == 0
+    assert adapt(poses_file, parent, tmp_path / "b.onnx", "--steps", "23", "--resume", *run) == 0
     one, two = (torch.load(d / "adapt.pt", weights_only=False) for d in (straight, halves))
-    assert one["step"] == two["step"] == 6
+    assert one["step"] == two["step"] == 23
     for part in ("generator", "critic", "opt_g"):
         flat_one = torch.nn.utils.parameters_to_vector([t for t in _tensors(one["trainer"][part])])
         flat_two = torch.nn.utils.parameters_to_vector([t for t in _tensors(two["trainer"][part])])
@@ -136,10 +128,12 @@ def test_a_worse_model_is_not_written_unless_forced(
 
 
 def test_worse_names_each_figure_that_got_worse() -> None:
-    before = Figures(reprojection_px=10.0, plausibility=0.5, symmetry_mm=5.0, bone_std_mm=3.0)
-    assert worse(before, Figures(10.9, 0.49, 5.9, 3.9)) == []
-    found = worse(before, Figures(11.5, 0.4, 7.0, 4.5))
-    assert [r.split()[0] for r in found] == ["reprojection", "plausibility", "symmetry", "bone-length"]
+    before = Figures(
+        reprojection_px=10.0, plausibility=0.7, implausible_pct=2.0, symmetry_mm=5.0, bone_std_mm=3.0
+    )
+    assert worse(before, Figures(10.9, 0.5, 2.9, 5.9, 3.9)) == []  # a mean nearer 0.5 is no sign
+    found = worse(before, Figures(11.5, 0.7, 3.5, 7.0, 4.5))
+    assert [r.split()[0] for r in found] == ["reprojection", "implausible", "symmetry", "bone-length"]
 
 
 def test_bad_flags_are_named(
