@@ -137,11 +137,10 @@ def run(args: argparse.Namespace) -> int:
     elif args.resume:
         say(f"nothing to resume in {folder}: starting afresh")
     probe = (test[0][:PROBE_POSES], test[1][:PROBE_POSES])
-    started = adaptation.step
     with tqdm(total=config.steps, initial=adaptation.step, desc="adapt", unit="step", file=sys.stderr) as bar:
         done = adaptation.run(config.minutes, state, on_step=_progress(adaptation, probe, scorer, bar))
-    steps = adaptation.step - started
-    rate = steps * config.batch_size / max(adaptation.elapsed, 1e-9) if steps else 0.0
+    # Samples/s over the whole run (every call of a resumed one): what its wall time bought.
+    rate = adaptation.step * config.batch_size / max(adaptation.elapsed, 1e-9)
     say(f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
         f"({rate:.0f} samples/s){'' if done else '; run again with --resume to go on'}")  # fmt: skip
     before_model, _ = load_generator(parent_path)
