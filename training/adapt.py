@@ -4,16 +4,18 @@ No 3D of the user's is given or needed. The generator learns on two things that 
 the user's 2D poses, and 3D poses drawn from the shipped pose prior (training.prior). The steps
 are the Trainer's (training.trainer):
 
-- the synthetic task (the anchor): prior poses through random cameras, supervised on themselves,
-  so the model keeps what it knew. In `residual_share` of them the 2D carries the user's own
-  detector error instead of white noise: the user's pose minus the reprojection K X of the
-  model's answer to it (in units of the pose's spread). That is what a detector does that no
-  human pose explains: a hip put too low, a wrist on the other wrist. The model learns to answer
-  the pose under such errors. The errors are measured again every `refresh_every` steps with the
-  adapted model (its answers get better, so its estimate of the errors does).
-- the paper's terms on the user's 2D (reprojection through the predicted camera with missing
-  joints' columns zeroed, the camera term, the KCS critic's Wasserstein term), with weights that
-  may be 0; the critic starts from the parent's and may warm up before the generator moves.
+- the paper's terms on the user's 2D: reprojection through the predicted camera with missing
+  joints' columns zeroed, the camera term and the KCS critic's Wasserstein term (weights 0.1 by
+  default; at 1 they bend every answer to the detector's errors, docs/RESULTS.md), with the
+  bone-length prior; the critic starts from the parent's and warms up before the generator moves.
+- the synthetic task as an anchor, so that the model cannot forget: prior poses through random
+  cameras, the target the parent's own answer to the clean 2D (anchor_target "parent": distillation;
+  "truth": the prior's pose). In `residual_share` of them the 2D carries the user's detector error
+  instead of white noise: the user's pose minus the reprojection K X of the model's answer to it (in
+  units of the pose's spread), what no human pose explains (a hip put too low, a head top too
+  high); residual_mode "mean" (default) adds the mean of those per joint, the detector's systematic
+  offsets, "pose" one user pose's. They are measured again every `refresh_every` steps with the
+  adapted model.
 
 AdaptConfig holds every choice; a run checkpoints and resumes bit for bit (Adaptation).
 """
