@@ -60,7 +60,7 @@ class AdaptConfig:
     adversarial_weight: float = 0.1
     critic_steps: int = 1
     critic_warmup: int = 20  # critic-only steps against the parent's answers before the generator moves
-    anchor_weight: float = 1.0  # the synthetic task beside the paper's terms (when their weights > 0)
+    anchor_weight: float = 2.0  # the synthetic task beside the paper's terms (when their weights > 0)
     bone_weight: float = 10.0  # the bone-length prior, on the answers to the user's 2D too
     # The synthetic task's target: "parent", the parent's answer to the clean synthetic 2D
     # (distillation: the model keeps its answers, and learns to give them under the user's
