@@ -33,9 +33,9 @@ if __package__ in (None, ""):  # `python bench/adapt_h36m.py`
 
 from service.cli import main as repnet
 from service.config import BUNDLED_MODEL
-from training import checkpoint, data, metrics, sequences, synthetic
-from training.config import RepNetConfig, TrainConfig
-from training.model import RepNet
+from training import data, metrics, sequences, synthetic
+from training.config import TrainConfig
+from training.export import load_generator
 from training.validation import validate, validation_sets
 
 SOURCE = ("S1", "S5", "S6", "S7")
@@ -102,10 +102,8 @@ def high_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict
 
 def score(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[str, float]]:
     """A model's validation figures (training.validation.validate on its generator, mirror-averaged
-    as the file says)."""
-    state = checkpoint.load(model)
-    generator = RepNet(RepNetConfig(**state["model_config"]))
-    generator.load_state_dict(state["generator"])
+    as both the bundled and the adapted model are exported)."""
+    generator, _ = load_generator(model)
     return {
         kind: validate(generator, val, torch.device("cpu"), mirror_average=True) for kind, val in sets.items()
     }

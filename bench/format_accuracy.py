@@ -23,9 +23,10 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/format_accuracy.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.h36m_args import check_frame_step, h36m_parser
 from bench.stats import report
 from service.app import load_lifter
-from service.config import BUNDLED_MODEL, Settings
+from service.config import Settings
 from service.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
 from service.lifter import Lifter
 from training import data, metrics
@@ -124,21 +125,11 @@ def markdown(result: dict[str, Any]) -> str:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line of `python -m bench.format_accuracy`."""
-    parser = argparse.ArgumentParser(
-        prog="python -m bench.format_accuracy",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument(
-        "--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)"
-    )
-    parser.add_argument("--data-dir", default=None, help=f"Human3.6M folder (default: ${data.DATA_ENV})")
+    parser = h36m_parser("format_accuracy", __doc__)
     parser.add_argument("--frame-step", type=int, default=10, help="use every n-th test frame")
-    parser.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0: one per core)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench/format_accuracy.json"))
     args = parser.parse_args(argv)
-    if args.frame_step < 1:
-        parser.error(f"--frame-step must be >= 1, got {args.frame_step}")
+    check_frame_step(parser, args)
     return args
 
 

@@ -25,9 +25,10 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/format_mixup.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.h36m_args import check_frame_step, h36m_parser
 from bench.stats import report
 from service.app import limits_of, load_lifter
-from service.config import BUNDLED_MODEL, Settings
+from service.config import Settings
 from service.formats import FORMATS, from_model_joints, lookalike_of
 from service.keypoints import PoseInput, prepare_poses
 from service.lifter import Lifter
@@ -167,25 +168,15 @@ def markdown(result: dict[str, Any]) -> str:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line of `python -m bench.format_mixup`."""
-    parser = argparse.ArgumentParser(
-        prog="python -m bench.format_mixup",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument(
-        "--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)"
-    )
-    parser.add_argument("--data-dir", default=None, help=f"Human3.6M folder (default: ${data.DATA_ENV})")
+    parser = h36m_parser("format_mixup", __doc__)
     parser.add_argument("--subjects", default=",".join(data.TEST_SUBJECTS), help="comma-separated subjects")
     parser.add_argument("--frame-step", type=int, default=1, help="use every n-th frame (default: all)")
-    parser.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0: one per core)")
     parser.add_argument(
         "--noise", type=float, default=0.0, help="Gaussian 2D noise, a fraction of each pose's spread (0.05)"
     )
     parser.add_argument("--out", type=Path, default=Path("runs/bench/format_mixup.json"))
     args = parser.parse_args(argv)
-    if args.frame_step < 1:
-        parser.error(f"--frame-step must be >= 1, got {args.frame_step}")
+    check_frame_step(parser, args)
     args.subjects = args.subjects.split(",")
     known = set(data.TRAIN_SUBJECTS) | set(data.TEST_SUBJECTS)
     if not set(args.subjects) <= known or not (

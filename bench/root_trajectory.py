@@ -32,9 +32,10 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/root_trajectory.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.h36m_args import h36m_parser
 from service import geometry
 from service.app import limits_of, load_lifter
-from service.config import BUNDLED_MODEL, Settings
+from service.config import Settings
 from service.formats import MODEL_PARENTS
 from service.keypoints import PoseInput, prepare_poses
 from service.lifter import Lifter
@@ -195,17 +196,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line of `python -m bench.root_trajectory`."""
-    parser = argparse.ArgumentParser(
-        prog="python -m bench.root_trajectory", description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
-    parser.add_argument(
-        "--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)"
-    )
-    parser.add_argument("--data-dir", default=None, help=f"Human3.6M folder (default: ${data.DATA_ENV})")
+    parser = h36m_parser("root_trajectory", __doc__)
     parser.add_argument("--split", choices=["test", "validation"], default="test")
     parser.add_argument("--frame-step", type=int, default=10, help="use every n-th frame")
-    parser.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0: one per core)")
     parser.add_argument(
         "--out",
         type=Path,

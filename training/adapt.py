@@ -35,6 +35,7 @@ import torch
 from training import data, presets
 from training.camera import masked_centre, project_weak_perspective
 from training.config import RepNetConfig, TrainConfig
+from training.export import generator_of
 from training.model import LiftingGraph, RepNet, normalize_keypoints
 from training.prior import PosePrior
 from training.trainer import Terms, Trainer
@@ -192,9 +193,7 @@ class Adaptation:
         if parent.get("critic"):
             self.trainer.critic.load_state_dict(parent["critic"])
         if config.anchor_target == "parent":
-            teacher = RepNet(model_config)
-            teacher.load_state_dict(parent["generator"])
-            self.trainer.teacher = LiftingGraph(teacher.eval(), mirror_average=mirror_average).eval()
+            self.trainer.teacher = LiftingGraph(generator_of(parent), mirror_average=mirror_average).eval()
         elif config.anchor_target != "truth":
             raise ValueError(f"anchor_target must be parent or truth, got {config.anchor_target!r}")
         self.step, self.elapsed = 0, 0.0

@@ -35,7 +35,7 @@ from training.adapt_report import (
     report_record,
     worse,
 )
-from training.export import load_generator
+from training.export import generator_of
 
 PROBE_POSES = 256  # held-out poses the progress bar's figures are measured on
 PROBE_EVERY = 50  # steps between two such measurements
@@ -143,8 +143,7 @@ def run(args: argparse.Namespace) -> int:
     rate = adaptation.step * config.batch_size / max(adaptation.elapsed, 1e-9)
     say(f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
         f"({rate:.0f} samples/s){'' if done else '; run again with --resume to go on'}")  # fmt: skip
-    before_model, _ = load_generator(parent_path)
-    before = measure(before_model, scorer, *test, mirror)
+    before = measure(generator_of(parent), scorer, *test, mirror)
     after = measure(adaptation.trainer.generator, scorer, *test, mirror)
     print(render(before, after, len(test[0])))
     reasons = worse(before, after)

@@ -71,7 +71,7 @@ def measure(
 ) -> Figures:
     """A generator's figures on (N, J, 2) pixel points and (N, J) visibility."""
     pose, _, residual = answer(generator, points, visible, mirror_average)
-    spread = pose_spread(points * visible[..., None], visible)  # px per unit of the normalised input
+    spread = pose_spread(points, visible)  # px per unit of the normalised input
     per_joint = np.linalg.norm(residual, axis=-1) * spread[:, None]  # (N, J) px, 0 where hidden
     with torch.no_grad():
         plausible = scorer(torch.from_numpy(pose) / MM_PER_UNIT).numpy()

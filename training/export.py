@@ -34,9 +34,14 @@ def load_generator(path: Path) -> tuple[RepNet, dict[str, Any]]:
     """Rebuild the generator from a checkpoint written by training.train, or from an exported
     model (training.checkpoint.from_onnx); no flags needed."""
     state = checkpoint.load(path)
+    return generator_of(state), state
+
+
+def generator_of(state: dict[str, Any]) -> RepNet:
+    """The generator of a loaded checkpoint or exported model's state (checkpoint.load), in eval mode."""
     generator = RepNet(RepNetConfig(**state["model_config"]))
     generator.load_state_dict(state["generator"])
-    return generator.eval(), state
+    return generator.eval()
 
 
 def load_critic(state: dict[str, Any]) -> Critic:
