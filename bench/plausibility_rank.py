@@ -5,10 +5,11 @@
 For each model (an .onnx with a plausibility output) it lifts the held-out tails of the training
 subjects' sequences (training.validation.validation_sets: the same draw a training run validates
 on) through onnxruntime, one shift at a time: GT 2D clean, GT 2D + N(0, 20 px), GT 2D + N(0, 40 px)
-and Stacked-Hourglass detections. Per shift it prints the P-II (mm) of each plausibility decile,
-the lowest decile's P-II over the highest's, and the Spearman rank correlation between
-plausibility and per-pose P-II (negative: a lower score goes with a larger error). It measures
-and prints; it asserts nothing.
+and Stacked-Hourglass detections; and the two shifts of the adaptation benchmark (bench.adapt_h36m):
+the tails seen from high cameras (45-65 degrees down) and all of S8 with its SH detections (every
+10th frame). Per shift it prints the P-II (mm) of each plausibility decile, the lowest decile's
+P-II over the highest's, and the Spearman rank correlation between plausibility and per-pose P-II
+(negative: a lower score goes with a larger error). It measures and prints; it asserts nothing.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/plausibility_rank.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.adapt_h36m import high_shift, sh_shift
 from bench.stats import write_json
 from training import data, metrics
 from training.config import TrainConfig
@@ -63,13 +65,21 @@ def rank_shift(lift: Any, val: data.ValidationSet, batch: int = 4096) -> dict[st
 
 
 def shifts(data_dir: Path, val_size: int, seed: int) -> dict[str, data.ValidationSet]:
-    """The validation shifts: GT clean, GT + 20 px (validation's draw), GT + 40 px, SH detections."""
+    """The validation shifts: GT clean, GT + 20 px (validation's draw), GT + 40 px, SH detections,
+    and bench.adapt_h36m's: the tails from high cameras, S8's SH detections."""
     config = TrainConfig(inputs="gt+sh", val_size=val_size, seed=seed, val_noise_px=20.0, val_mirror=False)
     _, held_out = data.build_training_sets(data_dir, "gt+sh", val_fraction=config.val_fraction)
     sets = validation_sets(config, held_out)
     rng = np.random.default_rng([seed, 40])
     extra = with_noise(sets["gt"], EXTRA_NOISE_PX, rng)
-    return {"gt": sets["gt"], "gt_noise20": sets["gt_noise"], "gt_noise40": extra, "sh": sets["sh"]}
+    return {
+        "gt": sets["gt"],
+        "gt_noise20": sets["gt_noise"],
+        "gt_noise40": extra,
+        "sh": sets["sh"],
+        **high_shift(data_dir, 1)[2],  # (the 2D to adapt on is not needed: one pose of it)
+        **sh_shift(data_dir, 1)[2],
+    }
 
 
 def table(results: dict[str, dict[str, dict[str, Any]]]) -> str:

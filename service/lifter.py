@@ -22,8 +22,9 @@ log = logging.getLogger(__name__)
 
 INPUTS = ("keypoints_2d", "visibility")
 OUTPUTS = ("pose_3d", "camera")
-# Optional output (N,) float32 in [0, 1]: the critic's score calibrated as a percentile among real
-# validation poses; its calibration is the JSON metadata entry PLAUSIBILITY_CALIBRATION.
+# Optional output (N,) float32 in [0, 1]: a pose score (a density, or a critic) calibrated as a
+# percentile among real validation poses; its calibration is the JSON metadata entry
+# PLAUSIBILITY_CALIBRATION. Other outputs (a training critic's raw "critic") are not read.
 PLAUSIBILITY = "plausibility"
 PLAUSIBILITY_CALIBRATION = "plausibility_calibration"
 # What a row the model failed on holds, so that the reply of the rest of its run can be derived

@@ -127,7 +127,7 @@ class Metrics:
         )
         self.plausibility = Histogram(
             "repnet_pose_plausibility_ratio",
-            "Plausibility of each lifted pose (the model's calibrated critic score in [0, 1]); "
+            "Plausibility of each lifted pose (the model's calibrated pose score in [0, 1]); "
             "empty when the model has no plausibility output.",
             ["model"],
             buckets=PLAUSIBILITY_BUCKETS,

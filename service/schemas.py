@@ -33,9 +33,10 @@ FRAME_DOC = (
 )
 
 PLAUSIBILITY_DOC = (
-    "How plausible the 3D pose is, in [0, 1]: the model's critic score calibrated as a percentile "
-    "among real validation poses (0.3: more plausible than 30 % of them; near 0: a pose unlike any "
-    "real one). It judges the 3D pose alone, not its fit to the input (that is "
+    "How plausible the 3D pose is, in [0, 1]: the model's pose score (the bundled model's: a density "
+    "over real people's bone directions and proportions) calibrated as a percentile among real "
+    "validation poses (0.3: more plausible than 30 % of them; near 0: a pose unlike any real one). "
+    "It judges the 3D pose alone, not its fit to the input (that is "
     "`reprojection_error_px`). null when the loaded model has no plausibility output."
 )
 

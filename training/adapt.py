@@ -79,7 +79,7 @@ RESUMABLE = ("steps", "minutes")
 def synthetic_settings() -> TrainConfig:
     """The synthetic task of the bundled model's last stage: its noise, mirroring, limb turns and
     occlusions (training.presets)."""
-    return presets.get("repnet-h36m-v6").stages[-1].train
+    return presets.get("repnet-h36m-v7").stages[-1].train
 
 
 def train_config(config: AdaptConfig, threads: int) -> TrainConfig:

@@ -36,6 +36,7 @@ from training.adapt_report import (
     worse,
 )
 from training.export import generator_of
+from training.model import Critic
 
 PROBE_POSES = 256  # held-out poses the progress bar's figures are measured on
 PROBE_EVERY = 50  # steps between two such measurements
@@ -168,7 +169,9 @@ def run(args: argparse.Namespace) -> int:
         "parent_lineage": json.loads(meta["lineage"]) if "lineage" in meta else None,
     }
     start = time.monotonic()
-    diff = export_adapted(adaptation.trainer.generator, scorer, meta, args.output, record, mirror)
+    # The adapted critic goes on as the file's "critic" output, unless the plausibility is the critic.
+    critic = None if isinstance(scorer.score, Critic) else adaptation.trainer.critic.eval()
+    diff = export_adapted(adaptation.trainer.generator, scorer, meta, args.output, record, mirror, critic)
     took = time.monotonic() - start
     model = record["model_id"]
     say(f"wrote {args.output} (model {model}, torch vs onnxruntime {diff:.1e} mm, {took:.1f} s): "

@@ -2,7 +2,7 @@
 before and after, the rule that refuses a worse model, and the adapted ONNX with its lineage.
 
 The figures need no 3D truth: how far the answer's reprojection K X lies from the 2D (px), how
-plausible the parent's critic finds the answers (the parent's scorer for both, so the numbers
+plausible the parent's plausibility finds the answers (the parent's for both, so the numbers
 compare), and two properties a person's skeleton has: left equals right (symmetry, mm) and a
 track's limbs keep their length (bone-length spread over the held-out poses, mm).
 """
@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import metrics
+from training import metrics, plausibility
 from training.adapt import answer
-from training.export import check_parity, export_onnx, load_critic
-from training.model import MM_PER_UNIT, Plausibility, RepNet
+from training.export import check_parity, export_onnx
+from training.model import MM_PER_UNIT, Critic, Plausibility, RepNet
 from training.sequences import pose_spread
 
 
@@ -30,7 +30,7 @@ class Figures:
 
     reprojection_px: float  # mean over visible joints of |W - K X| in pixels
     plausibility: float  # mean of the parent's plausibility in [0, 1]
-    implausible_pct: float  # % of answers the parent's critic calls implausible (plausibility < 0.05)
+    implausible_pct: float  # % of answers the parent's plausibility calls implausible (< 0.05)
     symmetry_mm: float  # mean |left - right| limb length
     bone_std_mm: float  # mean over limbs of the std of its length over the poses
 
@@ -52,18 +52,14 @@ def read_metadata(path: Path) -> dict[str, str]:
 
 
 def parent_scorer(state: dict[str, Any], meta: dict[str, str]) -> Plausibility:
-    """The parent's plausibility (its critic, calibration table and bone range) as a module."""
+    """The parent's plausibility (its score: the pose density or the critic, calibration table and
+    bone range) as a module; ValueError when the parent has no critic or no plausibility."""
     if not state.get("critic") or "plausibility_calibration" not in meta:
         raise ValueError(
-            "the parent model has no plausibility critic: adapt needs one (export with a critic)"
+            "the parent model has no critic or no plausibility output: adapt needs both (export it "
+            "with plausibility)"
         )
-    table = json.loads(meta["plausibility_calibration"])
-    scores = torch.tensor(table["critic_scores_at_quantiles"], dtype=torch.float32)
-    bones = None
-    if "bone_length_range_mm" in table:
-        ranges = table["bone_length_range_mm"]
-        bones = torch.tensor([ranges["shortest"], ranges["longest"]], dtype=torch.float32) / MM_PER_UNIT
-    return Plausibility(load_critic(state), scores, bones).eval()
+    return plausibility.from_state(state, meta)
 
 
 def measure(
@@ -106,7 +102,7 @@ def render(before: Figures, after: Figures, poses: int) -> str:
     """The before/after table the command prints."""
     rows = [
         ("reprojection error (px)", "reprojection_px", 2),
-        ("plausibility (parent's critic)", "plausibility", 3),
+        ("plausibility (parent's)", "plausibility", 3),
         ("implausible answers (%)", "implausible_pct", 1),
         ("symmetry error (mm)", "symmetry_mm", 1),
         ("bone-length spread (mm)", "bone_std_mm", 1),
@@ -124,9 +120,11 @@ def export_adapted(
     output: Path,
     lineage: dict[str, Any],
     mirror_average: bool,
+    critic: Critic | None = None,
 ) -> float:
     """Write the adapted generator with the parent's plausibility and metadata, its own model id
-    and lineage (lineage["model_id"]); returns torch vs onnxruntime's max |diff| (mm)."""
+    and lineage (lineage["model_id"]), and the adapted critic as the "critic" output when given;
+    returns torch vs onnxruntime's max |diff| (mm)."""
     meta = dict(parent_meta)
     meta["model_id"] = lineage["model_id"]
     meta["train_command"] = lineage["command"]
@@ -134,7 +132,7 @@ def export_adapted(
     meta["training_data"] = f"{parent_data}; adapted (repnet adapt) on {lineage['poses']} unlabeled 2D poses"
     meta["evaluation"] = json.dumps({"adapt_holdout": lineage["report"]})
     meta["lineage"] = json.dumps(lineage)
-    export_onnx(generator.eval(), output, meta, scorer, mirror_average)
+    export_onnx(generator.eval(), output, meta, scorer, mirror_average, critic)
     rng = np.random.default_rng(0)
     points = (rng.normal(size=(64, 17, 2)) * 120 + 500).astype(np.float32)
     visible = (rng.random((64, 17)) > 0.1).astype(np.float32)

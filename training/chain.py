@@ -187,8 +187,9 @@ def seed_stage(preset: Preset, stage: Stage, out_dir: Path, runtime: Runtime, ar
 
 
 def export_preset(preset: Preset, out_dir: Path, runtime: Runtime, command: str) -> Path:
-    """OUT/<preset>.onnx: export_from's generator, the critic stage's last.pt as its plausibility
-    critic, model_id the preset's name; kept when it is there (written under another name first)."""
+    """OUT/<preset>.onnx: export_from's generator, the critic stage's last.pt as its critic, the
+    preset's plausibility, model_id the preset's name; kept when it is there (written under another
+    name first)."""
     output = out_dir / f"{preset.name}.onnx"
     if output.is_file():
         log.info("%s: exported, kept", output)
@@ -199,6 +200,8 @@ def export_preset(preset: Preset, out_dir: Path, runtime: Runtime, command: str)
         partial,
         model_id=preset.name,
         critic_checkpoint=checkpoint_path(out_dir, StageRef(preset.critic.name, "last")),
+        score=preset.plausibility,
+        density=preset.density,
         mirror_average=preset.mirror_average,
         data_dir=runtime.data_dir or None,
         command=command,

@@ -18,7 +18,9 @@ import torch
 from training.config import RepNetConfig, TrainConfig
 
 GENERATOR_PREFIX = "generator."
-CRITIC_PREFIX = "plausibility.critic."
+CRITIC_PREFIX = "critic."  # the "critic" output's; a critic-scored plausibility keeps it at SCORE_PREFIX
+SCORE_PREFIX = "plausibility.score."
+LEGACY_CRITIC_PREFIX = "plausibility.critic."  # models exported before the pose density
 # What a resumed run may change from the configuration stored in its checkpoint: where it writes and
 # reads, how often it logs and saves, when it stops, and how fast it runs. None of them changes
 # what is computed: the weights, the random draws and the schedule go on as stored. (threads,
@@ -69,8 +71,8 @@ def load(path: str | Path) -> dict[str, Any]:
 
 
 def from_onnx(path: Path) -> dict[str, Any]:
-    """A checkpoint-like state from an exported model: generator (and critic) weights, model
-    config, the training command and lineage, step 0 and no optimiser state.
+    """A checkpoint-like state from an exported model: generator (and critic, and pose density)
+    weights, model config, the training command and lineage, step 0 and no optimiser state.
 
     Raises ValueError when the file holds no generator weights (not a training.export graph).
     """
@@ -91,9 +93,15 @@ def from_onnx(path: Path) -> dict[str, Any]:
     generator_command, _, critic_command = command.removeprefix(GENERATOR_LABEL).partition(CRITIC_COMMAND)
     # export writes "..., 2D inputs: gt+sh"; the rest of the run's configuration is not kept.
     inputs = meta.get("training_data", "").partition("2D inputs: ")[2]
+    score = _strip(weights, SCORE_PREFIX)
+    density = score if "projection" in score else {}  # a training.density.PoseDensity
+    critic = _strip(weights, CRITIC_PREFIX) or _strip(weights, LEGACY_CRITIC_PREFIX)
+    if not critic and not density:
+        critic = score  # the plausibility is the critic's score
     return {
         "generator": generator,
-        "critic": _strip(weights, CRITIC_PREFIX),  # empty without a plausibility output
+        "critic": critic,  # empty without a critic
+        "density": density,  # empty unless plausibility is the pose density
         "model_config": json.loads(meta["model_config"]),
         "train_config": {"inputs": inputs} if inputs else {},
         "step": 0,

@@ -15,15 +15,16 @@ import numpy as np
 import torch
 
 from training import checkpoint, data, lineage, skeleton
+from training import plausibility as plausibility_of
 from training.config import RepNetConfig
-from training.losses import bone_lengths
-from training.model import MM_PER_UNIT, Critic, LiftingGraph, Plausibility, RepNet
+from training.density import PoseDensity
+from training.model import Critic, LiftingGraph, Plausibility, RepNet
+from training.plausibility import SCORES, DensityConfig, Score
 
 log = logging.getLogger(__name__)
 
 OPSET = 17
 IR_VERSION = 8  # loadable by every onnxruntime >= 1.14
-CALIBRATION_LEVELS = 1001  # quantiles of the critic's real-pose scores: 0.1 % steps
 LICENCE = (
     "Weights trained on Human3.6M (Ionescu et al., TPAMI 2014): academic, non-commercial "
     "research use only, under the Human3.6M licence. The code is Apache-2.0."
@@ -51,45 +52,27 @@ def load_critic(state: dict[str, Any]) -> Critic:
     return critic.eval()
 
 
-def calibrate(critic: Critic, real_poses_mm: np.ndarray, levels: int = CALIBRATION_LEVELS) -> np.ndarray:
-    """The critic's scores of real template-aligned (N, J, 3) poses (mm) at `levels` evenly spaced
-    quantiles, 0 to 100 %: the table that turns a score into its percentile among real poses."""
-    with torch.no_grad():
-        scores = critic(torch.from_numpy(real_poses_mm.astype(np.float32) / MM_PER_UNIT)).numpy()
-    return np.quantile(scores.astype(np.float64), np.linspace(0.0, 1.0, levels)).astype(np.float32)
-
-
-# A real pose's bone may be this much shorter than the shortest or longer than the longest of
-# that bone among the real validation poses (template-aligned, so relative to the torso) before
-# plausibility calls the pose impossible: people beyond the five training subjects differ.
-BONE_MARGIN = 1.5
-
-
-def bone_range(real_poses_mm: np.ndarray, margin: float = BONE_MARGIN) -> np.ndarray:
-    """(2, B) shortest / margin and longest * margin length (metres) of each bone over real
-    template-aligned (N, J, 3) poses (mm): outside it, Plausibility scores 0."""
-    lengths = bone_lengths(torch.from_numpy(real_poses_mm.astype(np.float32) / MM_PER_UNIT)).numpy()
-    return np.stack([lengths.min(axis=0) / margin, lengths.max(axis=0) * margin]).astype(np.float32)
-
-
 def export_onnx(
     generator: RepNet,
     path: Path,
     metadata: dict[str, str],
     plausibility: Plausibility | None = None,
     mirror_average: bool = False,
+    critic: Critic | None = None,
 ) -> None:
     """Write the LiftingGraph of `generator` to `path` with the ONNX contract of the service.
 
     Inputs keypoints_2d (N, 17, 2) px and visibility (N, 17); outputs pose_3d (N, 17, 3) mm
-    and camera (N, 2, 3), and plausibility (N,) in [0, 1] when a calibrated critic is given.
+    and camera (N, 2, 3), plausibility (N,) in [0, 1] when a calibrated score is given, and the
+    critic's raw score (N,) when a critic is given (LiftingGraph).
     N is dynamic. mirror_average: the graph averages each answer with that of the mirrored
     input (LiftingGraph), one generator run on 2N rows.
     """
-    graph = LiftingGraph(generator.eval(), plausibility, mirror_average).eval()
+    graph = LiftingGraph(generator.eval(), plausibility, mirror_average, critic).eval()
     j = generator.config.num_joints
     example = (torch.randn(2, j, 2) * 100 + 500, torch.ones(2, j))
     outputs = ["pose_3d", "camera"] + (["plausibility"] if plausibility is not None else [])
+    outputs += ["critic"] if critic is not None else []
     inputs = ["keypoints_2d", "visibility"]
     axes = {name: {0: "N"} for name in [*inputs, *outputs]}
     doc = "RepNet 2D-to-3D human pose lifting (Wandt & Rosenhahn, CVPR 2019)"
@@ -140,35 +123,15 @@ def build_metadata(
     train_command: str = "",
     training_data: str = "",
     evaluation: dict[str, Any] | None = None,
-    calibration: np.ndarray | None = None,
+    plausibility: dict[str, str] | None = None,
     mirror_average: bool = False,
-    bones: np.ndarray | None = None,
     lineage: dict[str, Any] | None = None,
 ) -> dict[str, str]:
     """ONNX custom metadata: joints, skeleton, provenance (train_command and, given, the lineage as
-    JSON), licence, evaluation figures and, with a plausibility output, its calibration table."""
+    JSON), licence, evaluation figures and, with a plausibility output, what it means and its
+    calibration (training.plausibility.metadata's entries)."""
     extra: dict[str, str] = {} if lineage is None else {"lineage": json.dumps(lineage)}
-    if calibration is not None:
-        extra["plausibility"] = (
-            "plausibility (N,) in [0, 1]: the share of real Human3.6M validation poses (template-aligned "
-            "ground truth of held-out training-subject frames) that the trained critic scores at most as "
-            "high as this pose_3d; 0.5 is a typical real pose, below 0.05 fewer than 1 in 20 real poses "
-            "look as implausible"
-        )
-        table: dict[str, Any] = {
-            "levels": len(calibration),
-            "critic_scores_at_quantiles": [round(float(v), 6) for v in calibration],
-            "reference": "critic scores of real validation poses, at quantiles 0..1 evenly spaced",
-        }
-        if bones is not None:
-            table["bone_length_range_mm"] = {
-                "bones": [[skeleton.JOINT_NAMES[p], skeleton.JOINT_NAMES[c]] for p, c in skeleton.BONES],
-                "shortest": [round(float(v) * MM_PER_UNIT, 1) for v in bones[0]],
-                "longest": [round(float(v) * MM_PER_UNIT, 1) for v in bones[1]],
-                "rule": f"plausibility is 0 when any bone of pose_3d is outside [shortest, longest]: the "
-                f"range of that bone over the real validation poses, widened {BONE_MARGIN}x each way",
-            }
-        extra["plausibility_calibration"] = json.dumps(table)
+    extra.update(plausibility or {})
     return {
         "model_id": model_id,
         "joint_names": json.dumps(list(skeleton.JOINT_NAMES)),
@@ -201,6 +164,31 @@ def check_parity(
     return float(np.abs(pose_ort - pose_torch.numpy()).max())
 
 
+def calibrated_plausibility(
+    critic: Critic, density: DensityConfig | None, data_path: Path, val_fraction: float
+) -> tuple[Plausibility, Critic | None, dict[str, str]]:
+    """The plausibility output, calibrated on the real validation poses: the pose density fitted
+    to the training poses (density's settings) or, with density None, the critic's score. Returns
+    it, the critic to carry as the "critic" output (None when it is the score itself) and the
+    metadata entries."""
+    step = density.frame_step if density else 1
+    pool, val_sets = data.build_training_sets(data_path, "gt", frame_step=step, val_fraction=val_fraction)
+    real = data.align_to_template(val_sets["gt"].poses_camera)
+    if density is None:
+        scorer, table, bones = plausibility_of.build(critic, real)
+        entries = plausibility_of.metadata("critic", table, bones)
+        log.info("plausibility: the critic, calibrated on %d real validation poses", len(real))
+        return scorer, None, entries
+    fitted = PoseDensity.fit(pool.poses_aligned, density.components, density.dims, density.seed)
+    scorer, table, bones = plausibility_of.build(fitted, real)
+    log.info(
+        "plausibility: a pose density fitted to %d training poses, calibrated on %d real validation poses",
+        len(pool.poses_aligned),
+        len(real),
+    )
+    return scorer, critic, plausibility_of.metadata("density", table, bones)
+
+
 class NoCritic(ValueError):
     """The checkpoint named for the plausibility critic holds none."""
 
@@ -218,6 +206,8 @@ def export_model(
     model_id: str = "",
     critic_checkpoint: Path | None = None,
     plausibility: bool = True,
+    score: Score = "density",
+    density: DensityConfig | None = None,
     mirror_average: bool = False,
     evaluation: dict[str, Any] | None = None,
     data_dir: str | None = None,
@@ -225,8 +215,10 @@ def export_model(
     root: Path | None = None,
 ) -> float:
     """Export a checkpoint's generator (or an exported model's) to `output` with its metadata and
-    lineage; with plausibility, the critic of critic_checkpoint (default: the checkpoint's own),
-    calibrated on the real validation poses. Returns torch vs onnxruntime's max |diff| (mm).
+    lineage; with plausibility, a calibrated plausibility output (calibrated_plausibility: score
+    "density", a pose density fitted by `density`'s settings, default DensityConfig(), or "critic")
+    and the critic of critic_checkpoint (default: the checkpoint's own) as the "critic" output.
+    Returns torch vs onnxruntime's max |diff| (mm).
 
     command -- the export's command line, recorded path free (lineage); root -- the folder the
     lineage's paths are relative to (default run_root(checkpoint_path)).
@@ -236,20 +228,18 @@ def export_model(
     train = state.get("train_config", {})
     critic_path = critic_checkpoint or checkpoint_path
     critic_state = state if critic_checkpoint is None else checkpoint.load(critic_checkpoint)
-    calibration, table, bones, hashes = None, None, None, {}
+    scorer, critic, entries, hashes = None, None, None, {}
     if plausibility:
         if not critic_state["critic"]:
             raise NoCritic(
                 f"--critic-checkpoint {critic_path}: holds no critic (exported without plausibility)"
             )
         data_path = data.resolve_data_dir(data_dir)
-        _, val_sets = data.build_training_sets(data_path, "gt", val_fraction=train.get("val_fraction", 0.1))
         hashes = lineage.data_hashes(data_path, data.training_files("gt"))
-        critic = load_critic(critic_state)
-        real = data.align_to_template(val_sets["gt"].poses_camera)
-        table, bones = calibrate(critic, real), bone_range(real)
-        calibration = Plausibility(critic, torch.from_numpy(table), torch.from_numpy(bones))
-        log.info("plausibility calibrated on %d real validation poses", len(real))
+        fit = (density or DensityConfig()) if score == "density" else None
+        scorer, critic, entries = calibrated_plausibility(
+            load_critic(critic_state), fit, data_path, train.get("val_fraction", 0.1)
+        )
     train_command = state.get("command", "")
     if plausibility and critic_checkpoint is not None:
         critic_command = critic_state.get("critic_command", critic_state.get("command", ""))
@@ -261,12 +251,11 @@ def export_model(
         train_command=lineage.path_free(train_command, root),
         training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
         evaluation=evaluation,
-        calibration=table,
+        plausibility=entries,
         mirror_average=mirror_average,
-        bones=bones,
         lineage=lineage.export_lineage(lineage.path_free(command, root), *sources, hashes, root),
     )
-    export_onnx(generator, output, metadata, calibration, mirror_average)
+    export_onnx(generator, output, metadata, scorer, mirror_average, critic)
     rng = np.random.default_rng(0)
     points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
     visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
@@ -291,14 +280,21 @@ def main(argv: list[str] | None = None) -> None:
         "--plausibility",
         type=lambda v: v.lower() in ("1", "true", "yes"),
         default=True,
-        help="add the critic's calibrated plausibility output (needs the Human3.6M data; default true)",
+        help="add the calibrated plausibility output and the critic (needs the Human3.6M data; default true)",
+    )
+    parser.add_argument(
+        "--plausibility-score",
+        choices=SCORES,
+        default="density",
+        help="what plausibility ranks by: a pose density fitted to the training poses (default) or the "
+        "critic's score (models before repnet-h36m-v7)",
     )
     parser.add_argument(
         "--critic-checkpoint",
         type=Path,
-        help="take the plausibility critic from this checkpoint (default: --checkpoint's); e.g. a critic "
-        "trained against corrupted real poses, which does not depend on the generator, or an exported "
-        ".onnx with a plausibility output (its critic)",
+        help="take the critic from this checkpoint (default: --checkpoint's); e.g. a critic trained "
+        "against corrupted real poses, which does not depend on the generator, or an exported .onnx "
+        "with a critic",
     )
     parser.add_argument(
         "--mirror-average",
@@ -320,6 +316,7 @@ def main(argv: list[str] | None = None) -> None:
             model_id=args.model_id,
             critic_checkpoint=args.critic_checkpoint if args.plausibility else None,
             plausibility=args.plausibility,
+            score=args.plausibility_score,
             mirror_average=args.mirror_average,
             evaluation=json.loads(args.evaluation.read_text()) if args.evaluation else None,
             data_dir=args.data_dir,

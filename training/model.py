@@ -132,22 +132,24 @@ class Critic(nn.Module):
 
 
 class Plausibility(nn.Module):
-    """The critic's score calibrated to [0, 1]: its percentile among real validation poses.
+    """A pose score calibrated to [0, 1]: its percentile among real validation poses.
 
-    table -- the critic's scores of real poses, sorted; a pose scores the share of them it
-    reaches or beats, so 0.5 is a typical real pose and 0.01 one that 99 % of them beat.
+    score -- (N, J, 3) pose in metres -> (N,), higher = more like a real pose: the pose density
+    (training.density), or in models exported before it the critic.
+    table -- the score of real poses, sorted; a pose scores the share of them it reaches or beats,
+    so 0.5 is a typical real pose and 0.01 one that 99 % of them beat.
     bone_range -- optional (2, B) shortest and longest length (metres) a real pose's bones may
-    have: a pose with any bone outside scores 0. A critic is unbounded and extrapolates: far
-    outside the real poses (a limb metres long, which a generator can give for a wild input) it
-    can score higher than any real pose; no human has such a bone, whatever the critic says.
+    have: a pose with any bone outside scores 0. A score extrapolates: far outside the real poses
+    (a limb metres long, which a generator can give for a wild input) a critic can score higher
+    than any real pose; no human has such a bone, whatever the score says.
     """
 
     table: torch.Tensor  # buffer: (1, levels)
 
-    def __init__(self, critic: Critic, table: torch.Tensor, bone_range: torch.Tensor | None = None) -> None:
-        """The critic, its calibration table and the bone range as buffers."""
+    def __init__(self, score: nn.Module, table: torch.Tensor, bone_range: torch.Tensor | None = None) -> None:
+        """The score, its calibration table and the bone range as buffers."""
         super().__init__()
-        self.critic = critic
+        self.score = score
         self.register_buffer("table", table.reshape(1, -1).to(torch.float32))
         self.bone_range: torch.Tensor | None
         if bone_range is None:
@@ -157,11 +159,11 @@ class Plausibility(nn.Module):
 
     def forward(self, pose: torch.Tensor) -> torch.Tensor:
         """(N, J, 3) pose in metres -> (N,) plausibility."""
-        score = self.critic(pose).unsqueeze(1)  # (N, 1)
+        score = self.score(pose).unsqueeze(1)  # (N, 1)
         percentile = (score >= self.table).to(pose.dtype).mean(dim=1)
         if self.bone_range is None:
             return percentile
-        lengths = bone_lengths(pose)  # (N, B), as export.bone_range measured the real ones
+        lengths = bone_lengths(pose)  # (N, B), as plausibility.bone_range measured the real ones
         inside = (lengths >= self.bone_range[0]) & (lengths <= self.bone_range[1])
         return percentile * inside.all(dim=1).to(pose.dtype)
 
@@ -173,6 +175,9 @@ class LiftingGraph(nn.Module):
     mirror_average -- also lift the mirror image of every input (x negated, left and right
     swapped), mirror that answer back and average the two (test-time flip augmentation): the
     graph then answers a mirrored input with exactly the mirrored pose and camera.
+    critic -- also output the adversarial critic's raw score of each answer ("critic", (N,),
+    unbounded): the service does not read it; the file carries the critic so that `repnet adapt`
+    can go on training against it (checkpoint.from_onnx).
     """
 
     flip_points: torch.Tensor  # buffers: (2,), (3,) and (2, 3) signs of a mirror image
@@ -180,13 +185,18 @@ class LiftingGraph(nn.Module):
     flip_camera: torch.Tensor
 
     def __init__(
-        self, generator: RepNet, plausibility: Plausibility | None = None, mirror_average: bool = False
+        self,
+        generator: RepNet,
+        plausibility: Plausibility | None = None,
+        mirror_average: bool = False,
+        critic: Critic | None = None,
     ) -> None:
-        """The graph around a generator, with a calibrated critic's plausibility when given."""
+        """The graph around a generator, with a calibrated plausibility and the critic when given."""
         super().__init__()
         self.generator = generator
         self.plausibility = plausibility
         self.mirror_average = mirror_average
+        self.critic = critic
         # Mirroring flips the sign of x: of pose_3d's first column and of K's (x, .) and (., x)
         # entries, K' = diag(-1, 1) K diag(-1, 1, 1).
         self.register_buffer("flip_points", torch.tensor([-1.0, 1.0]), persistent=False)
@@ -207,9 +217,13 @@ class LiftingGraph(nn.Module):
         return (pose[:n] + pose_back) / 2, (camera[:n] + camera_back) / 2
 
     def forward(self, keypoints_2d: torch.Tensor, visibility: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """(N, J, 2) px, (N, J) visibility -> pose_3d (N, J, 3) mm, camera (N, 2, 3) [, plausibility (N,)]."""
+        """(N, J, 2) px, (N, J) visibility -> pose_3d (N, J, 3) mm, camera (N, 2, 3)
+        [, plausibility (N,)] [, critic (N,)]."""
         visible = (visibility > 0.5).to(keypoints_2d.dtype)
         pose, camera = self.lift(normalize_keypoints(keypoints_2d, visible), visible)
-        if self.plausibility is None:
-            return pose * MM_PER_UNIT, camera / MM_PER_UNIT
-        return pose * MM_PER_UNIT, camera / MM_PER_UNIT, self.plausibility(pose)
+        outputs = [pose * MM_PER_UNIT, camera / MM_PER_UNIT]
+        if self.plausibility is not None:
+            outputs.append(self.plausibility(pose))
+        if self.critic is not None:
+            outputs.append(self.critic(pose))
+        return tuple(outputs)

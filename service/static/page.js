@@ -370,7 +370,7 @@ async function start() {
   const m = state.model;
   const temporal = (m.temporal ?? []).map((t) => t.mode).join(" and ") || "none";
   text("model-name", `model ${m.model_id} (${m.skeleton} skeleton, ${m.joints.length} joints) ·`);
-  text("model-plausibility", m.plausibility ? "rates how plausible each 3D pose is" : "no plausibility rating (this model has no critic)");
+  text("model-plausibility", m.plausibility ? "rates how plausible each 3D pose is" : "no plausibility rating (this model has no plausibility output)");
   $("model-plausibility").hidden = false;
   text("model-temporal", `· temporal models: ${temporal}`);
   state.examples = await (await fetch("/ui/examples.json")).json();

@@ -35,26 +35,38 @@ def bundled(lifter: Lifter) -> Lifter:
 def test_bundled_model_documents_its_plausibility_calibration(bundled: Lifter) -> None:
     meta = bundled.info.metadata
     calibration = json.loads(meta["plausibility_calibration"])
-    table = calibration["critic_scores_at_quantiles"]
+    table = calibration["scores_at_quantiles"]
     assert len(table) == calibration["levels"] > 100 and table == sorted(table)
+    assert calibration["score"] == "density"
     assert "real" in meta["plausibility"]
 
 
-def test_a_real_pose_is_more_plausible_than_the_same_pose_with_a_limb_stretched_30_percent(
+def test_a_limb_30_percent_longer_in_the_image_is_turned_in_the_answer_and_a_turned_shin_is_less_plausible(
     bundled: Lifter,
 ) -> None:
+    """The lifter keeps a person's bones: it explains a limb 30 % longer in the image by turning it
+    (every answer keeps the real answer's bone lengths within 2 %). So the plausibility judges the
+    turned limb: a forearm can point anywhere (no claim), a shin turned out of the leg's plane bends
+    the knee as knees do not, and must score lower than the real answer."""
     cases = [(name, yaw) for name in LIMBS for yaw in YAWS_DEG]
     real = np.stack([project(POSE_3D, yaw) for _, yaw in cases]).astype(np.float32)
     broken = np.stack([project(_stretched(POSE_3D, *LIMBS[name], 1.3), yaw) for name, yaw in cases]).astype(
         np.float32
     )
     visible = np.ones(real.shape[:2], dtype=bool)
-    p_real = bundled.lift(real, visible).plausibility
-    p_broken = bundled.lift(broken, visible).plausibility
+    lifted_real, lifted_broken = bundled.lift(real, visible), bundled.lift(broken, visible)
+    for i, (name, _) in enumerate(cases):
+        parent, child = LIMBS[name]
+        lengths = [
+            np.linalg.norm(p.pose_3d[i, child] - p.pose_3d[i, parent]) for p in (lifted_real, lifted_broken)
+        ]
+        assert abs(lengths[1] / lengths[0] - 1) < 0.02, (name, lengths)
+    p_real, p_broken = lifted_real.plausibility, lifted_broken.plausibility
     assert p_real is not None and p_broken is not None
     assert np.all((p_real >= 0) & (p_real <= 1)) and np.all((p_broken >= 0) & (p_broken <= 1))
-    worse = [case for case, r, b in zip(cases, p_real, p_broken, strict=True) if not r > b]
-    assert not worse, f"stretched limb not ranked below the real pose for {worse}"
+    shins = [i for i, (name, _) in enumerate(cases) if "shin" in name]
+    worse = [cases[i] for i in shins if not p_real[i] > p_broken[i]]
+    assert not worse, f"a turned shin not ranked below the real pose for {worse}"
 
 
 def test_garbage_input_is_flagged_implausible(bundled: Lifter) -> None:
@@ -66,9 +78,10 @@ def test_garbage_input_is_flagged_implausible(bundled: Lifter) -> None:
     p_real, p_swapped = lifted_real.plausibility, lifted_swapped.plausibility
     assert p_real is not None and p_swapped is not None
     # repnet-h36m-v2 lifted this input to a wild pose (plausibility 0.0, reprojection error
-    # 580-1780 px); v3, v4 and v5 lift it to a body-like pose that cannot fit the input: below most
-    # real poses and with several times the reprojection error of the real input.
-    assert np.all(p_real > 0.9) and np.all(p_swapped < 0.3)
+    # 580-1780 px); v3 to v7 lift it to a body-like pose that cannot fit the input: below most
+    # real poses (v7's density: 0 for all three views; the real ones 0.83-0.90, in the top fifth
+    # of real poses) and with several times the reprojection error of the real input.
+    assert np.all(p_real > 0.8) and np.all(p_swapped < 0.3)
     error_real = reply_of(bundled, real).columns["reprojection_error_px"]
     error_swapped = reply_of(bundled, swapped).columns["reprojection_error_px"]
     assert np.all(error_swapped > 5 * error_real)
@@ -85,9 +98,10 @@ def test_a_mirror_averaged_model_answers_the_mirror_image_with_the_mirrored_pose
     visible = np.ones(real.shape[:2], dtype=bool)
     lifted, lifted_mirror = bundled.lift(real, visible), bundled.lift(mirrored, visible)
     np.testing.assert_allclose(lifted_mirror.pose_3d, lifted.pose_3d[:, swap] * [-1, 1, 1], atol=0.05)
-    # The critic judges the mirror image on its own (it is not mirror-symmetric): both are real poses.
+    # The plausibility judges the mirror image on its own (the pose density is fitted to the training
+    # poses as they are, not mirror-symmetric): both are typical real poses.
     assert lifted.plausibility is not None and lifted_mirror.plausibility is not None
-    assert np.all(lifted.plausibility > 0.9) and np.all(lifted_mirror.plausibility > 0.9)
+    assert np.all(lifted.plausibility > 0.8) and np.all(lifted_mirror.plausibility > 0.8)
 
 
 def test_bundled_plausibility_gives_zero_to_a_pose_no_human_has(bundled: Lifter) -> None:

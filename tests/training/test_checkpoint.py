@@ -12,6 +12,7 @@ import torch
 
 from tests.training.conftest import tiny_config
 from training import checkpoint, export, train, validate
+from training import plausibility as plausibility_of
 from training.config import RepNetConfig
 from training.model import Critic, Plausibility, RepNet
 
@@ -28,7 +29,7 @@ def _exported(tmp_path: Path, plausibility: bool, mirror_average: bool) -> tuple
         "tiny",
         "generator: python -m training.train --a; critic: python -m training.train --b",
         "Human3.6M S1 S5 S6 S7 S8, 2D inputs: gt+sh",
-        calibration=table.numpy() if plausibility else None,
+        plausibility=plausibility_of.metadata("critic", table.numpy(), None) if plausibility else None,
         mirror_average=mirror_average,
     )
     export.export_onnx(

@@ -12,8 +12,10 @@ import pytest
 import torch
 
 from tests.training.conftest import STANDING, tiny_config
-from training import data, export, skeleton, train
+from training import checkpoint, data, export, skeleton, train
+from training import plausibility as plausibility_of
 from training.config import RepNetConfig
+from training.density import PoseDensity
 from training.losses import bone_lengths
 from training.model import Critic, Plausibility, RepNet
 
@@ -66,15 +68,17 @@ def test_plausibility_output_is_the_calibrated_percentile_of_the_critic(tmp_path
     generator, critic = RepNet(config).eval(), Critic(config).eval()
     rng = np.random.default_rng(0)
     real = (STANDING[None] + rng.normal(0, 20, (400, 17, 3))).astype(np.float32)
-    table = export.calibrate(critic, real, levels=101)
+    table = plausibility_of.calibrate(critic, real, levels=101)
     assert table.shape == (101,) and np.all(np.diff(table) >= 0)
     path = tmp_path / "plausible.onnx"
-    meta = export.build_metadata(config, "tiny-plausible", calibration=table)
+    entries = plausibility_of.metadata("critic", table, None)
+    meta = export.build_metadata(config, "tiny-plausible", plausibility=entries)
     export.export_onnx(generator, path, meta, Plausibility(critic, torch.from_numpy(table)))
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert [o.name for o in session.get_outputs()] == ["pose_3d", "camera", "plausibility"]
     calibration = json.loads(session.get_modelmeta().custom_metadata_map["plausibility_calibration"])
-    assert calibration["levels"] == 101 and len(calibration["critic_scores_at_quantiles"]) == 101
+    assert calibration["levels"] == 101 and len(calibration["scores_at_quantiles"]) == 101
+    assert calibration["score"] == "critic"
     points = (rng.normal(0, 100, (64, 17, 2)) + 500).astype(np.float32)
     pose, _, plausibility = session.run(None, {"keypoints_2d": points, "visibility": np.ones((64, 17), "f4")})
     assert plausibility.shape == (64,) and np.all((plausibility >= 0) & (plausibility <= 1))
@@ -91,7 +95,8 @@ def test_plausibility_output_is_the_calibrated_percentile_of_the_critic(tmp_path
 
 
 def test_export_takes_the_critic_from_another_checkpoint(synthetic_h36m: Path, tmp_path: Path) -> None:
-    """--critic-checkpoint: the generator of one run, the plausibility critic of another."""
+    """--critic-checkpoint: the generator of one run, the critic of another; plausibility by the
+    pose density (the default) fitted to the training poses, calibrated on the validation poses."""
     tiny = RepNetConfig(width=32, critic_width=16, kcs_width=8)
 
     def run(name: str, seed: int) -> Path:
@@ -116,19 +121,29 @@ def test_export_takes_the_critic_from_another_checkpoint(synthetic_h36m: Path, t
         ]
     )
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    assert [o.name for o in session.get_outputs()] == ["pose_3d", "camera", "plausibility", "critic"]
     meta = session.get_modelmeta().custom_metadata_map
     assert meta["train_command"] == "generator: run gen; critic: run critic"
     points = (np.random.default_rng(0).normal(0, 100, (8, 17, 2)) + 500).astype(np.float32)
-    pose, _, plausibility = session.run(None, {"keypoints_2d": points, "visibility": np.ones((8, 17), "f4")})
-    table = np.asarray(json.loads(meta["plausibility_calibration"])["critic_scores_at_quantiles"], np.float32)
+    pose, _, plausible, critic_score = session.run(
+        None, {"keypoints_2d": points, "visibility": np.ones((8, 17), "f4")}
+    )
     critic = export.load_critic(torch.load(critic_ckpt, weights_only=False))
     with torch.no_grad():
-        scores = critic(torch.from_numpy(pose) / 1000).numpy()
-    bones = json.loads(meta["plausibility_calibration"])["bone_length_range_mm"]
+        np.testing.assert_allclose(critic_score, critic(torch.from_numpy(pose) / 1000).numpy(), atol=1e-5)
+    # The plausibility: the file's density, looked up in its table by hand, 0 outside the bone range.
+    calibration = json.loads(meta["plausibility_calibration"])
+    assert calibration["score"] == "density"
+    table = np.asarray(calibration["scores_at_quantiles"], np.float32)
+    state = checkpoint.load(out)
+    assert state["critic"].keys() == critic.state_dict().keys()
+    with torch.no_grad():
+        density = PoseDensity.of_state(state["density"])(torch.from_numpy(pose) / 1000).numpy()
+    bones = calibration["bone_length_range_mm"]
     lengths = bone_lengths(torch.from_numpy(pose)).numpy()  # mm
     inside = np.all((lengths >= bones["shortest"]) & (lengths <= bones["longest"]), axis=1)
-    expected = (scores[:, None] >= table[None]).mean(axis=1) * inside
-    np.testing.assert_allclose(plausibility, expected, atol=1e-6)
+    expected = (density[:, None] >= table[None]).mean(axis=1) * inside
+    np.testing.assert_allclose(plausible, expected, atol=1e-6)
     generator, _ = export.load_generator(gen_ckpt)
     assert export.check_parity(generator, out, points, np.ones((8, 17), np.float32)) <= 0.01
 
@@ -165,13 +180,13 @@ def test_a_pose_with_a_bone_no_human_has_scores_zero_whatever_the_critic_says() 
     critic = Critic(RepNetConfig(critic_width=16, kcs_width=8)).eval()
     rng = np.random.default_rng(0)
     real = (STANDING[None] + rng.normal(0, 10, (200, 17, 3))).astype(np.float32)
-    bones = export.bone_range(real)
+    bones = plausibility_of.bone_range(real)
     lengths = bone_lengths(torch.from_numpy(real) / 1000).numpy()
-    np.testing.assert_allclose(bones[1], lengths.max(axis=0) * export.BONE_MARGIN, rtol=1e-6)
+    np.testing.assert_allclose(bones[1], lengths.max(axis=0) * plausibility_of.BONE_MARGIN, rtol=1e-6)
     # A critic that extrapolates: the bigger the pose, the higher it scores (what a trained one
     # can do far from the real poses).
     critic.forward = lambda pose: pose.abs().sum(dim=(1, 2))  # type: ignore[method-assign]
-    table = export.calibrate(critic, real, levels=101)
+    table = plausibility_of.calibrate(critic, real, levels=101)
     giant = real[:4].copy()
     giant[:, 13] = giant[:, 12] + (giant[:, 13] - giant[:, 12]) * 4  # a forearm 4x as long
     poses = torch.from_numpy(np.concatenate([real[:4], giant]) / 1000)

@@ -12,6 +12,7 @@ import pytest
 
 from training import presets
 from training.config import RepNetConfig, TrainConfig
+from training.plausibility import DensityConfig
 from training.presets import Preset, Stage, StageRef
 
 RESULTS = Path(__file__).resolve().parents[2] / "docs" / "RESULTS.md"
@@ -106,7 +107,15 @@ def test_a_stage_stops_on_a_step_and_a_preset_keeps_its_stages_in_order() -> Non
         Preset("p", "", late[1:], Stage("c", config, RepNetConfig()), StageRef("b", "last"), False)
     assert Stage("s", dataclasses.replace(config, stop_step=4), RepNetConfig()).stop == 4
     with pytest.raises(KeyError, match="repnet-h36m-v6"):
-        presets.get("v7")
+        presets.get("v8")
+
+
+def test_v7_is_v6_with_the_pose_density_as_its_plausibility() -> None:
+    """The bundled v7 is made from v6's stages (or from a file holding them: --seed-stage)."""
+    v6, v7 = presets.get("repnet-h36m-v6"), presets.get("repnet-h36m-v7")
+    assert v7.stages == v6.stages and v7.critic == v6.critic and v7.export_from == v6.export_from
+    assert (v6.plausibility, v7.plausibility) == ("critic", "density") and v7.mirror_average
+    assert v7.density == DensityConfig(frame_step=5, components=64, dims=32, seed=0)
 
 
 def test_the_tiny_preset_has_every_kind_of_stage() -> None:

@@ -284,8 +284,8 @@ def test_corrupted_poses_break_one_thing_and_keep_the_root() -> None:
 
 
 def test_a_critic_trained_against_corrupted_poses_ranks_a_real_pose_above_a_stretched_limb() -> None:
-    from training.export import calibrate
     from training.model import Plausibility
+    from training.plausibility import calibrate
 
     rng = np.random.default_rng(0)
     n = 4000
