@@ -198,7 +198,7 @@ class Adaptation:
             raise ValueError(f"anchor_target must be parent or truth, got {config.anchor_target!r}")
         self.step, self.elapsed = 0, 0.0
         self.inputs_sha = digest(self.points, self.visible)
-        self.refresh()
+        # The detector errors are measured when the run starts (run), unless a checkpoint brings them.
 
     def refresh(self) -> None:
         """Measure the user's detector errors with the generator as it is now."""
@@ -223,6 +223,8 @@ class Adaptation:
         """Train up to config.steps, or for `minutes` of wall time (0: no limit), checkpointing to
         `checkpoint` every `every_s` seconds and at the end; True when all steps are done."""
         config, trainer = self.config, self.trainer
+        if trainer.pool.detector_errors is None:
+            self.refresh()
         start = last_save = time.monotonic()
         base_elapsed = self.elapsed
         while self.step < config.steps:

@@ -170,7 +170,7 @@ class Plausibility(nn.Module):
 
 class LiftingGraph(nn.Module):
     """What is exported: pixels and visibility in, pose_3d (mm) and camera out (ONNX contract),
-    and with a calibrated critic also plausibility (N,) in [0, 1].
+    and with a calibrated Plausibility also plausibility (N,) in [0, 1], with a critic its raw score.
 
     mirror_average -- also lift the mirror image of every input (x negated, left and right
     swapped), mirror that answer back and average the two (test-time flip augmentation): the
