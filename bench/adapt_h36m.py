@@ -45,59 +45,66 @@ HIGH_DEG = (45.0, 65.0)
 def high_views(world: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(N, J, 3) world poses (mm, pelvis at the origin) seen from random high cameras: pixels (N, J, 2)
     and the poses in each camera's frame (mm, pelvis at the origin)."""
-    saved = synthetic.ELEVATION_DEG
-    synthetic.ELEVATION_DEG = HIGH_DEG
-    try:
-        rot, position = synthetic.random_views(len(world), torch.Generator().manual_seed(seed))
-    finally:
-        synthetic.ELEVATION_DEG = saved
+    rot, position = synthetic.random_views(len(world), torch.Generator().manual_seed(seed), HIGH_DEG)
     w = torch.from_numpy(world).double()
     pixels = synthetic.project(w, rot, position).numpy()
-    camera = (w / 1000.0 @ rot.transpose(1, 2) + position[:, None]).numpy() * 1000.0
+    camera = synthetic.to_camera(w, rot, position).numpy() * 1000.0
     return pixels.astype(np.float32), (camera - camera[:, :1]).astype(np.float32)
+
+
+def s8_sh(found: list[tuple[str, np.ndarray, data.Camera, np.ndarray]]) -> data.ValidationSet:
+    """Every 10th frame of S8 with its SH detections, from sequences.detected_sequences' sequences."""
+    s8: tuple[list[np.ndarray], ...] = ([], [], [])
+    for name, seq, camera, detections in found:
+        if name.startswith("S8/"):
+            n = min(len(detections), len(seq))
+            pts, vis = data.mpii_to_h36m(detections[:n])
+            s8[0].append(data.world_to_camera(seq[:n:10], camera))
+            s8[1].append(pts[::10])
+            s8[2].append(vis[::10])
+    return data.ValidationSet(*(np.concatenate(a).astype(np.float32) for a in s8))
+
+
+def high_tails(poses: dict[str, np.ndarray]) -> data.ValidationSet:
+    """Every 10th frame of the validation tails of all training subjects (data.load_poses' "train"
+    poses), seen from high cameras (seed 2)."""
+    tail = np.concatenate([seq[data.sequence_split(len(seq), 0.1) :: 10] for _, seq in sorted(poses.items())])
+    pixels, camera = high_views(tail - tail[:, :1], seed=2)
+    return data.ValidationSet(camera, pixels, np.ones(pixels.shape[:2], np.float32))
 
 
 def sh_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
     """The SH detections of the source subjects' training frames (about `poses` of them), and S8's."""
     points: list[np.ndarray] = []
     visible: list[np.ndarray] = []
-    s8: tuple[list[np.ndarray], ...] = ([], [], [])
     found = list(sequences.detected_sequences(data_dir))
     total = sum(
         data.sequence_split(len(seq), 0.1) for name, seq, _, _ in found if name.split("/")[0] in SOURCE
     )
     step = max(1, total // poses)
-    for name, seq, camera, detections in found:
-        n = min(len(detections), len(seq))
-        pts, vis = data.mpii_to_h36m(detections[:n])
+    for name, seq, _, detections in found:
         if name.split("/")[0] in SOURCE:
+            n = min(len(detections), len(seq))
+            pts, vis = data.mpii_to_h36m(detections[:n])
             split = min(data.sequence_split(len(seq), 0.1), n)
             points.append(pts[:split:step])
             visible.append(vis[:split:step])
-        elif name.startswith("S8/"):
-            s8[0].append(data.world_to_camera(seq[:n:10], camera))
-            s8[1].append(pts[::10])
-            s8[2].append(vis[::10])
-    s8_set = data.ValidationSet(*(np.concatenate(a).astype(np.float32) for a in s8))
-    return np.concatenate(points), np.concatenate(visible), {"s8_sh": s8_set}
+    return np.concatenate(points), np.concatenate(visible), {"s8_sh": s8_sh(found)}
 
 
 def high_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
     """The source subjects' training frames from high cameras, and the tails from other high ones."""
-    heads, tails = [], []
-    for key, seq in sorted(data.load_poses(data_dir, "train").items()):
-        split = data.sequence_split(len(seq), 0.1)
-        if key.split("/")[0] in SOURCE:
-            heads.append(seq[:split])
-        tails.append(seq[split::10])
+    train = data.load_poses(data_dir, "train")
+    heads = [
+        seq[: data.sequence_split(len(seq), 0.1)]
+        for key, seq in sorted(train.items())
+        if key.split("/")[0] in SOURCE
+    ]
     world = np.concatenate(heads)
     world = world[:: max(1, len(world) // poses)]
     pixels, _ = high_views(world - world[:, :1], seed=1)
     pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
-    tail = np.concatenate(tails)
-    tail_pixels, tail_camera = high_views(tail - tail[:, :1], seed=2)
-    high = data.ValidationSet(tail_camera, tail_pixels, np.ones(tail_pixels.shape[:2], np.float32))
-    return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high}
+    return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high_tails(train)}
 
 
 def score(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[str, float]]:

@@ -24,9 +24,9 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/plausibility_rank.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench.adapt_h36m import high_shift, sh_shift
+from bench.adapt_h36m import high_tails, s8_sh
 from bench.stats import write_json
-from training import data, metrics
+from training import data, metrics, sequences
 from training.config import TrainConfig
 from training.evaluate import open_model
 from training.validation import validation_sets, with_noise
@@ -42,17 +42,30 @@ def decile_errors(plausibility: np.ndarray, errors: np.ndarray) -> list[float]:
     return [float(errors[idx].mean()) for idx in np.array_split(order, 10)]
 
 
-def rank_shift(lift: Any, val: data.ValidationSet, batch: int = 4096) -> dict[str, Any]:
-    """Lift one validation set; its decile P-II, lowest/highest ratio, Spearman and share of 0s."""
-    plausibility, errors = [], []
+def lift_shift(lift: Any, val: data.ValidationSet, batch: int = 4096) -> tuple[np.ndarray, ...]:
+    """Lift one validation set: the (N, J, 3) poses, the (N,) plausibility and the (N,) per-pose P-II;
+    ValueError when the model has no plausibility output."""
+    poses, plausibility, errors = [], [], []
     for start in range(0, len(val.points_2d), batch):
         rows = slice(start, start + batch)
         pose, _, score = lift(val.points_2d[rows], val.visible[rows].astype(np.float32))
         if score is None:
             raise ValueError("the model has no plausibility output")
+        poses.append(pose)
         plausibility.append(score)
         errors.append(metrics.procrustes_errors(pose, val.poses_camera[rows]).mean(axis=1))
-    p, e = np.concatenate(plausibility), np.concatenate(errors)
+    return np.concatenate(poses), np.concatenate(plausibility), np.concatenate(errors)
+
+
+def rank_shift(lift: Any, val: data.ValidationSet, batch: int = 4096) -> dict[str, Any]:
+    """Lift one validation set; its decile P-II, lowest/highest ratio, Spearman and share of 0s."""
+    _, p, e = lift_shift(lift, val, batch)
+    return rank_figures(p, e)
+
+
+def rank_figures(p: np.ndarray, e: np.ndarray) -> dict[str, Any]:
+    """How plausibility p (N,) ranks per-pose P-II e (N,): decile P-II, lowest/highest ratio,
+    Spearman and share of 0s."""
     deciles = decile_errors(p, e)
     return {
         "poses": len(p),
@@ -64,11 +77,15 @@ def rank_shift(lift: Any, val: data.ValidationSet, batch: int = 4096) -> dict[st
     }
 
 
-def shifts(data_dir: Path, val_size: int, seed: int) -> dict[str, data.ValidationSet]:
+def shifts(
+    data_dir: Path, val_size: int, seed: int, held_out: dict[str, data.ValidationSet] | None = None
+) -> dict[str, data.ValidationSet]:
     """The validation shifts: GT clean, GT + 20 px (validation's draw), GT + 40 px, SH detections,
-    and bench.adapt_h36m's: the tails from high cameras, S8's SH detections."""
+    and bench.adapt_h36m's: the tails from high cameras, S8's SH detections. held_out: the held-out
+    sets of data.build_training_sets(data_dir, "gt+sh") when the caller has them."""
     config = TrainConfig(inputs="gt+sh", val_size=val_size, seed=seed, val_noise_px=20.0, val_mirror=False)
-    _, held_out = data.build_training_sets(data_dir, "gt+sh", val_fraction=config.val_fraction)
+    if held_out is None:
+        _, held_out = data.build_training_sets(data_dir, "gt+sh", val_fraction=config.val_fraction)
     sets = validation_sets(config, held_out)
     rng = np.random.default_rng([seed, 40])
     extra = with_noise(sets["gt"], EXTRA_NOISE_PX, rng)
@@ -77,8 +94,8 @@ def shifts(data_dir: Path, val_size: int, seed: int) -> dict[str, data.Validatio
         "gt_noise20": sets["gt_noise"],
         "gt_noise40": extra,
         "sh": sets["sh"],
-        **high_shift(data_dir, 1)[2],  # (the 2D to adapt on is not needed: one pose of it)
-        **sh_shift(data_dir, 1)[2],
+        "high": high_tails(data.load_poses(data_dir, "train")),
+        "s8_sh": s8_sh(list(sequences.detected_sequences(data_dir))),
     }
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from service.config import Settings
 from service.errors import echo
 from service.formats import FORMATS, alias_of, hint_for
-from service.keypoints import Limits, PoseInput, prepare_poses
+from service.keypoints import PoseInput, prepare_poses
 from service.pose_file import InputFileError, Poses, Progress, read_input
 
 
@@ -63,13 +63,9 @@ def read_adapt_input(
 ) -> AdaptInput:
     """Read each input (a file, a folder or a glob of frame files) and keep the poses the service
     would lift, converted to the model's joints as a request converts them."""
-    settings = Settings()
-    limits = Limits(
-        max_request_poses=1 << 62,
-        min_visible_joints=settings.min_visible_joints,
-        confidence_threshold=settings.confidence_threshold,
-        max_coordinate=settings.max_coordinate,
-    )
+    from service.app import limits_of  # the server's modules load only when adapt reads its inputs
+
+    limits = limits_of(Settings())  # prepare_poses does not cap the count: check_request would
     points, visible, counts, skipped = [], [], [], 0
     for spec in specs:
         poses = read_input(spec, progress, image_size)
@@ -145,7 +141,6 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
         "--residuals", choices=["mean", "pose", "off"],
         help="your detector's errors in the synthetic 2D: their mean per joint (default), each pose's, none",
     )  # fmt: skip
-    adapt.set_defaults(command_line=None)
 
 
 def _positive(kind: type) -> Any:

@@ -128,6 +128,7 @@ def answer(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The model's (N, J, 3) pose (mm), (N, 2, 3) camera and (N, J, 2) residual W - K X of pixel
     (N, J, 2) points, the residual in units of the pose's spread (0 at hidden joints)."""
+    training = generator.training
     graph = LiftingGraph(generator, mirror_average=mirror_average).eval()
     poses, cameras, residuals = [], [], []
     with torch.no_grad():
@@ -140,7 +141,7 @@ def answer(
             residuals.append(((w - reprojected) * v[..., None]).numpy())
             poses.append(pose.numpy())
             cameras.append(camera.numpy())
-    generator.train()
+    generator.train(training)
     return np.concatenate(poses), np.concatenate(cameras), np.concatenate(residuals).astype(np.float32)
 
 

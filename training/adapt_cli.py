@@ -30,7 +30,6 @@ from training.adapt_report import (
     export_adapted,
     measure,
     parent_scorer,
-    read_metadata,
     render,
     report_record,
     worse,
@@ -79,8 +78,8 @@ def _given(value: float | None, default: float) -> float:
 def _config(args: argparse.Namespace) -> AdaptConfig:
     defaults = AdaptConfig()
     return AdaptConfig(
-        steps=args.steps if args.steps is not None else defaults.steps,
-        minutes=args.minutes if args.minutes is not None else defaults.minutes,
+        steps=int(_given(args.steps, defaults.steps)),
+        minutes=_given(args.minutes, defaults.minutes),
         holdout_fraction=args.holdout_fraction,
         prior_poses=args.prior_poses,
         reprojection_weight=_given(args.reprojection_weight, defaults.reprojection_weight),
@@ -119,8 +118,8 @@ def run(args: argparse.Namespace) -> int:
     say(f"{len(data.points)} poses ({data.skipped} skipped by the input rules): {len(train[0])} to adapt on, "
         f"{int(held.sum())} held out")  # fmt: skip
     parent_path = Path(args.model) if args.model else Settings().model_path
-    meta = read_metadata(parent_path)
-    parent = checkpoint.load(parent_path)
+    parent = checkpoint.from_onnx(parent_path)  # one read of the file: weights and metadata
+    meta = parent["metadata"]
     scorer = parent_scorer(parent, meta)
     mirror = bool(json.loads(meta.get("mirror_average", "false")))
     config = _config(args)
@@ -155,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
     record = {
         "model_id": args.model_id or args.output.stem,
         "parent": {"model_id": meta.get("model_id", parent_path.stem), "sha256": parent_sha},
-        "command": lineage.path_free(shlex.join(args.command_line or ["repnet", *sys.argv[1:]]), Path.cwd()),
+        "command": lineage.path_free(shlex.join(args.command_line), Path.cwd()),
         "inputs": input_hashes(list(args.input)),
         "poses": int(len(train[0])),
         "holdout_poses": int(held.sum()),

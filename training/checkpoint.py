@@ -70,9 +70,29 @@ def load(path: str | Path) -> dict[str, Any]:
     return dict(torch.load(path, map_location="cpu", weights_only=False))
 
 
+def metadata_of(model: Any) -> dict[str, str]:
+    """The custom metadata of a loaded ONNX model (onnx.ModelProto)."""
+    return {prop.key: prop.value for prop in model.metadata_props}
+
+
+def set_metadata(model: Any, metadata: dict[str, str]) -> None:
+    """Replace a loaded ONNX model's custom metadata with `metadata`."""
+    del model.metadata_props[:]
+    for key, value in metadata.items():
+        model.metadata_props.add(key=key, value=value)
+
+
+def read_metadata(path: Path) -> dict[str, str]:
+    """The custom metadata of the ONNX model at `path`."""
+    import onnx
+
+    return metadata_of(onnx.load(str(path), load_external_data=False))
+
+
 def from_onnx(path: Path) -> dict[str, Any]:
     """A checkpoint-like state from an exported model: generator (and critic, and pose density)
-    weights, model config, the training command and lineage, step 0 and no optimiser state.
+    weights, model config, the training command and lineage, step 0 and no optimiser state, and
+    the file's whole custom metadata ("metadata").
 
     Raises ValueError when the file holds no generator weights (not a training.export graph).
     """
@@ -80,7 +100,7 @@ def from_onnx(path: Path) -> dict[str, Any]:
     from onnx import numpy_helper
 
     model = onnx.load(str(path))
-    meta = {prop.key: prop.value for prop in model.metadata_props}
+    meta = metadata_of(model)
     weights = {
         init.name: torch.from_numpy(numpy_helper.to_array(init).copy()) for init in model.graph.initializer
     }
@@ -108,6 +128,7 @@ def from_onnx(path: Path) -> dict[str, Any]:
         "command": generator_command,
         "critic_command": critic_command or generator_command,
         "lineage": json.loads(meta["lineage"]) if "lineage" in meta else None,
+        "metadata": meta,
     }
 
 

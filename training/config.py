@@ -98,7 +98,7 @@ class TrainConfig:
     # critic_corrupted_share of each batch (critic_fakes.lifted); it learns the generator's
     # signature and ranks worse. "paired": each of those answers against the generator's answer to
     # the same 2D without the noise and the hidden joints on the real side, and corrupted real poses
-    # against the same real poses (Trainer._paired_fakes), meant to teach what damage does, not the
+    # against the same real poses (critic_fakes.paired), meant to teach what damage does, not the
     # signature both sides share (neither beat v2 by much: docs/RESULTS.md, critic round 2).
     # "graded": real poses with every bone rescaled by 1 + N(0, sigma), sigma ~ U(0, critic_bone_sigma)
     # per pose, and corrupted ones in a critic_corrupted_share (critic_fakes.graded).

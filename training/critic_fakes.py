@@ -22,8 +22,7 @@ def generator(trainer: Trainer) -> torch.Tensor | None:
 
 def corrupted(trainer: Trainer) -> torch.Tensor:
     """Real poses with a limb stretched or shrunk, joints swapped or jittered (corrupt_poses)."""
-    idx = torch.randint(0, len(trainer.real_pool), (trainer.config.batch_size,), generator=trainer.gen)
-    return corrupt_poses(trainer.real_pool[idx.to(trainer.device)], trainer.gen)
+    return corrupt_poses(trainer.real_batch(trainer.config.batch_size), trainer.gen)
 
 
 def _answers(trainer: Trainer, clean: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
@@ -46,16 +45,18 @@ def _answers(trainer: Trainer, clean: bool) -> tuple[torch.Tensor | None, torch.
     return clean_answers, answers
 
 
+def _corrupted_share(trainer: Trainer, n: int) -> torch.Tensor:
+    """(n, 1, 1) True for the poses of a batch that are corrupted real ones (critic_corrupted_share)."""
+    draw = torch.rand(n, generator=trainer.gen, device=trainer.device)
+    return (draw < trainer.config.critic_corrupted_share)[:, None, None]
+
+
 def lifted(trainer: Trainer) -> torch.Tensor:
     """The generator's answers to noisy 2D (_answers); in a critic_corrupted_share of the batch,
     corrupted real poses instead."""
     _, lifted = _answers(trainer, clean=False)
     broken = corrupted(trainer)
-    take = (
-        torch.rand(len(lifted), generator=trainer.gen, device=trainer.device)
-        < trainer.config.critic_corrupted_share
-    )
-    return torch.where(take[:, None, None], broken, lifted)
+    return torch.where(_corrupted_share(trainer, len(lifted)), broken, lifted)
 
 
 def paired(trainer: Trainer) -> torch.Tensor:
@@ -66,13 +67,9 @@ def paired(trainer: Trainer) -> torch.Tensor:
     both sides share; sets trainer.reals for the next critic step."""
     clean, noisy = _answers(trainer, clean=True)
     assert clean is not None
-    n, gen = len(noisy), trainer.gen
-    idx = torch.randint(0, len(trainer.real_pool), (n,), generator=gen).to(trainer.device)
-    real = trainer.real_pool[idx]
-    corrupted = corrupt_poses(real, gen)
-    take = (torch.rand(n, generator=gen, device=trainer.device) < trainer.config.critic_corrupted_share)[
-        :, None, None
-    ]
+    real = trainer.real_batch(len(noisy))
+    corrupted = corrupt_poses(real, trainer.gen)
+    take = _corrupted_share(trainer, len(noisy))
     trainer.reals = torch.where(take, real, clean)
     return torch.where(take, corrupted, noisy)
 
@@ -80,12 +77,11 @@ def paired(trainer: Trainer) -> torch.Tensor:
 def graded(trainer: Trainer) -> torch.Tensor:
     """Real poses with every bone 1 + N(0, sigma) times as long, sigma ~ U(0, critic_bone_sigma)
     per pose (rescale_bones); in a critic_corrupted_share of the batch, corrupt_poses instead."""
-    n, gen, device = trainer.config.batch_size, trainer.gen, trainer.device
-    real = trainer.real_pool[torch.randint(0, len(trainer.real_pool), (n,), generator=gen).to(device)]
-    sigma = trainer.config.critic_bone_sigma * torch.rand(n, generator=gen, device=device)
+    n, gen = trainer.config.batch_size, trainer.gen
+    real = trainer.real_batch(n)
+    sigma = trainer.config.critic_bone_sigma * torch.rand(n, generator=gen, device=trainer.device)
     graded, corrupted = rescale_bones(real, sigma, gen), corrupt_poses(real, gen)
-    take = torch.rand(n, generator=gen, device=device) < trainer.config.critic_corrupted_share
-    return torch.where(take[:, None, None], corrupted, graded)
+    return torch.where(_corrupted_share(trainer, n), corrupted, graded)
 
 
 # critic_fakes -> the source of the critic-only stage's fakes.

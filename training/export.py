@@ -18,7 +18,7 @@ from training import checkpoint, data, lineage, skeleton
 from training import plausibility as plausibility_of
 from training.config import RepNetConfig
 from training.density import PoseDensity
-from training.model import Critic, LiftingGraph, Plausibility, RepNet
+from training.model import Critic, LiftingGraph, Plausibility, RepNet, load_critic
 from training.plausibility import SCORES, DensityConfig, Score
 
 log = logging.getLogger(__name__)
@@ -45,11 +45,13 @@ def generator_of(state: dict[str, Any]) -> RepNet:
     return generator.eval()
 
 
-def load_critic(state: dict[str, Any]) -> Critic:
-    """The trained critic of a checkpoint's state (load_generator's second value)."""
-    critic = Critic(RepNetConfig(**state["model_config"]))
-    critic.load_state_dict(state["critic"])
-    return critic.eval()
+def parity_inputs(poses: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The (poses, J, 2) pixels and (poses, J) visibility an export checks torch against
+    onnxruntime on: people-sized random points around (500, 500), a tenth of the joints hidden."""
+    rng = np.random.default_rng(0)
+    points = (rng.normal(size=(poses, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
+    visible = (rng.random((poses, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
+    return points, visible
 
 
 def export_onnx(
@@ -110,9 +112,7 @@ def write_onnx(
     model.ir_version = min(model.ir_version, IR_VERSION)
     model.producer_name = "repnet"
     model.doc_string = doc
-    del model.metadata_props[:]
-    for key, value in metadata.items():
-        model.metadata_props.add(key=key, value=value)
+    checkpoint.set_metadata(model, metadata)
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
 
@@ -256,10 +256,7 @@ def export_model(
         lineage=lineage.export_lineage(lineage.path_free(command, root), *sources, hashes, root),
     )
     export_onnx(generator, output, metadata, scorer, mirror_average, critic)
-    rng = np.random.default_rng(0)
-    points = (rng.normal(size=(64, skeleton.NUM_JOINTS, 2)) * 120 + 500).astype(np.float32)
-    visible = (rng.random((64, skeleton.NUM_JOINTS)) > 0.1).astype(np.float32)
-    diff = check_parity(generator, output, points, visible, mirror_average)
+    diff = check_parity(generator, output, *parity_inputs(), mirror_average)
     log.info(
         "wrote %s (%.1f MB); torch vs onnxruntime max |diff| = %.2e mm",
         output,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -129,6 +131,13 @@ class Critic(nn.Module):
         by_pose = self.pose_path(pose.reshape(n, -1))  # (N, 100)
         by_kcs = self.kcs_path(self.kcs(pose).reshape(n, -1))  # (N, kcs_width)
         return self.head(torch.cat([by_pose, by_kcs], dim=1)).squeeze(1)
+
+
+def load_critic(state: dict[str, Any]) -> Critic:
+    """The trained critic of a checkpoint's (or an exported model's) state: checkpoint.load."""
+    critic = Critic(RepNetConfig(**state["model_config"]))
+    critic.load_state_dict(state["critic"])
+    return critic.eval()
 
 
 class Plausibility(nn.Module):

@@ -17,10 +17,9 @@ import torch
 from torch import nn
 
 from training import skeleton
-from training.config import RepNetConfig
 from training.density import PoseDensity
 from training.losses import bone_lengths
-from training.model import MM_PER_UNIT, Critic, Plausibility
+from training.model import MM_PER_UNIT, Plausibility, load_critic
 
 CALIBRATION_LEVELS = 1001  # quantiles of the score over real poses: 0.1 % steps
 # A real pose's bone may be this much shorter than the shortest or longer than the longest of
@@ -105,12 +104,7 @@ def from_state(state: dict[str, Any], meta: dict[str, str]) -> Plausibility:
     # Models exported before the density name the critic's table "critic_scores_at_quantiles".
     kind = calibration.get("score", "critic")
     table = calibration.get("scores_at_quantiles", calibration.get("critic_scores_at_quantiles"))
-    score: nn.Module
-    if kind == "density":
-        score = PoseDensity.of_state(state["density"])
-    else:
-        score = Critic(RepNetConfig(**state["model_config"]))
-        score.load_state_dict(state["critic"])
+    score = PoseDensity.of_state(state["density"]) if kind == "density" else load_critic(state)
     bones = None
     if "bone_length_range_mm" in calibration:
         ranges = calibration["bone_length_range_mm"]

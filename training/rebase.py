@@ -65,14 +65,14 @@ def rebase(temporal: Path, old: Path, new: Path) -> None:
     import onnx
 
     model = onnx.load(str(temporal))
-    meta = {prop.key: prop.value for prop in model.metadata_props}
+    meta = checkpoint.metadata_of(model)
     old_sha, new_sha = lineage.file_sha256(old), lineage.file_sha256(new)
     if meta.get("base_model_sha256") != old_sha:
         raise ValueError(
             f"{temporal}: trained over the model with sha256 {meta.get('base_model_sha256', '?')[:12]}, "
             f"not {old.name} ({old_sha[:12]})"
         )
-    new_id = _model_id(new)
+    new_id = checkpoint.read_metadata(new).get("model_id", new.stem)
     record = json.loads(meta.get("lineage", "{}"))
     record.setdefault("rebased", []).append(
         {
@@ -82,16 +82,9 @@ def rebase(temporal: Path, old: Path, new: Path) -> None:
         }
     )
     meta.update(base_model_sha256=new_sha, base_model_id=new_id, lineage=json.dumps(record))
-    del model.metadata_props[:]
-    for key, value in meta.items():
-        model.metadata_props.add(key=key, value=value)
+    checkpoint.set_metadata(model, meta)
     onnx.save(model, str(temporal))
     log.info("%s: now over %s (%s, sha256 %s)", temporal, new.name, new_id, new_sha[:12])
-
-
-def _model_id(path: Path) -> str:
-    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    return str(session.get_modelmeta().custom_metadata_map.get("model_id", path.stem))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -38,14 +38,17 @@ def _rotation(axis: int, angle: torch.Tensor) -> torch.Tensor:
     return rot
 
 
-def random_views(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """n random world-to-camera rotations (N, 3, 3) and pelvis positions (N, 3) in metres.
+def random_views(
+    n: int, gen: torch.Generator, elevation_deg: tuple[float, float] = ELEVATION_DEG
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """n random world-to-camera rotations (N, 3, 3) and pelvis positions (N, 3) in metres, the
+    cameras looking down by U(elevation_deg) degrees.
 
     The camera frame is x right, y down, z forward (as Human3.6M's); the world is Z up.
     """
     deg = math.pi / 180.0
     azimuth = _uniform(*AZIMUTH_DEG, n, gen) * deg
-    elevation = _uniform(*ELEVATION_DEG, n, gen) * deg
+    elevation = _uniform(*elevation_deg, n, gen) * deg
     roll = torch.randn(n, generator=gen, dtype=torch.float64) * ROLL_STD_DEG * deg
     # Level camera looking along world +Y: camera x = X, y = -Z, z = Y.
     level = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
@@ -56,9 +59,14 @@ def random_views(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tens
     return rot, torch.stack([offset_x, offset_y, distance], dim=1)
 
 
+def to_camera(poses_world_mm: torch.Tensor, rot: torch.Tensor, position_m: torch.Tensor) -> torch.Tensor:
+    """(N, J, 3) world poses (mm, pelvis at origin) -> the same in each camera's frame (metres, float64)."""
+    return poses_world_mm.to(torch.float64) / 1000.0 @ rot.transpose(1, 2) + position_m[:, None]
+
+
 def project(poses_world_mm: torch.Tensor, rot: torch.Tensor, position_m: torch.Tensor) -> torch.Tensor:
     """(N, J, 3) world poses (mm, pelvis at origin) -> (N, J, 2) pixels of a pinhole camera."""
-    x_cam = poses_world_mm.to(torch.float64) / 1000.0 @ rot.transpose(1, 2) + position_m[:, None]
+    x_cam = to_camera(poses_world_mm, rot, position_m)
     return (FOCAL_PX * x_cam[..., :2] / x_cam[..., 2:3] + CENTRE_PX).to(torch.float32)
 
 

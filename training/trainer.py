@@ -227,6 +227,11 @@ class Trainer:
         self.fakes = pose.detach() if config.reuse_fakes else None
         return terms
 
+    def real_batch(self, n: int) -> torch.Tensor:
+        """n real poses drawn from real_pool with the run's random generator."""
+        idx = torch.randint(0, len(self.real_pool), (n,), generator=self.gen)
+        return self.real_pool[idx.to(self.device)]
+
     def synthetic_terms(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Warm-start loss on a synthetic batch: the pose error, and the reprojection of the
         true pose through the predicted camera plus the camera term (which teach the camera),
@@ -273,8 +278,7 @@ class Trainer:
                 self.fakes, _ = self.generate(points, visible)
         real, self.reals = self.reals, None
         if real is None:
-            idx = torch.randint(0, len(self.real_pool), (config.batch_size,), generator=self.gen)
-            real = self.real_pool[idx.to(self.device)]
+            real = self.real_batch(config.batch_size)
         loss_c, wasserstein = critic_loss(self.critic, real, self.fakes, config.gp_weight)
         self.opt_c.zero_grad(set_to_none=True)
         loss_c.backward()  # type: ignore[no-untyped-call]

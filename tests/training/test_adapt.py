@@ -15,8 +15,9 @@ from service.config import Settings
 from service.startup import load_lifter
 from training import adapt_report, checkpoint, lineage, metrics, prior, skeleton, synthetic
 from training.adapt import answer, split_holdout
-from training.adapt_report import Figures, read_metadata, worse
+from training.adapt_report import Figures, worse
 from training.camera import masked_centre, project_weak_perspective
+from training.checkpoint import read_metadata
 from training.config import RepNetConfig
 from training.model import MM_PER_UNIT, RepNet, normalize_keypoints
 
