@@ -183,7 +183,7 @@ def build_grpc_server(
         max_streams=settings.grpc_max_streams,
         stream_idle_timeout_s=settings.stream_idle_timeout_s,
         max_message_bytes=settings.max_body_bytes,
-        stream_window=settings.stream_window,
+        stream_window_poses=settings.stream_window_poses,
     )
 
 

@@ -169,6 +169,8 @@ def run_plot(args: argparse.Namespace) -> int:
         )
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise InputFileError(str(err)) from err
+    except RecursionError:
+        raise InputFileError(f"{args.input}: the JSON is nested too deeply to read") from None
     finally:
         if bar is not None:
             bar.close()

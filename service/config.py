@@ -124,7 +124,12 @@ class Settings(BaseSettings):
         default=0.2, ge=0, le=1, description="default: a joint with confidence below it counts as missing"
     )
     max_coordinate: float = Field(default=1e6, gt=0, description="largest accepted |x| or |y| in pixels")
-    stream_window: int = Field(default=256, ge=1, description="frames of one stream in flight at once")
+    stream_window_poses: int = Field(
+        default=1024,
+        ge=1,
+        description="poses of one stream in flight at once, read and not yet answered (a frame counts its "
+        "people); the stream is read no further until some are answered",
+    )
     temporal: bool = Field(
         default=True,
         description="load the temporal models (tracked poses of streams and of temporal requests); false: "

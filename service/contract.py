@@ -7,6 +7,14 @@ import math
 from dataclasses import dataclass
 
 MODES = ("causal", "offline")
+# The largest frame number of a tracked pose: exact in a float64 (JavaScript's Number.MAX_SAFE_INTEGER),
+# so every client and the page read it as sent, and frame arithmetic never overflows an int64.
+MAX_FRAME = 2**53 - 1
+
+
+def is_frame_number(value: object) -> bool:
+    """`value` is a frame number: an integer (not a bool) from 0 to MAX_FRAME."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_FRAME
 
 
 @dataclass(frozen=True)
@@ -31,7 +39,7 @@ class Contract:
 
     def reach(self, fps: float) -> tuple[int, int]:
         """(before, after): how many frames before and after a frame its window reads, for a track
-        at `fps` (tracks.Track.window, tracks.offline_windows): the context a part of a longer clip
+        at `fps` (tracks.Track.window, tracks.clip_windows): the context a part of a longer clip
         needs on each side to be answered as the whole clip would be."""
         q = self.thinning(fps)
         slots = self.slots(fps / q)

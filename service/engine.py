@@ -18,7 +18,7 @@ from service.errors import ModelNotReady, Overloaded
 from service.keypoints import ModelInput
 from service.lifter import Lifter, Prediction
 from service.metrics import Metrics
-from service.temporal import TemporalAnswer, TemporalLifter, Windows
+from service.temporal import TemporalAnswer, TemporalLifter, Windows, WindowSource
 
 
 class Rows(Protocol):
@@ -323,8 +323,9 @@ class Engine(Batcher[ModelInput, Prediction]):
             self.metrics.observe_plausibility(self.model, answer.plausibility)
 
 
-class TemporalEngine(Batcher[Windows, TemporalAnswer]):
-    """A temporal model's batcher: Windows in (windows of any length: padded), TemporalAnswers out.
+class TemporalEngine(Batcher[WindowSource, TemporalAnswer]):
+    """A temporal model's batcher: windows in (of any length: padded; ClipWindows built batch by
+    batch on its thread, so a request's windows are never all built at once), TemporalAnswers out.
     Its runs are not in the single-frame metrics (inference_seconds, batch size)."""
 
     def __init__(self, lifter: TemporalLifter, *, max_batch: int, max_wait_s: float, queue_size: int) -> None:
@@ -337,8 +338,9 @@ class TemporalEngine(Batcher[Windows, TemporalAnswer]):
             name=f"{lifter.mode}-batcher",
         )
 
-    def _run(self, parts: list[Windows]) -> TemporalAnswer:
-        return self.lifter.run(Windows.join(parts, causal=self.lifter.mode == "causal"))
+    def _run(self, parts: list[WindowSource]) -> TemporalAnswer:
+        built = [p.build() for p in parts]
+        return self.lifter.run(Windows.join(built, causal=self.lifter.mode == "causal"))
 
     def _join(self, parts: list[TemporalAnswer]) -> TemporalAnswer:
         return TemporalAnswer.join(parts)

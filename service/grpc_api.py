@@ -12,6 +12,7 @@ import grpc
 
 from service._proto.repnet.v1 import lifter_pb2
 from service.catalog import Catalog
+from service.contract import MAX_FRAME
 from service.engine import Engine, offload
 from service.errors import (
     MAX_ERROR_ITEMS,
@@ -92,6 +93,9 @@ def frame_violations(message: lifter_pb2.LiftFrame, max_people: int) -> list[Vio
         found.append(Violation("track_id", f"at most {MAX_TRACK_ID} characters", "track_id"))
     if several or message.track_id:
         found += fps_violations(message.fps or None, "fps")
+        if message.frame_id > MAX_FRAME:
+            reason = f"a tracked frame's number is at most {MAX_FRAME} (2^53 - 1), got {message.frame_id}"
+            found.append(Violation("frame_id", reason, "frame_range"))
     return found
 
 
@@ -133,7 +137,7 @@ class PoseLifterServicer:
         metrics: Metrics,
         limits: Limits,
         *,
-        stream_window: int,
+        stream_window_poses: int,
         max_unary: int,
         max_streams: int,
         stream_idle_timeout_s: float,
@@ -142,7 +146,7 @@ class PoseLifterServicer:
         self.models = Catalog.of(engine, temporal is not None)  # a request's `model` picks one
         self.metrics = metrics
         self.limits = limits
-        self.stream_window = stream_window
+        self.stream_window_poses = stream_window_poses
         self.max_unary = max_unary
         self.max_streams = max_streams
         self.stream_idle_timeout_s = stream_idle_timeout_s
@@ -198,7 +202,7 @@ class PoseLifterServicer:
         self, request_iterator: AsyncIterator[lifter_pb2.LiftFrame], context: Context
     ) -> AsyncIterator[lifter_pb2.LiftFrameResult]:
         """One result per frame, in order (stream.answer_stream: the frames read while a run is in
-        progress are lifted together, at most stream_window frames are held)."""
+        progress are lifted together, at most stream_window_poses poses are held)."""
         if self._streams >= self.max_streams:
             await self._refuse(
                 context, "LiftStream", f"too many open streams (limit {self.max_streams}); retry later"
@@ -220,7 +224,7 @@ class PoseLifterServicer:
             self.models,
             self.limits,
             self._results,
-            window=self.stream_window,
+            window=self.stream_window_poses,
             idle_timeout_s=self.stream_idle_timeout_s,
             transport=TRANSPORT,
             temporal=self.temporal,

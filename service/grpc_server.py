@@ -240,7 +240,7 @@ def create_server(
     max_streams: int,
     stream_idle_timeout_s: float,
     max_message_bytes: int,
-    stream_window: int,
+    stream_window_poses: int,
     temporal: TemporalModels | None = None,
 ) -> GrpcServer:
     """A gRPC server (not started) bound to `address`, with health (`.health`) and reflection.
@@ -260,7 +260,7 @@ def create_server(
             engine,
             metrics,
             limits,
-            stream_window=stream_window,
+            stream_window_poses=stream_window_poses,
             max_unary=workers,
             max_streams=max_streams,
             stream_idle_timeout_s=stream_idle_timeout_s,

@@ -105,6 +105,7 @@ class LocalLifter:
             return TemporalRows.none()
         n = len(plan.windows)
         answers = [
-            temporal.run(plan.windows.slice(a, a + self.max_batch)) for a in range(0, n, self.max_batch)
+            temporal.run(plan.windows.slice(a, a + self.max_batch).build())
+            for a in range(0, n, self.max_batch)
         ]
         return answer_rows(plan, TemporalAnswer.join(answers))

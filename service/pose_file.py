@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from service.contract import MAX_FRAME, is_frame_number
 from service.errors import MAX_ECHO_CHARS
 
 Progress = Callable[[Sequence[Path]], Iterable[Path]]
@@ -137,9 +138,13 @@ def _lift_body(data: dict[str, Any]) -> Poses:
     if not any(t is not None for t in tracks):
         return poses
     frames = [p.get("frame") for p in items]
-    if not all(isinstance(f, int) and f >= 0 for f, t in zip(frames, tracks, strict=True) if t is not None):
-        raise InputFileError("poses: every pose with a track_id needs its frame number (an integer >= 0)")
-    numbers = np.array([f if isinstance(f, int) else i for i, f in enumerate(frames)])
+    for i, (f, t) in enumerate(zip(frames, tracks, strict=True)):
+        if t is not None and not is_frame_number(f):
+            raise InputFileError(
+                f"poses[{i}].frame: a pose with a track_id needs its frame number, an integer from 0 to "
+                f"{MAX_FRAME}, got {shown(f)}"
+            )
+    numbers = np.array([f if is_frame_number(f) else i for i, f in enumerate(frames)], np.int64)
     return replace(poses, frame=numbers, track_id=tuple(tracks))
 
 
@@ -178,7 +183,7 @@ def _image_frames(ids: Sequence[Any]) -> np.ndarray:
     numbers = [
         i if isinstance(i, int) else (frame_number(Path(i)) if isinstance(i, str) else None) for i in ids
     ]
-    if all(n is not None for n in numbers):
+    if all(is_frame_number(n) for n in numbers):
         return np.array(numbers, dtype=np.int64)
     return np.unique([str(i) for i in ids], return_inverse=True)[1].astype(np.int64)
 
@@ -239,7 +244,21 @@ def _read_json(data: Any) -> Poses:
 def frame_number(path: Path) -> int | None:
     """The frame number in a file name: its last run of digits (OpenPose: video_000000000012_keypoints)."""
     digits = re.findall(r"\d+", path.stem)
-    return int(digits[-1]) if digits else None
+    if not digits or len(digits[-1]) > 16:  # longer runs of digits are no frame number (MAX_FRAME)
+        return None
+    number = int(digits[-1])
+    return number if number <= MAX_FRAME else None
+
+
+def read_json(path: Path) -> Any:
+    """The JSON value of a file; InputFileError naming the file when it is not JSON, is nested
+    deeper than Python's parser goes, or cannot be read."""
+    try:
+        return json.loads(path.read_text())
+    except RecursionError:
+        raise InputFileError(f"{path}: the JSON is nested too deeply to read") from None
+    except (OSError, ValueError) as err:
+        raise InputFileError(f"{path}: {err}") from err
 
 
 def load_poses(path: Path) -> Poses:
@@ -264,7 +283,7 @@ def load_poses(path: Path) -> Poses:
             poses = _stack(list(padded), conf, fmt, str(path))
             return replace(poses, fps=_fps({"fps": fps}), landmarks=landmarks if landmarks.any() else None)
         if path.suffix == ".json":
-            data = json.loads(path.read_text())
+            data = read_json(path)
             poses = _read_json(data)
             if isinstance(data, dict) and "people" in data and (number := frame_number(path)) is not None:
                 poses = replace(poses, frame=np.full(len(poses.frame), number))  # one OpenPose frame
@@ -298,10 +317,7 @@ def load_frames(
     persons: list[int] = []
     fmt: str | None = None
     for index, path in enumerate(progress(files)):
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, ValueError) as err:
-            raise InputFileError(f"{path}: {err}") from err
+        data = read_json(path)
         number = frame_number(path)
         if isinstance(data, dict) and "people" in data:
             try:

@@ -7,6 +7,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, Strict, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
+from service.contract import MAX_FRAME
 from service.errors import echo, encodable
 from service.formats import FORMATS, raw_output_hint
 from service.tracks import MAX_TRACK_ID
@@ -143,10 +144,11 @@ class PoseIn(BaseModel):
         description="The person this pose belongs to: with `temporal` causal or offline, the poses of one "
         "track_id are one person's clip, ordered by `frame`. Echoed in the reply.",
     )
-    frame: Annotated[int, Strict(), Field(ge=0)] | None = Field(
+    frame: Annotated[int, Strict(), Field(ge=0, le=MAX_FRAME)] | None = Field(
         None,
         description="The pose's frame number in its track (needed with `track_id` and `temporal`): "
-        "frames are 1 / fps apart; a gap of up to 0.5 s is bridged, a longer one starts the track again.",
+        "frames are 1 / fps apart; a gap of up to 0.5 s is bridged, a longer one starts the track again. "
+        f"At most {MAX_FRAME} (2^53 - 1).",
     )
 
     @model_validator(mode="before")

@@ -42,7 +42,10 @@ class UnreadableFrame(Exception):
 class StreamState:
     """What one stream holds: frames read and not taken yet, then groups taken and not answered yet.
 
-    At most `window` frames are held from read to answer (the reader waits for room: backpressure).
+    At most `window` poses are held from read to answer (the reader waits for room: backpressure):
+    a frame counts its people (at least 1), so the bound is in what a client sends, however many
+    people its frames carry. The last frame read may pass it, so a stream holds fewer than `window`
+    plus one frame's people (REPNET_MAX_REQUEST_POSES).
     Frames are taken only while none of the stream's groups waits for a run, so the frames that
     arrive during a run become the next groups (at most `max_group` poses each, a frame with more
     people a group of its own; a frame for another model than the frame before starts a new group):
@@ -58,7 +61,7 @@ class StreamState:
         self.max_group = max_group
         self.inbox: list[Frame] = []  # read, not taken
         self.groups: deque[Group] = deque()  # taken, not answered, in order
-        self.held = 0  # frames read and not answered
+        self.held = 0  # poses of the frames read and not answered
 
     def has_room(self) -> bool:
         """Another frame may be read."""
@@ -67,9 +70,9 @@ class StreamState:
     def add(self, frame: Frame) -> None:
         """Hold a frame just read; ValueError when the window is full (read only while has_room())."""
         if not self.has_room():
-            raise ValueError(f"the window of {self.window} frames is full")
+            raise ValueError(f"the window of {self.window} poses is full")
         self.inbox.append(frame)
-        self.held += 1
+        self.held += held_poses(frame)
 
     def can_take(self) -> bool:
         """Frames wait, and none of this stream's groups waits for a run."""
@@ -103,7 +106,12 @@ class StreamState:
         if not self.groups or self.groups[0] is not group:
             raise ValueError("groups are answered oldest first")
         self.groups.popleft()
-        self.held -= len(group.frames)
+        self.held -= sum(held_poses(frame) for frame in group.frames)
+
+
+def held_poses(frame: Frame) -> int:
+    """What a frame counts in a stream's window: its people, and 1 for a frame of none (an error)."""
+    return max(1, len(frame.persons()))
 
 
 async def _start(group: Group, models: Catalog, limits: Limits, transport: str) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +55,59 @@ class Windows:
         padded = [pad_slots(p, slots, causal) for p in parts]
         arrays = zip(*((p.poses, p.keypoints_2d, p.visibility, p.fps) for p in padded), strict=True)
         return cls(*(np.concatenate(a) for a in arrays))
+
+    def build(self) -> Windows:
+        """These windows (already built)."""
+        return self
+
+
+@dataclass(frozen=True)
+class ClipWindows:
+    """N windows over the frames a request sent, built only when run (build): slot k of window i
+    blends the sent frame at or before its time (`before`) with the next one (`after`), as a track
+    bridges a gap (tracks.Track.push), so a request's windows cost 16 bytes a slot until a batch
+    builds its own, whatever span of frames they cover."""
+
+    poses: FloatArray  # (M, J, 3) the sent frames' single-frame pose_3d_camera (no ray turn), mm
+    keypoints_2d: FloatArray  # (M, J, 2) px, 0 where not visible
+    visibility: FloatArray  # (M, J) 0 or 1
+    before: np.ndarray  # (N, K) int32: the sent frame at or before each slot's time
+    after: np.ndarray  # (N, K) int32: the sent frame after it (`before` itself on a sent frame)
+    weight: np.ndarray  # (N, K) float64: u, how far the slot lies from `before` to `after` (0 on one)
+    fps: FloatArray  # (N,) frames per second of the slots
+
+    def __len__(self) -> int:
+        return int(self.before.shape[0])
+
+    def slice(self, start: int, stop: int) -> ClipWindows:
+        """Windows start..stop-1 (over the same sent frames)."""
+        return replace(
+            self,
+            before=self.before[start:stop],
+            after=self.after[start:stop],
+            weight=self.weight[start:stop],
+            fps=self.fps[start:stop],
+        )
+
+    def build(self) -> Windows:
+        """The windows as the temporal model reads them: (1 - u) before + u after, seen where both
+        are, each in float32 as Track.push computes it (the same answers to the bit)."""
+        a, b, u = self.before, self.after, self.weight
+        on_frame = (u == 0)[..., None]  # (N, K, 1)
+        w0, w1 = (1.0 - u).astype(np.float32)[..., None], u.astype(np.float32)[..., None]
+        seen = np.where(on_frame, self.visibility[a], np.minimum(self.visibility[a], self.visibility[b]))
+        w0, w1 = w0[..., None], w1[..., None]  # (N, K, 1, 1)
+        blend_k = (w0 * self.keypoints_2d[a] + w1 * self.keypoints_2d[b]) * seen[..., None]
+        blend_p = w0 * self.poses[a] + w1 * self.poses[b]
+        return Windows(
+            np.where(on_frame[..., None], self.poses[a], blend_p),
+            np.where(on_frame[..., None], self.keypoints_2d[a], blend_k),
+            seen,
+            self.fps,
+        )
+
+
+WindowSource = Windows | ClipWindows  # what a temporal batcher takes: windows built, or to build
 
 
 def pad_slots(windows: Windows, slots: int, causal: bool) -> Windows:

@@ -15,18 +15,8 @@ from service.errors import InvalidKeypoints, LiftError, Violation
 from service.keypoints import ModelInput
 from service.lifter import Prediction
 from service.replies import TemporalRows
-from service.temporal import BONES, TemporalAnswer, Windows, fix_bone_lengths
-from service.tracks import (
-    Observation,
-    Track,
-    TrackBudget,
-    TrackTable,
-    bridged_clip,
-    fps_violations,
-    offline_windows,
-    segments,
-    track_capacity,
-)
+from service.temporal import BONES, TemporalAnswer, Windows, WindowSource, fix_bone_lengths
+from service.tracks import Observation, TrackBudget, TrackTable, clip_windows, fps_violations
 
 
 @dataclass(frozen=True)
@@ -54,11 +44,19 @@ def camera_poses(prediction: Prediction, rows: np.ndarray) -> np.ndarray:
     return geometry.rotate_to_camera(prediction.pose_3d[rows], rotation)
 
 
-def observations(inputs: ModelInput, prediction: Prediction, rows: np.ndarray) -> list[Observation]:
-    """The single-frame answers of `rows` as a track stores them."""
+def seen_arrays(
+    inputs: ModelInput, prediction: Prediction, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The single-frame answers of `rows` as a track stores them: (n, J, 3) poses, (n, J, 2)
+    keypoints (0 where not visible) and (n, J) visibility, float32."""
     poses = camera_poses(prediction, rows)
     points = np.where(inputs.visible[rows][..., None], inputs.keypoints_2d[rows], 0.0).astype(np.float32)
-    visibility = inputs.visible[rows].astype(np.float32)
+    return poses, points, inputs.visible[rows].astype(np.float32)
+
+
+def observations(inputs: ModelInput, prediction: Prediction, rows: np.ndarray) -> list[Observation]:
+    """The single-frame answers of `rows` as a track stores them, one Observation each."""
+    poses, points, visibility = seen_arrays(inputs, prediction, rows)
     return [Observation(p, k, v) for p, k, v in zip(poses, points, visibility, strict=True)]
 
 
@@ -67,7 +65,7 @@ class Plan:
     """What a temporal run needs: one window per answered row, the bone lengths to hold it to, and
     the rows that could not be tracked with why."""
 
-    windows: Windows | None
+    windows: WindowSource | None
     rows: np.ndarray  # (n,) rows of the request's inputs the windows answer, in window order
     bones: np.ndarray  # (n, B)
     errors: dict[int, LiftError]  # row -> why it gets no answer (its track's limit, its frame order)
@@ -129,30 +127,15 @@ def clip_plan(
     inputs: ModelInput,
     prediction: Prediction,
 ) -> Plan:
-    """The windows of a whole request's tracked poses (`rows` of its inputs with their track and
-    frame): causal, each from its track's frames up to it (as a stream answers them); offline, each
-    from the frames around it in its track (bones: the mean of the segment). The contract's mode
-    says which."""
-    seen = observations(inputs, prediction, rows)
-    parts: list[tuple[int, Windows, np.ndarray]] = []
-    for track_id in dict.fromkeys(track_ids):
-        mine = np.array([k for k, t in enumerate(track_ids) if t == track_id])
-        mine = mine[np.argsort(frames[mine], kind="stable")]
-        if contract.mode == "causal":
-            track = Track(track_capacity(contract, fps), fps)
-            for k in mine:
-                track.push(int(frames[k]), seen[k])
-                parts.append((int(rows[k]), track.window(contract), track.bone_reference()))
-            continue
-        for segment in segments(frames[mine], fps):
-            ordered = mine[segment]
-            clip, where, bones = bridged_clip(frames[ordered], [seen[k] for k in ordered], fps)
-            windows = offline_windows(clip, contract)
-            parts += [
-                (int(rows[k]), windows.slice(w, w + 1), bones) for k, w in zip(ordered, where, strict=True)
-            ]
-    order = np.argsort([row for row, _, _ in parts], kind="stable")
-    return Plan.of([parts[i] for i in order], {}, contract.mode == "causal")
+    """The windows of a whole request's tracked poses (`rows` of its inputs, increasing, with their
+    track and frame): causal, each from its track's frames up to it (as a stream answers them);
+    offline, each from the frames around it in its track (bones: the mean of the segment). The
+    contract's mode says which (tracks.clip_windows: built only when a batch runs)."""
+    if not len(rows):
+        return Plan(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), {})
+    poses, points, visibility = seen_arrays(inputs, prediction, rows)
+    windows, bones = clip_windows(track_ids, frames, fps, contract, poses, points, visibility)
+    return Plan(windows, np.asarray(rows, np.int64), bones, {})
 
 
 def answer_rows(plan: Plan, answer: TemporalAnswer) -> TemporalRows:

@@ -7,7 +7,7 @@ filled by linear interpolation between the frames on either side, so the window 
 spaced in time; a longer gap restarts the track (its window and bone lengths start again).
 
 A causal window (Track.window) holds the newest frame and the K - 1 before it, the oldest
-repeated while the track is younger than that; an offline window (offline_windows) is centred on
+repeated while the track is younger than that; an offline window (clip_windows) is centred on
 its frame over a whole clip, the clip's ends repeated. A track faster than the model's max_fps
 gives every q-th frame (contract.Contract.thinning). Its bone lengths are the running mean of the
 single-frame answers' (temporal.fix_bone_lengths holds the temporal answer to them).
@@ -16,14 +16,14 @@ single-frame answers' (temporal.fix_bone_lengths holds the temporal answer to th
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from service.contract import Contract
 from service.errors import InvalidKeypoints, Violation
-from service.temporal import BONES, J, Windows, bone_lengths
+from service.temporal import BONES, ClipWindows, J, Windows, bone_lengths
 
 MAX_GAP_S = 0.5  # the longest gap a track bridges; a longer one restarts it
 MAX_FPS = 240.0  # the highest frame rate a track may declare
@@ -213,44 +213,67 @@ class TrackBudget:
             self.on_change(self.open, self.bytes)
 
 
-def segments(frames: np.ndarray, fps: float) -> list[np.ndarray]:
-    """Positions of one track's increasing frame numbers, split where a gap is too long to bridge."""
-    cut = np.flatnonzero(np.diff(frames) - 1 > max_gap_frames(fps)) + 1
-    return np.split(np.arange(len(frames)), cut)
+def clip_windows(
+    track_ids: Sequence[str],
+    frames: np.ndarray,
+    fps: float,
+    contract: Contract,
+    poses: np.ndarray,
+    keypoints: np.ndarray,
+    visibility: np.ndarray,
+) -> tuple[ClipWindows, np.ndarray]:
+    """The window of each of a request's tracked poses (M of them: `track_ids`, `frames` (M,) and
+    their single-frame answers as a Track stores them, (M, J, 3), (M, J, 2), (M, J)), in their order,
+    and (M, B) the bone lengths to hold each answer to.
 
-
-def bridged_clip(
-    frames: np.ndarray, seen: list[Observation], fps: float
-) -> tuple[Windows, np.ndarray, np.ndarray]:
-    """One segment of a track as one evenly spaced clip (short gaps bridged as Track.push bridges
-    them): the clip (N = 1), where each given frame sits in it, and the mean bone lengths."""
-    span = int(frames[-1] - frames[0]) + 1
-    track = Track(span, fps)
-    where = np.empty(len(frames), np.int64)
-    for k, (frame, observation) in enumerate(zip(frames.tolist(), seen, strict=True)):
-        track.push(frame, observation)
-        where[k] = track.stored - 1
-    n = track.stored
-    clip = Windows(
-        track.poses[None, :n],
-        track.keypoints[None, :n],
-        track.visibility[None, :n],
-        np.array([fps], np.float32),
-    )
-    return clip, where, track.bone_reference()
-
-
-def offline_windows(clip: Windows, contract: Contract) -> Windows:
-    """The offline window of every frame of one clip (N = 1 in, one window per frame out): frames
-    centred on it, the clip's ends repeated."""
-    frames = clip.poses.shape[1]
-    fps = float(clip.fps[0])
+    A track's poses are taken in frame order and split where a gap is too long to bridge (segments);
+    within a segment, a window reads the frames before it (causal: as Track.window reads them after
+    the same pushes) or around it (offline: the segment's ends repeated), shorter gaps bridged as
+    Track.push bridges them. Bones: causal, the mean of the segment's answers up to the pose;
+    offline, of the whole segment. Nothing of the frames between the sent ones is built
+    (ClipWindows): the cost is M poses and M x K slot indexes, whatever span the frames cover.
+    """
+    count = len(frames)
     q = contract.thinning(fps)
-    half = contract.slots(fps / q) // 2
-    index = np.clip(np.arange(frames)[:, None] + q * np.arange(-half, half + 1)[None], 0, frames - 1)
-    return Windows(
-        clip.poses[0][index],
-        clip.keypoints_2d[0][index],
-        clip.visibility[0][index],
-        np.full(frames, fps / q, np.float32),
+    slots = contract.slots(fps / q)
+    causal = contract.mode == "causal"
+    offsets = q * (np.arange(slots) - (slots - 1 if causal else slots // 2))  # (K,) frames from the pose
+    codes: dict[str, int] = {}
+    track = np.array([codes.setdefault(t, len(codes)) for t in track_ids], np.int64)
+    frames = np.asarray(frames, np.int64)
+    order = np.lexsort((frames, track))  # by track, then frame (stable)
+    sorted_frames = frames[order]
+    cut = (np.diff(track[order]) != 0) | (np.diff(sorted_frames) - 1 > max_gap_frames(fps))
+    starts = np.flatnonzero(np.concatenate([[True], cut]))  # each segment's first position in `order`
+    ends = np.append(starts[1:], count) - 1
+    segment = np.cumsum(np.concatenate([[False], cut]))  # (M,) segment of each sorted pose
+    # One increasing time line over all segments: a segment's frames from its first, then the next
+    # segment after its last (a segment spans at most M gaps of max_gap_frames, so no overflow).
+    span = sorted_frames[ends] - sorted_frames[starts] + 1
+    base = np.concatenate([[0], np.cumsum(span)[:-1]])
+    line = sorted_frames - sorted_frames[starts][segment] + base[segment]  # (M,) increasing
+    first, last = line[starts][segment], line[ends][segment]  # (M,) the segment's ends on the line
+    wanted = np.clip(line[:, None] + offsets[None], first[:, None], last[:, None])  # (M, K)
+    at = np.searchsorted(line, wanted, side="right") - 1  # the sent frame at or before each slot
+    on_frame = line[at] == wanted
+    nxt = np.where(on_frame, at, np.minimum(at + 1, count - 1))
+    gap = np.where(on_frame, 1, line[nxt] - line[at])
+    weight = np.where(on_frame, 0.0, (wanted - line[at]) / gap)
+    lengths = bone_lengths(poses[order]).astype(np.float64)  # (M, B), summed as Track sums them
+    bones = np.empty_like(lengths)
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        running = np.cumsum(lengths[a : b + 1], axis=0)
+        count_so_far = np.arange(1, b - a + 2)[:, None]
+        bones[a : b + 1] = running / count_so_far if causal else running[-1] / (b - a + 1)
+    back = np.empty(count, np.int64)
+    back[order] = np.arange(count)  # sorted position of each pose
+    windows = ClipWindows(
+        poses,
+        keypoints,
+        visibility,
+        order[at[back]].astype(np.int32),  # M <= max_temporal_poses
+        order[nxt[back]].astype(np.int32),
+        weight[back],
+        np.full(count, fps / q, np.float32),
     )
+    return windows, bones[back]

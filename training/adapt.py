@@ -34,6 +34,7 @@ import torch
 
 from training import data, presets
 from training.camera import masked_centre, project_weak_perspective
+from training.checkpoint import read_state
 from training.config import RepNetConfig, TrainConfig
 from training.export import generator_of
 from training.model import LiftingGraph, RepNet, normalize_keypoints
@@ -257,7 +258,7 @@ class Adaptation:
             "elapsed_s": self.elapsed,
             "config": asdict(self.config),
             "inputs_sha256": self.inputs_sha,
-            "detector_errors": self.trainer.pool.detector_errors,
+            "detector_errors": _tensor_or_none(self.trainer.pool.detector_errors),  # no numpy: weights_only
         }
 
     def save(self, path: Path) -> None:
@@ -269,7 +270,7 @@ class Adaptation:
 
     def load(self, path: Path) -> None:
         """Continue from a checkpoint that save wrote for the same settings and inputs."""
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = read_state(path)
         mine, theirs = asdict(self.config), state["config"]
         changed = sorted(k for k in mine if k not in RESUMABLE and theirs.get(k) != mine[k])
         if changed:
@@ -282,5 +283,11 @@ class Adaptation:
             raise ConfigMismatch(f"{path}: written for other input poses; start afresh without --resume")
         self.trainer.load_state_dict(state["trainer"])
         self.step, self.elapsed = int(state["step"]), float(state["elapsed_s"])
-        errors = state["detector_errors"]
+        errors = None if state["detector_errors"] is None else state["detector_errors"].numpy()
         self.trainer.pool = replace(self.trainer.pool, detector_errors=errors, detector_visible=self.visible)
+
+
+def _tensor_or_none(array: np.ndarray | None) -> torch.Tensor | None:
+    """`array` as a tensor (a checkpoint holds tensors and plain values only, so that torch.load
+    reads it with weights_only=True and runs no code from the file)."""
+    return None if array is None else torch.from_numpy(np.ascontiguousarray(array))

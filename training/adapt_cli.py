@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     if args.resume and state.is_file():
         try:
             adaptation.load(state)
-        except ConfigMismatch as err:
+        except (ConfigMismatch, checkpoint.UnsafeCheckpoint) as err:
             say(f"error: {err}")
             return 2
         say(f"resumed {state} at step {adaptation.step} of {config.steps}")

@@ -124,7 +124,7 @@ def run_stage(
                 shutil.copyfile(history, stage_dir / "history.jsonl")
     log.info("stage %s: %s", stage.name, stage.summary())
     train(config, stage.model, resume, command, extend, preset=preset.name, stage=stage.name)
-    state = torch.load(stage_dir / "last.pt", map_location="cpu", weights_only=False)
+    state = checkpoint.read_state(stage_dir / "last.pt")
     if state["step"] < stage.stop:
         raise RuntimeError(f"stage {stage.name} stopped at step {state['step']} of {stage.stop}")
     record = {

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +68,28 @@ def load(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if path.suffix == ".onnx":
         return from_onnx(path)
-    return dict(torch.load(path, map_location="cpu", weights_only=False))
+    return read_state(path)
+
+
+class UnsafeCheckpoint(ValueError):
+    """A checkpoint file holds more than tensors and plain values: it could run code when read."""
+
+
+def read_state(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """The state dict a checkpoint file holds, read with torch.load(weights_only=True): tensors,
+    numbers, strings and containers of them only, so a file planted in a run folder runs no code
+    (pickle would). UnsafeCheckpoint names the file and what it held otherwise."""
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:
+        found = str(err).split("WeightsUnpickler error:")[-1].strip().splitlines()[0]
+        raise UnsafeCheckpoint(
+            f"{path}: refused, it holds more than tensors and plain values ({found}); a checkpoint is "
+            "read without running code from it: delete the file, or start afresh in another folder"
+        ) from None
+    if not isinstance(state, dict):
+        raise UnsafeCheckpoint(f"{path}: not a checkpoint (it holds a {type(state).__name__}, not a dict)")
+    return state
 
 
 def metadata_of(model: Any) -> dict[str, str]:

@@ -90,7 +90,7 @@ def git_state() -> dict[str, Any]:
 
 def environment() -> Record:
     """The code and library a stage or an export ran with: git commit (and dirty flag), torch."""
-    return {"git": git_state(), "torch": torch.__version__}
+    return {"git": git_state(), "torch": str(torch.__version__)}  # a str: checkpoints load with weights_only
 
 
 def path_free_path(value: str, root: Path | None) -> str:

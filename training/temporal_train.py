@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import lineage, presets, skeleton
+from training import checkpoint, lineage, presets, skeleton
 from training.export import LICENCE, write_onnx
 from training.temporal import (
     GRID_FPS,
@@ -90,7 +90,7 @@ def train_model(
     step, elapsed = 0, 0.0
     last = out_dir / "last.pt"
     if last.is_file():
-        state = torch.load(last, weights_only=False)
+        state = checkpoint.read_state(last)
         stored = (state["model_config"], state["train_config"])
         if stored != (asdict(model), asdict(config)):
             raise ValueError(f"{last} was trained with another configuration: {stored}; use a new --out-dir")

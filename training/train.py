@@ -153,7 +153,7 @@ def train(
     resume_path = checkpoint.resolve_resume(resume, out)
     state = None
     if resume_path is not None:
-        state = torch.load(resume_path, map_location=device, weights_only=False)
+        state = checkpoint.read_state(resume_path, device)
         checkpoint.check_resume(resume_path, state, config, model_config, extend)
     data_dir = data.resolve_data_dir(config.data_dir or None)
     pool, held_out = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)

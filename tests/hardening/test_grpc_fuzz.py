@@ -142,7 +142,7 @@ def roomy_stub(
     """A server whose queue holds a whole stream window, as the defaults do: no frame is refused."""
     engine = engine_factory(lifter, max_batch=64, queue_size=1024)
     server = build_grpc_server(
-        engine, metrics, settings.model_copy(update={"grpc_workers": 4, "stream_window": 256})
+        engine, metrics, settings.model_copy(update={"grpc_workers": 4, "stream_window_poses": 256})
     )
     server.start()
     with grpc.insecure_channel(f"localhost:{server.port}") as channel:

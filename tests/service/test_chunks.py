@@ -8,7 +8,7 @@ import pytest
 
 from service.chunks import Part, assemble, batches, split_clip
 from service.contract import Contract
-from service.tracks import Observation, Track, bridged_clip, offline_windows, segments, track_capacity
+from service.tracks import Observation, Track, clip_windows, track_capacity
 
 CAUSAL = Contract("causal", grid_fps=50.0, window=81, max_fps=60.0)
 OFFLINE = Contract("offline", grid_fps=50.0, window=81, max_fps=60.0)
@@ -16,15 +16,33 @@ OFFLINE = Contract("offline", grid_fps=50.0, window=81, max_fps=60.0)
 
 def numbered(frames: np.ndarray) -> list[Observation]:
     """Observations whose keypoint x is their frame number, so a window shows which frames it read."""
-    return [Observation(np.zeros((17, 3)), np.full((17, 2), float(f)), np.ones(17)) for f in frames]
+    return [
+        Observation(
+            np.zeros((17, 3), np.float32), np.full((17, 2), float(f), np.float32), np.ones(17, np.float32)
+        )
+        for f in frames
+    ]
+
+
+def request_windows(
+    frames: np.ndarray,
+    seen: list[Observation],
+    fps: float,
+    contract: Contract,
+    track_ids: list[str] | None = None,
+) -> np.ndarray:
+    """(M, K, J, 2) the keypoints of each pose's window as a temporal request builds them."""
+    ids = track_ids or ["a"] * len(frames)
+    arrays = (np.stack([getattr(o, name) for o in seen]) for name in ("pose", "keypoints", "visibility"))
+    windows, _ = clip_windows(ids, frames, fps, contract, *arrays)
+    return windows.build().keypoints_2d
 
 
 @pytest.mark.parametrize("fps", [25.0, 30.0, 50.0, 60.0, 100.0, 240.0])
 def test_reach_is_how_far_the_services_windows_read(fps: float) -> None:
     frames = np.arange(400)
     seen = numbered(frames)
-    clip, _, _ = bridged_clip(frames, seen, fps)
-    read = offline_windows(clip, OFFLINE).keypoints_2d[200, :, 0, 0]  # the window of frame 200
+    read = request_windows(frames, seen, fps, OFFLINE)[200, :, 0, 0]  # the window of frame 200
     assert (200 - read.min(), read.max() - 200) == OFFLINE.reach(fps)
     track = Track(track_capacity(CAUSAL, fps), fps)
     for frame, observation in zip(frames.tolist(), seen, strict=True):
@@ -86,25 +104,14 @@ def test_assemble_puts_the_kept_answers_in_place_and_checks_every_pose_has_one()
     assert [p.send.tolist() for p in batches(5, 2)] == [[0, 1], [2, 3], [4]]
 
 
-def causal_windows(frames: np.ndarray, seen: list[Observation], fps: float) -> list[np.ndarray]:
+def causal_windows(frames: np.ndarray, seen: list[Observation], fps: float) -> np.ndarray:
     """Each pose's causal window (its keypoints), as a request's track gives them."""
-    track = Track(track_capacity(CAUSAL, fps), fps)
-    out = []
-    for frame, observation in zip(frames.tolist(), seen, strict=True):
-        track.push(frame, observation)
-        out.append(track.window(CAUSAL).keypoints_2d[0])
-    return out
+    return request_windows(frames, seen, fps, CAUSAL)
 
 
-def offline_of(frames: np.ndarray, seen: list[Observation], fps: float) -> list[np.ndarray]:
-    """Each pose's offline window (its keypoints), as a request's track gives them: segment by segment."""
-    out: list[np.ndarray] = [np.zeros(0)] * len(frames)
-    for segment in segments(frames, fps):
-        clip, where, _ = bridged_clip(frames[segment], [seen[k] for k in segment], fps)
-        windows = offline_windows(clip, OFFLINE).keypoints_2d
-        for k, position in zip(segment.tolist(), where.tolist(), strict=True):
-            out[k] = windows[position]
-    return out
+def offline_of(frames: np.ndarray, seen: list[Observation], fps: float) -> np.ndarray:
+    """Each pose's offline window (its keypoints), as a request's track gives them."""
+    return request_windows(frames, seen, fps, OFFLINE)
 
 
 @pytest.mark.parametrize("mode", ["causal", "offline"])

@@ -150,6 +150,12 @@ def test_confidence_column_marks_low_joints_missing(tmp_path: Path) -> None:
         ('{"keypoints": [[1, 2], [3, "a"]]}', [], "keypoints[0][1]"),
         ("[[1, 2]]", ["--format", "coco17"], "format coco17 has 17"),
         ("not json", [], "bad.json"),
+        ("[" * 100_000 + "]" * 100_000, [], "nested too deeply"),
+        (
+            '{"poses": [{"keypoints": [[1, 2]], "track_id": "a", "frame": ' + str(2**70) + "}]}",
+            [],
+            "poses[0].frame: a pose with a track_id needs its frame number, an integer from 0 to 9007199",
+        ),
     ],
 )
 def test_bad_usage_exits_2_with_a_message(

@@ -55,7 +55,7 @@ def test_the_window_bounds_what_a_stream_holds_from_read_to_answer() -> None:
         assert state.has_room()
         state.add(frame(i))
     assert not state.has_room()
-    with pytest.raises(ValueError, match="window of 3 frames is full"):
+    with pytest.raises(ValueError, match="window of 3 poses is full"):
         state.add(frame(3))
     first, second = state.take()  # every frame read, in groups of at most max_group
     assert [f.frame_id for f in first.frames] == [0, 1] and [f.frame_id for f in second.frames] == [2]
@@ -65,6 +65,21 @@ def test_the_window_bounds_what_a_stream_holds_from_read_to_answer() -> None:
     assert state.answerable() is first  # no run: done at once
     state.answered(first)
     assert state.held == 1 and state.has_room() and state.answerable() is second
+
+
+def test_the_window_counts_the_poses_of_frames_of_many_people() -> None:
+    """A frame of 3 people takes 3 of the window's poses; the window may be passed by the last frame
+    read only, and answering a group gives back what its frames took."""
+    state = StreamState(window=4, max_group=8)
+    state.add(crowd(0, 3))
+    assert state.held == 3 and state.has_room()
+    state.add(crowd(1, 3))  # read while there was room: 6 held, no more reads
+    assert state.held == 6 and not state.has_room()
+    (group,) = state.take()
+    state.answered(group)
+    assert state.held == 0 and state.has_room()
+    state.add(frame(2, error=ModelNotReady("x")))  # a frame without people counts one
+    assert state.held == 1
 
 
 def test_a_group_holds_the_frames_of_one_model() -> None:
@@ -175,7 +190,7 @@ def crowd(i: int, people: int) -> Frame:
 
 
 def test_groups_count_poses_so_that_frames_of_many_people_fit_the_queue() -> None:
-    state = StreamState(window=10, max_group=4)
+    state = StreamState(window=16, max_group=4)
     frames = [crowd(0, 3), crowd(1, 2), crowd(2, 5), frame(3), frame(4), frame(5, error=ModelNotReady("x"))]
     for f in frames:
         state.add(f)
@@ -196,7 +211,7 @@ def test_a_stream_of_many_people_per_frame_is_answered_within_the_queue(
         pulled: list[int] = []
         more = asyncio.Event()
         stream = answer_stream(
-            source(frames, pulled, more), engine, limits, same, window=16, idle_timeout_s=30, transport="t"
+            source(frames, pulled, more), engine, limits, same, window=48, idle_timeout_s=30, transport="t"
         )
         gated.gate.clear()
         answered = asyncio.create_task(collect(stream))

@@ -144,6 +144,8 @@ def test_tracks_of_one_request_are_independent_and_answers_keep_request_order(te
         ({"temporal": "causal", "fps": 30, "drop_frame": 3}, "poses[3].frame", "frame_missing"),
         ({"temporal": "causal", "fps": 30, "repeat_frame": 4}, "poses[4].frame", "frame_repeated"),
         ({"temporal": "sometimes", "fps": 30}, "temporal", "malformed"),
+        ({"temporal": "offline", "fps": 30, "frame_at": (2, 2**63)}, "poses[2].frame", "malformed"),
+        ({"temporal": "causal", "fps": 30, "frame_at": (5, 2**53)}, "poses[5].frame", "malformed"),
     ],
 )
 def test_bad_temporal_fields_get_a_field_level_422(
@@ -154,6 +156,8 @@ def test_bad_temporal_fields_get_a_field_level_422(
         del poses[k]["frame"]
     if (k := body.pop("repeat_frame", None)) is not None:
         poses[k]["frame"] = poses[k - 1]["frame"]
+    if (at := body.pop("frame_at", None)) is not None:
+        poses[at[0]]["frame"] = at[1]
     response = temporal.client.post("/lift", json={"poses": poses, **body})
     assert response.status_code == 422
     items = response.json()["detail"]
@@ -169,6 +173,21 @@ def test_a_temporal_request_takes_more_poses_than_a_batch_but_not_more_than_its_
     response = temporal.client.post("/lift", json={"poses": poses, "temporal": "offline", "fps": 50})
     assert response.status_code == 422 and response.json()["detail"][0]["code"] == "batch_too_large"
     assert str(limit) in response.json()["detail"][0]["reason"]
+
+
+def test_the_largest_frame_number_is_lifted(temporal: Temporal) -> None:
+    points = clip(3, 1.0)
+    poses = [{"keypoints": p.tolist(), "track_id": "a", "frame": 2**53 - 3 + f} for f, p in enumerate(points)]
+    response = temporal.client.post("/lift", json={"poses": poses, "temporal": "offline", "fps": 30})
+    assert response.status_code == 200 and all(r["temporal"] for r in response.json()["poses"])
+
+
+def test_a_tracked_frame_number_past_the_limit_gets_a_frame_error(temporal: Temporal) -> None:
+    (message,) = frames(clip(1, 1.0))
+    message.frame_id = 2**63
+    (result,) = temporal.stub.LiftStream(iter([message]))
+    assert result.frame_id == 2**63 and result.error.code == 3
+    assert [(v.field, v.code) for v in result.error.violations] == [("frame_id", "frame_range")]
 
 
 def frames(points: np.ndarray, track: str = "a", fps: float = 30.0) -> list[lifter_pb2.LiftFrame]:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from training import data, lineage
 from training.config import TrainConfig
@@ -178,3 +179,19 @@ def tiny_config(data_dir: Path, out: Path, iterations: int) -> TrainConfig:
         checkpoint_every=1000,
         threads=1,
     )
+
+
+class Planted:
+    """What a planted checkpoint carries: unpickling it calls Path.touch (any call could be made)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        return (Path.touch, (str(self.marker),))  # type: ignore[return-value]
+
+
+def plant(path: Path, marker: Path) -> Path:
+    """Overwrite the checkpoint at `path` with one whose unpickling touches `marker`."""
+    torch.save({"step": 3, "trainer": Planted(marker)}, path)
+    return path

@@ -13,6 +13,7 @@ import torch
 from service.cli import main as repnet
 from service.config import Settings
 from service.startup import load_lifter
+from tests.training.conftest import plant
 from training import adapt_report, checkpoint, lineage, metrics, prior, skeleton, synthetic
 from training.adapt import answer, split_holdout
 from training.adapt_report import Figures, worse
@@ -113,6 +114,18 @@ def test_resume_with_other_settings_is_refused(
         adapt(poses_file, parent, tmp_path / "a.onnx", "--steps", "4", "--seed", "1", "--resume", *run) == 2
     )
     assert "seed=0" in capsys.readouterr().err
+
+
+def test_resume_refuses_a_planted_checkpoint_and_runs_nothing_from_it(
+    poses_file: Path, parent: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = ["--run-dir", str(tmp_path / "run"), "--force"]
+    assert adapt(poses_file, parent, tmp_path / "a.onnx", "--steps", "2", *run) == 0
+    marker = tmp_path / "ran"
+    plant((tmp_path / "run").rglob("adapt.pt").__next__(), marker)
+    assert adapt(poses_file, parent, tmp_path / "b.onnx", "--steps", "4", "--resume", *run) == 2
+    assert "refused, it holds more than tensors" in capsys.readouterr().err
+    assert not marker.exists() and not (tmp_path / "b.onnx").exists()
 
 
 def test_a_worse_model_is_not_written_unless_forced(
