@@ -14,19 +14,24 @@ ENV PIP_NO_CACHE_DIR=1 \
     PYTHONDONTWRITEBYTECODE=1
 RUN python3 -m venv /opt/repnet
 WORKDIR /src
-# Dependencies first (their own layer), read from pyproject.toml so there is one list.
+# Dependencies first (their own layer): the plain install's and the `server` extra's, read from
+# pyproject.toml so there is one list (the extra's own "repnet[local]" stands for the local extra).
 COPY pyproject.toml ./
-RUN python3 -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']))" \
-        > /tmp/requirements.txt \
+RUN python3 -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
+x = p['optional-dependencies']; print('\n'.join(d for d in p['dependencies'] + x['server'] + x['local'] \
+if not d.startswith('repnet')))" > /tmp/requirements.txt \
     && /opt/repnet/bin/pip install -r /tmp/requirements.txt
-# Only the service package goes in: training/ (and torch) stay out of the image.
+# The package is built from service/ (repnet) and training/ (repnet.train, which the wheel holds); the
+# server never imports training, so repnet/train is taken out of the image again (no torch here).
 COPY README.md LICENSE ./
 COPY service ./service
+COPY training ./training
 RUN test -f service/models/repnet-h36m.onnx \
     && /opt/repnet/bin/pip install --no-deps . \
-    && cd / && /opt/repnet/bin/python -c "import importlib.resources as r, service; \
-assert '/opt/repnet/' in service.__file__; \
-assert r.files('service').joinpath('models/repnet-h36m.onnx').is_file()" \
+    && rm -rf /opt/repnet/lib/python3*/site-packages/repnet/train \
+    && cd / && /opt/repnet/bin/python -c "import importlib.resources as r, repnet, repnet.server.app; \
+assert '/opt/repnet/' in repnet.__file__; \
+assert r.files('repnet').joinpath('models/repnet-h36m.onnx').is_file()" \
     && /opt/repnet/bin/pip uninstall -y pip setuptools wheel
 
 # ---- runtime: the interpreter from the base image, the venv, a non-root user; no compilers ----
@@ -53,4 +58,4 @@ EXPOSE 8000 50051
 HEALTHCHECK --interval=10s --timeout=3s --start-period=20s --retries=3 \
     CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/readyz' % os.environ.get('REPNET_HTTP_PORT', '8000'), timeout=2)"]
 STOPSIGNAL SIGTERM
-CMD ["python", "-m", "service"]
+CMD ["python", "-m", "repnet", "serve"]

@@ -17,14 +17,14 @@ endif
 PYTEST_ARGS ?=
 # onnxruntime >= 1.29 sends usage telemetry on Linux unless ORT_DISABLE_TELEMETRY=1 (override: make VAR=...).
 export ORT_DISABLE_TELEMETRY ?= 1
-IMAGE ?= repnet:0.1.0
+IMAGE ?= repnet:0.2.0
 
-.PHONY: help serve test lint typecheck check container-test image proto clean
+.PHONY: help serve test lint typecheck contracts layout check container-test image proto clean
 
 help:
 	@echo "make serve           install the service and start it (HTTP :8000, gRPC :50051)"
 	@echo "make test            install everything (service, training, dev tools) and run all tests"
-	@echo "make lint            ruff check;  make typecheck: mypy on service/ (strict) and training/"
+	@echo "make lint            ruff check;  make typecheck: mypy on repnet (strict);  make contracts: import-linter"
 	@echo "make container-test  build and run the image with podman for real (root; deploy/test-container.sh)"
 	@echo "make image           docker build -t $(IMAGE) .   (where a Docker engine runs)"
 
@@ -32,19 +32,19 @@ $(VENV)/bin/python:
 	$(PYTHON3) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian, apt-get install python3-venv"; exit 1; }
 	$(PY) -m pip install --upgrade pip
 
-# The service and the `repnet` command with its `cli` extra (progress bars, `repnet plot`).
+# The service (the `server` extra) and the `repnet` command with its `cli` extra (progress bars, `repnet plot`).
 $(STAMP_DIR)/.serve-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/python)
 	@mkdir -p $(STAMP_DIR)
-	$(PY) -m pip install $(PIP_ARGS) -e '.[cli]'
+	$(PY) -m pip install $(PIP_ARGS) -e '.[server,cli]'
 	@touch $@
 
 $(STAMP_DIR)/.test-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/python)
 	@mkdir -p $(STAMP_DIR)
-	$(PY) -m pip install $(PIP_ARGS) -e '.[train,cli,dev]'
+	$(PY) -m pip install $(PIP_ARGS) -e '.[server,train,cli,dev]'
 	@touch $@ $(STAMP_DIR)/.serve-installed
 
 serve: $(STAMP_DIR)/.serve-installed
-	$(PY) -m service
+	$(PY) -m repnet serve
 
 test: $(STAMP_DIR)/.test-installed
 	$(PY) -m pytest $(PYTEST_ARGS)
@@ -52,10 +52,20 @@ test: $(STAMP_DIR)/.test-installed
 lint: $(STAMP_DIR)/.test-installed
 	$(PY) -m ruff check .
 
-typecheck: $(STAMP_DIR)/.test-installed
-	$(PY) -m mypy service training
+# mypy and import-linter read the package as it installs (service/ is repnet, training/ is
+# repnet.train): build/layout/repnet is a tree of links to the two folders.
+layout:
+	@rm -rf build/layout && mkdir -p build/layout/repnet
+	@for f in service/*; do ln -s "$(CURDIR)/$$f" build/layout/repnet/; done
+	@ln -s "$(CURDIR)/training" build/layout/repnet/train
 
-check: lint typecheck test
+typecheck: $(STAMP_DIR)/.test-installed layout
+	cd build/layout && MYPYPATH=. $(abspath $(PY)) -m mypy --config-file $(CURDIR)/pyproject.toml -p repnet
+
+contracts: $(STAMP_DIR)/.test-installed layout
+	PYTHONPATH=build/layout $(dir $(PY))lint-imports --no-cache pyproject.toml
+
+check: lint typecheck contracts test
 
 # The smoke checks run on this machine and need the service's own packages (grpc, httpx): the venv's.
 container-test: $(STAMP_DIR)/.serve-installed

@@ -4,7 +4,7 @@
     python -m bench.adapt_h36m --shift high ...
 
 Shifts (the adapted-on 2D is always of S1 S5 S6 S7's training frames, never their 3D; the
-validation tails, training.data.build_training_sets, are never adapted on):
+validation tails, repnet.train.data.build_training_sets, are never adapted on):
 - sh: the Stacked-Hourglass detections. Scored on the SH detections of the validation tails and
   of all of S8 (a subject the adaptation never saw), and on GT 2D of the tails (the source).
 - high: GT 3D of those frames seen from high cameras (45-65 degrees down instead of -10..30, a
@@ -31,12 +31,12 @@ import torch
 if __package__ in (None, ""):  # `python bench/adapt_h36m.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from service.cli import main as repnet
-from service.config import BUNDLED_MODEL
-from training import data, metrics, sequences, synthetic
-from training.config import TrainConfig
-from training.export import load_generator
-from training.validation import validate, validation_sets
+from repnet.cli.main import main as repnet
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.train import data, metrics, sequences, synthetic
+from repnet.train.config import TrainConfig
+from repnet.train.export import load_generator
+from repnet.train.validation import validate, validation_sets
 
 SOURCE = ("S1", "S5", "S6", "S7")
 HIGH_DEG = (45.0, 65.0)
@@ -108,7 +108,7 @@ def high_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict
 
 
 def score(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[str, float]]:
-    """A model's validation figures (training.validation.validate on its generator, mirror-averaged
+    """A model's validation figures (repnet.train.validation.validate on its generator, mirror-averaged
     as both the bundled and the adapted model are exported)."""
     generator, _ = load_generator(model)
     return {
@@ -167,8 +167,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     keypoints = np.where(visible[..., None] > 0.5, points, np.nan)
     np.savez(work / "input.npz", keypoints=keypoints, format="h36m17")
     out = work / "adapted.onnx"
-    command = ["adapt", str(work / "input.npz"), "-o", str(out), "--threads", str(args.threads),
-               "--run-dir", str(work / "run"), *args.adapt_flags]  # fmt: skip
+    command = [
+        "adapt",
+        str(work / "input.npz"),
+        "-o",
+        str(out),
+        "--threads",
+        str(args.threads),
+        "--run-dir",
+        str(work / "run"),
+        *args.adapt_flags,
+    ]
     print("repnet " + " ".join(command), flush=True)
     start = time.monotonic()
     status = repnet(command)

@@ -1,6 +1,6 @@
 """The service with the model taken out: what HTTP and gRPC cost on their own (the transport ceiling).
 
-    python -m bench.ceiling [service flags]   (the same flags as `python -m service`)
+    python -m bench.ceiling [service flags]   (the same flags as `python -m repnet serve`)
 
 Everything a request goes through runs as in the service (validation, format conversion, the
 batcher, the reply with its camera geometry, metrics) except onnxruntime: the lifter answers each
@@ -21,8 +21,8 @@ if __package__ in (None, ""):  # `python bench/ceiling.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.stats import sample_poses
-from service.app import build_service, load_lifter, parse_settings, serve
-from service.lifter import Lifter, Prediction
+from repnet.runtime.lifter import Lifter, Prediction
+from repnet.server.app import build_service, load_lifter, parse_settings, serve
 
 
 class ConstantLifter(Lifter):
@@ -41,7 +41,7 @@ class ConstantLifter(Lifter):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Serve like `python -m service`, with the model taken out."""
+    """Serve like `python -m repnet serve`, with the model taken out."""
     settings = parse_settings(argv)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     return serve(build_service(settings, ConstantLifter(load_lifter(settings))))

@@ -20,8 +20,8 @@ if __package__ in (None, ""):  # `python bench/compare_models.py`
 
 from bench.roof import RoofRow, measure_roof
 from bench.stats import write_json
-from service.app import load_lifter
-from service.config import Settings
+from repnet.server.app import load_lifter
+from repnet.server.config import Settings
 
 
 def compare(

@@ -6,7 +6,7 @@ For each format the 17 ground-truth joints, projected through the Human3.6M came
 into that detector's keypoints (joints it lacks are dropped; pelvis or thorax become midpoints
 where the detector has hips or shoulders), converted back with the service's own table, and lifted
 by the model. The numbers are Protocol II (PA-MPJPE) and Protocol I (MPJPE in the camera's
-orientation, training.metrics.to_camera_frame) as in training.evaluate.
+orientation, repnet.train.metrics.to_camera_frame) as in repnet.train.evaluate.
 """
 
 from __future__ import annotations
@@ -25,12 +25,12 @@ if __package__ in (None, ""):  # `python bench/format_accuracy.py`
 
 from bench.h36m_args import check_frame_step, h36m_parser
 from bench.stats import report
-from service.app import load_lifter
-from service.config import Settings
-from service.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
-from service.lifter import Lifter
-from training import data, metrics
-from training.testset import DATASET_LABEL, build_test_set, select_sequences
+from repnet.core.formats import FORMATS, KeypointFormat, from_model_joints, to_model_joints
+from repnet.runtime.lifter import Lifter
+from repnet.server.app import load_lifter
+from repnet.server.config import Settings
+from repnet.train import data, metrics
+from repnet.train.testset import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.format_accuracy")
 BATCH = 4096

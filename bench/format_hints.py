@@ -3,7 +3,7 @@
     python -m bench.format_hints [--frame-step 10] [--out runs/bench/format_hints.json]
 
 Human3.6M S9/S11 ground truth, projected through the true cameras to 2D, is turned into each
-detector format (service.formats.from_model_joints: the joints a format shares with Human3.6M; eyes,
+detector format (repnet.core.formats.from_model_joints: the joints a format shares with Human3.6M; eyes,
 ears, feet and hands missing) and sent through the service's input rules (keypoints.prepare_poses):
 
 - without a format (the request's default, h36m17): a 16-, 25- or 33-joint pose should be refused
@@ -11,7 +11,7 @@ ears, feet and hands missing) and sent through the service's input rules (keypoi
 - 17-joint poses under a label of another joint count (mpii16): the hint must tell h36m17 from
   coco17 by the geometry (joint 0 above the shoulders: COCO's nose);
 - a coco17 pose without a format has the default's joint count, so no count hint: the reply's format
-  warning (service.lookalike) should say it looks like coco17 (the model is run for it);
+  warning (repnet.core.lookalike) should say it looks like coco17 (the model is run for it);
 - every pose under its own label: no hint and no format warning (target: none).
 """
 
@@ -32,14 +32,15 @@ if __package__ in (None, ""):  # `python bench/format_hints.py`
 
 from bench.format_mixup import frames
 from bench.h36m_args import check_frame_step, h36m_parser
-from service.app import limits_of, load_lifter
-from service.config import Settings
-from service.formats import FORMATS, from_model_joints
-from service.keypoints import DEFAULT_FORMAT, PoseInput, prepare_poses
-from service.lifter import Lifter
-from service.replies import build_replies
-from training import data
-from training.testset import DATASET_LABEL, build_test_set, select_sequences
+from repnet.core.formats import DEFAULT_FORMAT, FORMATS, from_model_joints
+from repnet.core.inputs import PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.replies import build_replies
+from repnet.server.app import limits_of, load_lifter
+from repnet.server.config import Settings
+from repnet.train import data
+from repnet.train.testset import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.format_hints")
 BATCH = 4096
@@ -79,10 +80,14 @@ def row(case: str, truth: str, label: str, said: list[str], want: str) -> dict[s
     """One measured case: how many poses were told `want` (the right answer; "" = nothing)."""
     told = np.array(said)
     return {
-        "case": case, "truth": truth, "sent_as": label, "poses": len(told),
-        "right": float((told == want).mean()), "right_count": int((told == want).sum()),
+        "case": case,
+        "truth": truth,
+        "sent_as": label,
+        "poses": len(told),
+        "right": float((told == want).mean()),
+        "right_count": int((told == want).sum()),
         "told_other": sorted({str(t) for t in told if t != want}),
-    }  # fmt: skip
+    }
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -140,8 +145,10 @@ def markdown(result: dict[str, Any]) -> str:
     ]
     for r in result["rows"]:
         other = ", ".join(t or "nothing" for t in r["told_other"]) or "—"
-        lines.append(f"| {r['case']} | {r['truth']} | {r['sent_as']} | {r['poses']:,} "
-                     f"| {r['right']:.3%} ({r['right_count']:,}) | {other} |")  # fmt: skip
+        lines.append(
+            f"| {r['case']} | {r['truth']} | {r['sent_as']} | {r['poses']:,} "
+            f"| {r['right']:.3%} ({r['right_count']:,}) | {other} |"
+        )
     lines += [
         "",
         f"16/25/33-joint poses without a format told the right format: {s['count_hint_right']:.3%} "

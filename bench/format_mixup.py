@@ -27,15 +27,17 @@ if __package__ in (None, ""):  # `python bench/format_mixup.py`
 
 from bench.h36m_args import check_frame_step, h36m_parser
 from bench.stats import report
-from service.app import limits_of, load_lifter
-from service.config import Settings
-from service.formats import FORMATS, from_model_joints, lookalike_of
-from service.keypoints import PoseInput, prepare_poses
-from service.lifter import Lifter
-from service.lookalike import GEOMETRY_WEIGHT, THRESHOLD, relative_error
-from service.replies import build_replies
-from training import data
-from training.testset import DATASET_LABEL, build_test_set, select_sequences
+from repnet.core.format_hints import lookalike_of
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.core.inputs import PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.core.lookalike import GEOMETRY_WEIGHT, THRESHOLD, relative_error
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.replies import build_replies
+from repnet.server.app import limits_of, load_lifter
+from repnet.server.config import Settings
+from repnet.train import data
+from repnet.train.testset import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.format_mixup")
 BATCH = 4096
@@ -96,14 +98,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             log.info("%s poses sent as %s", truth, label)
             out = send(lifter, points, present, label)
             toward_other = out["height"] if label == "h36m17" else -out["height"]
-            rows.append({
-                "truth": truth, "label": label, "poses": len(points), "wrong": truth != label,
-                "fired": out["fired"], "fired_count": int(out["fired"].sum()),
-                # Each part of the score alone, at the same threshold.
-                "reprojection_only": out["relative"] > THRESHOLD,
-                "geometry_only": np.nan_to_num(toward_other, nan=-1.0) > 0,
-                "relative_p": np.percentile(out["relative"], [0.1, 0.5, 50, 99.5, 99.9]).round(3).tolist(),
-            })  # fmt: skip
+            rows.append(
+                {
+                    "truth": truth,
+                    "label": label,
+                    "poses": len(points),
+                    "wrong": truth != label,
+                    "fired": out["fired"],
+                    "fired_count": int(out["fired"].sum()),
+                    # Each part of the score alone, at the same threshold.
+                    "reprojection_only": out["relative"] > THRESHOLD,
+                    "geometry_only": np.nan_to_num(toward_other, nan=-1.0) > 0,
+                    "relative_p": np.percentile(out["relative"], [0.1, 0.5, 50, 99.5, 99.9])
+                    .round(3)
+                    .tolist(),
+                }
+            )
     wrong, right = [r for r in rows if r["wrong"]], [r for r in rows if not r["wrong"]]
     summary = {
         key: {"fires_when_wrong": rates(wrong, key), "fires_when_right": rates(right, key)}

@@ -15,7 +15,7 @@ import grpc
 import numpy as np
 
 from bench.stats import Result, Tally, measured, sample_poses
-from service._proto.repnet.v1 import lifter_pb2
+from repnet._proto.repnet.v1 import lifter_pb2
 
 LIFT = "/repnet.v1.PoseLifter/Lift"
 LIFT_STREAM = "/repnet.v1.PoseLifter/LiftStream"

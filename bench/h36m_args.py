@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from service.config import BUNDLED_MODEL
-from training import data
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.train import data
 
 
 def h36m_parser(module: str, doc: str | None) -> argparse.ArgumentParser:

@@ -2,7 +2,7 @@
 
     python -m bench.long_stream [--frames 1000000] [--streams 1] [--out runs/bench/long_stream.json]
 
-The server runs as `python -m service` in a child process. Memory is read from /proc at start
+The server runs as `python -m repnet serve` in a child process. Memory is read from /proc at start
 (ready, idle), after a warm-up of --warmup frames (onnxruntime and gRPC buffers allocated), every
 --sample-every frames, and at the end; growth is reported against the warmed-up figure (target
 < 5 %) and against the idle start.
@@ -26,7 +26,7 @@ if __package__ in (None, ""):  # `python bench/long_stream.py`
 from bench.grpc_load import LIFT_STREAM, OPTIONS, STREAM_WINDOW, stream_frames
 from bench.server import ServiceProcess, cpu_seconds, rss_bytes
 from bench.stats import machine, report
-from service._proto.repnet.v1 import lifter_pb2
+from repnet._proto.repnet.v1 import lifter_pb2
 
 log = logging.getLogger("bench.long_stream")
 GROWTH_LIMIT = 0.05
@@ -91,8 +91,13 @@ async def run_streams(service: ServiceProcess, args: argparse.Namespace) -> dict
     seconds = time.perf_counter() - started
     if samples[-1]["frames"] != done:
         sample()
-    return {"samples": samples, "bad_answers": sum(bad), "frames": done, "seconds": seconds,
-            "server_cpu": (cpu_seconds(service.pid) - cpu0) / seconds}  # fmt: skip
+    return {
+        "samples": samples,
+        "bad_answers": sum(bad),
+        "frames": done,
+        "seconds": seconds,
+        "server_cpu": (cpu_seconds(service.pid) - cpu0) / seconds,
+    }
 
 
 def summarize(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
@@ -151,7 +156,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--warmup", type=int, default=20_000, help="frames before the baseline memory sample")
     parser.add_argument("--sample-every", type=int, default=50_000)
     parser.add_argument(
-        "--service-flag", action="append", default=[], help="extra flag for `python -m service`"
+        "--service-flag", action="append", default=[], help="extra flag for `python -m repnet serve`"
     )
     parser.add_argument("--out", type=Path, default=Path("runs/bench/long_stream.json"))
     args = parser.parse_args(argv)

@@ -2,7 +2,7 @@
 
     python -m bench.long_tracks [--frames 1000000] [--tracks 100] [--out runs/bench/long_tracks.json]
 
-The server runs as `python -m service` in a child process. --lanes lanes share --tracks tracks
+The server runs as `python -m repnet serve` in a child process. --lanes lanes share --tracks tracks
 open at once (one person per LiftFrame by default, the lane's tracks in turn; --people N puts N of
 them in each frame) and the --frames tracked frames (one person's frame each). Every track lives
 --track-frames frames, then it is dropped and a new track (a new id) takes its place; the first
@@ -31,7 +31,6 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +40,9 @@ if __package__ in (None, ""):  # `python bench/long_tracks.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.grpc_load import OPTIONS
+from bench.long_tracks_report import markdown, summarize
 from bench.server import ServiceProcess, cpu_seconds, rss_bytes
-from bench.stats import machine, report
+from bench.stats import report
 from bench.tracked import (
     FPS,
     Check,
@@ -50,17 +50,15 @@ from bench.tracked import (
     Lane,
     expect_people,
     expect_pose,
-    load_average,
     moving_clip,
     people_entry,
     pose_parts,
     single_frame,
     track_gauges,
 )
-from service._proto.repnet.v1 import lifter_pb2
+from repnet._proto.repnet.v1 import lifter_pb2
 
 log = logging.getLogger("bench.long_tracks")
-GROWTH_LIMIT = 0.05
 MB = 2**20
 CHECK_EVERY = 1000
 
@@ -250,74 +248,6 @@ async def run_all(service: ServiceProcess, args: argparse.Namespace) -> dict[str
         "seconds": seconds,
         "server_cpu": server_cpu,
     }
-
-
-def summarize(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
-    """Memory growth after the warm-up, the open tracks along the way and at the end."""
-    samples = run.pop("samples")
-    idle, end = samples[0], samples[-1]
-    warm = next((s for s in samples if s["frames"] >= args.warmup), end)
-    during = samples[1:-1] or samples
-    return {
-        "command": " ".join(["python -m bench.long_tracks", *sys.argv[1:]]),
-        "when": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": machine(),
-        "settings": {
-            k: getattr(args, k)
-            for k in ("tracks", "lanes", "people", "track_frames", "drop", "track_idle_s", "warmup", "window")
-        },  # fmt: skip
-        **run,
-        "frames_per_s": run["frames"] / run["seconds"],
-        "rss_mb": {
-            "idle_start": idle["rss_mb"],
-            "after_warmup": warm["rss_mb"],
-            "end": end["rss_mb"],
-            "peak": max(s["rss_mb"] for s in samples),
-        },
-        "open_tracks": {
-            "min": min(s.get("open_tracks", 0) for s in during),
-            "max": max(s.get("open_tracks", 0) for s in during),
-            "end": end.get("open_tracks"),
-            "end_bytes": end.get("track_state_bytes"),
-        },
-        "growth_after_warmup": (end["rss_mb"] - warm["rss_mb"]) / warm["rss_mb"],
-        "growth_from_idle": (end["rss_mb"] - idle["rss_mb"]) / idle["rss_mb"],
-        "warmed_up": warm is not end,
-        "load_average_end": load_average(),
-        "samples": samples,
-    }
-
-
-def markdown(result: dict[str, Any]) -> str:
-    """The result as markdown, against the growth limit."""
-    rss, tracks, s = result["rss_mb"], result["open_tracks"], result["settings"]
-    freed = tracks["end"] == 0 and tracks["end_bytes"] == 0
-    ok = result["growth_after_warmup"] < GROWTH_LIMIT and result["bad_answers"] == 0 and freed
-    ok = ok and result["warmed_up"]
-    rows = "\n".join(
-        f"| {x['frames']:,} | {x['seconds']:,.0f} | {x['rss_mb']:.1f} | {x.get('open_tracks', 0):.0f} |"
-        for x in result["samples"]
-    )
-    return (
-        f"`{result['command']}` on {result['machine']['cpus']} CPUs ({result['machine']['cpu']}), "
-        f"{result['when']}: {result['frames']:,} tracked frames, {s['tracks']} tracks open at a time on "
-        f"{s['lanes']} lanes ({s['people']} per LiftFrame), each track {s['track_frames']} frames "
-        f"(dropped by: {s['drop']}; REPNET_TRACK_IDLE_S {s['track_idle_s']:g}), "
-        f"{result['tracks_opened']:,} tracks and {result['streams_opened']:,} streams opened in "
-        f"{result['seconds']:,.0f} s ({result['frames_per_s']:,.0f} frames/s, server CPU "
-        f"{result['server_cpu']:.2f} cores), {result['bad_answers']} bad answers; load average "
-        f"{result['load_average_end']:.2f} at the end.\n\n"
-        f"| server RSS | MB |\n|---|---:|\n| idle at start | {rss['idle_start']:.1f} |\n"
-        f"| after warm-up | {rss['after_warmup']:.1f} |\n| peak | {rss['peak']:.1f} |\n"
-        f"| end | {rss['end']:.1f} |\n\n"
-        f"Open tracks during the run {tracks['min']:.0f}–{tracks['max']:.0f}; at the end (every stream "
-        f"closed) {tracks['end']:.0f} tracks holding {tracks['end_bytes']:.0f} bytes.\n\n"
-        f"| frames | s | RSS MB | open tracks |\n|---:|---:|---:|---:|\n{rows}\n\n"
-        f"Growth after warm-up {100 * result['growth_after_warmup']:+.2f} % "
-        f"(from idle {100 * result['growth_from_idle']:+.2f} %): "
-        f"{'met' if ok else 'MISSED'} (target < {100 * GROWTH_LIMIT:.0f} %, no bad answers, every "
-        f"track freed at the end)."
-    )
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

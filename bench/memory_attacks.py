@@ -36,7 +36,7 @@ if __package__ in (None, ""):  # `python bench/memory_attacks.py`
 
 from bench.server import ServiceProcess, cpu_seconds, rss_bytes
 from bench.stats import machine, sample_poses, write_json
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 
 MB = 1024 * 1024
 STREAMS = 4
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--attack", choices=sorted(ATTACKS), action="append", help="one attack (repeatable)")
     parser.add_argument("--duration", type=float, default=25.0, help="seconds of the stream attack")
     parser.add_argument("--json", type=Path, help="also write the results here")
-    parser.add_argument("flags", nargs="*", help="flags for python -m service (after --)")
+    parser.add_argument("flags", nargs="*", help="flags for python -m repnet serve (after --)")
     args = parser.parse_args(argv)
     results = []
     for name in args.attack or list(ATTACKS):

@@ -174,7 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=20.0, help="seconds of load (default 20)")
     parser.add_argument("--poses", type=int, default=1, help="poses per request (default 1)")
     parser.add_argument("--ramp", type=float, default=1.0, help="seconds over which clients connect")
-    parser.add_argument("--url", help="a running server (default: start python -m service on free ports)")
+    parser.add_argument(
+        "--url", help="a running server (default: start python -m repnet serve on free ports)"
+    )
     parser.add_argument("--service-flag", action="append", default=[], help="flag for the started server")
     parser.add_argument("--json", type=Path, help="also write the figures here")
     args = parser.parse_args(argv)
@@ -199,8 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(report(found))
     if args.json:
-        write_json(args.json, {"machine": machine(), "args": vars(args), "server_flags": server_flags,
-                               **found})  # fmt: skip
+        write_json(
+            args.json, {"machine": machine(), "args": vars(args), "server_flags": server_flags, **found}
+        )
     return 0
 
 

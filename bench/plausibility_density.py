@@ -28,12 +28,12 @@ if __package__ in (None, ""):  # `python bench/plausibility_density.py`
 
 from bench.plausibility_rank import lift_shift, rank_figures, shifts
 from bench.stats import write_json
-from service.config import BUNDLED_MODEL
-from training import checkpoint, data, density
-from training import plausibility as plausibility_of
-from training.evaluate import open_model
-from training.export import load_critic
-from training.model import MM_PER_UNIT
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.train import checkpoint, data, density
+from repnet.train import plausibility as plausibility_of
+from repnet.train.evaluate import open_model
+from repnet.train.export import load_critic
+from repnet.train.model import MM_PER_UNIT
 
 # name -> PoseDensity.fit settings; None: the critic
 VARIANTS: dict[str, dict[str, float] | None] = {

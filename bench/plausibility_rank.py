@@ -3,7 +3,7 @@
     python -m bench.plausibility_rank --models service/models/repnet-h36m.onnx --threads 1
 
 For each model (an .onnx with a plausibility output) it lifts the held-out tails of the training
-subjects' sequences (training.validation.validation_sets: the same draw a training run validates
+subjects' sequences (repnet.train.validation.validation_sets: the same draw a training run validates
 on) through onnxruntime, one shift at a time: GT 2D clean, GT 2D + N(0, 20 px), GT 2D + N(0, 40 px)
 and Stacked-Hourglass detections; and the two shifts of the adaptation benchmark (bench.adapt_h36m):
 the tails seen from high cameras (45-65 degrees down) and all of S8 with its SH detections (every
@@ -26,10 +26,10 @@ if __package__ in (None, ""):  # `python bench/plausibility_rank.py`
 
 from bench.adapt_h36m import high_tails, s8_sh
 from bench.stats import write_json
-from training import data, metrics, sequences
-from training.config import TrainConfig
-from training.evaluate import open_model
-from training.validation import validation_sets, with_noise
+from repnet.train import data, metrics, sequences
+from repnet.train.config import TrainConfig
+from repnet.train.evaluate import open_model
+from repnet.train.validation import validation_sets, with_noise
 
 # The fourth shift's noise (px); the second is validation's own 20 px draw (gt_noise).
 EXTRA_NOISE_PX = 40.0

@@ -4,7 +4,7 @@
 
 The clip is the test pose turning and walking across the image, lifted once in this process
 (`repnet lift --local` with intrinsics, so the poses carry root_camera_m); the timings are of
-service.plot alone (matplotlib's import included in the first run, reported apart).
+repnet.io.plot alone (matplotlib's import included in the first run, reported apart).
 """
 
 from __future__ import annotations
@@ -24,14 +24,11 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/plot_speed.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from service.cli import main as repnet
+from repnet.cli.main import main as repnet
+from repnet.core.inputs import EXAMPLE_KEYPOINTS
 
-# A person in mid-stride seen from 4.5 m (h36m17 joint order, px): the service's example pose.
-EXAMPLE = np.array([
-    [512.0, 515.0], [483.5, 516.3], [471.0, 624.2], [481.3, 730.0], [541.3, 513.7], [550.6, 628.1],
-    [561.9, 735.4], [514.8, 455.4], [516.4, 390.7], [511.1, 363.4], [516.6, 334.0], [550.1, 402.1],
-    [570.4, 466.5], [573.0, 525.4], [482.4, 405.9], [458.7, 469.6], [454.4, 527.5],
-])  # fmt: skip
+# A person in mid-stride seen from 4.5 m (h36m17, px): the service's example person.
+EXAMPLE = np.array(EXAMPLE_KEYPOINTS)
 
 
 def lifted_clip(folder: Path, frames: int) -> Path:
@@ -91,8 +88,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run, write the JSON and print it."""
-    parser = argparse.ArgumentParser(prog="python -m bench.plot_speed", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.plot_speed",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--frames", type=int, default=60, help="frames of the animated clip")
     parser.add_argument("--repeat", type=int, default=3, help="timed runs of each")
     parser.add_argument("--out", type=Path, default=Path("runs/bench/plot_speed.json"))

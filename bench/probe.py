@@ -1,4 +1,4 @@
-"""The reliability probe of issues 11 and 23: 16 attacks on a fresh `python -m service`, each held or not.
+"""The reliability probe of issues 11 and 23: 16 attacks on a fresh `repnet serve`, each held or not.
 
     python -m bench.probe [--json runs/probe.json] [-- extra service flags]
 
@@ -29,7 +29,7 @@ if __package__ in (None, ""):  # `python bench/probe.py`
 
 from bench.server import ServiceProcess, rss_bytes
 from bench.stats import sample_poses, write_json
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 
 POSE = sample_poses(1)[0].round(1).tolist()  # (17, 2) px
 Check = Callable[[ServiceProcess], str]  # returns what it saw; raises AssertionError when it failed
@@ -115,8 +115,10 @@ def pipelining(service: ServiceProcess) -> str:
 
 def request_smuggling(service: ServiceProcess) -> str:
     """Content-Length and Transfer-Encoding together: 400, and nothing behind it runs."""
-    data = (b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: 5\r\ntransfer-encoding: chunked\r\n\r\n"
-            b"0\r\n\r\nGET /metrics HTTP/1.1\r\nhost: x\r\n\r\n")  # fmt: skip
+    data = (
+        b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: 5\r\ntransfer-encoding: chunked\r\n\r\n"
+        b"0\r\n\r\nGET /metrics HTTP/1.1\r\nhost: x\r\n\r\n"
+    )
     answer = _raw(service, data)
     assert answer.startswith(b"HTTP/1.1 400 ") and answer.count(b"HTTP/1.1") == 1, answer[:200]
     return "Content-Length with Transfer-Encoding: one 400, the smuggled request never runs"
@@ -298,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run every check against one fresh service; print each and the count that held."""
     parser = argparse.ArgumentParser(prog="python -m bench.probe", description=__doc__.split("\n")[0])
     parser.add_argument("--json", type=Path, help="also write the results here")
-    parser.add_argument("flags", nargs="*", help="flags for python -m service (after --)")
+    parser.add_argument("flags", nargs="*", help="flags for python -m repnet serve (after --)")
     args = parser.parse_args(argv)
     results = []
     with ServiceProcess("--intra-op-threads", "1", *args.flags) as service:

@@ -2,7 +2,7 @@
 
     python -m bench.profile --load stream-x1 [--seconds 8] [--out runs/bench/profile-stream-x1.json]
 
-Starts `python -m service` (or `--module bench.ceiling`) in a child process, samples it with
+Starts `python -m repnet serve` (or `--module bench.ceiling`) in a child process, samples it with
 `py-spy record` (a dev dependency; it needs ptrace: root or CAP_SYS_PTRACE) while bench's own load
 generator drives it, and prints the busiest threads and functions: *self* is time in the function's
 own code, *inclusive* counts its callees too. Idle threads (waiting on a lock or on I/O) are not
@@ -96,8 +96,22 @@ class Profile:
 def record(service: ServiceProcess, load: str, seconds: float, rate: int, raw: Path) -> tuple[Result, str]:
     """Run py-spy on the service while the load runs; returns the load's Result and py-spy's output."""
     spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
-    command = [spy, "record", "--pid", str(service.pid), "--duration", str(int(seconds)), "--rate", str(rate),
-               "--format", "raw", "--output", str(raw), "--nonblocking", "--threads"]  # fmt: skip
+    command = [
+        spy,
+        "record",
+        "--pid",
+        str(service.pid),
+        "--duration",
+        str(int(seconds)),
+        "--rate",
+        str(rate),
+        "--format",
+        "raw",
+        "--output",
+        str(raw),
+        "--nonblocking",
+        "--threads",
+    ]
     result: list[Result] = []
     # The load starts first and runs 1 s longer than the recording, which starts once it is warm.
     runner = threading.Thread(target=lambda: result.append(LOADS[load](service, seconds + 1.5)))
@@ -120,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--load", choices=sorted(LOADS), required=True)
     parser.add_argument("--seconds", type=float, default=8.0, help="seconds recorded")
     parser.add_argument("--rate", type=int, default=200, help="samples per second")
-    parser.add_argument("--module", default="service", help="service | bench.ceiling (no model)")
+    parser.add_argument("--module", default="repnet serve", help="'repnet serve' | bench.ceiling (no model)")
     parser.add_argument("--top", type=int, default=25, help="functions listed")
     parser.add_argument("--service-flag", action="append", default=[], help="extra flag for the service")
     parser.add_argument("--out", type=Path, default=None, help="JSON summary (default: print only)")

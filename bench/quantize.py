@@ -4,8 +4,8 @@
 
 Weights of MatMul/Gemm become int8 (onnxruntime.quantization.quantize_dynamic); activations are
 quantized per run. The ONNX metadata is kept, with "-int8" added to model_id. Serve it with
-`python -m service --model-path OUT`; measure Protocol II with
-`python -m training.evaluate --model OUT --frame-step 10 --table-frame-step 0`.
+`python -m repnet serve --model-path OUT`; measure Protocol II with
+`python -m repnet.train.evaluate --model OUT --frame-step 10 --table-frame-step 0`.
 """
 
 from __future__ import annotations
@@ -23,9 +23,10 @@ if __package__ in (None, ""):  # `python bench/quantize.py`
 
 from bench.roof import measure_roof
 from bench.stats import sample_poses, write_json
-from service import geometry
-from service.config import BUNDLED_MODEL, Settings
-from service.lifter import Lifter
+from repnet.core import geometry
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.server.config import Settings
 
 log = logging.getLogger("bench.quantize")
 

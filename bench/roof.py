@@ -9,11 +9,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.stats import latency_summary, sample_poses
-from service.app import limits_of, load_lifter
-from service.config import Settings
-from service.keypoints import ModelInput, PoseInput, prepare_poses
-from service.lifter import OUTPUTS
-from service.replies import build_replies
+from repnet.core.inputs import ModelInput, PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.lifter import OUTPUTS
+from repnet.runtime.replies import build_replies
+from repnet.server.app import limits_of, load_lifter
+from repnet.server.config import Settings
 
 BATCHES: tuple[int, ...] = (1, 8, 64, 256, 1024)
 

@@ -6,11 +6,11 @@ The 17 ground-truth joints are projected through the true (distorted) cameras an
 camera's focal lengths and principal point, once without a height (root_height_source "template")
 and once with the subject's true skeleton height (geometry.skeleton_height of the subject's ground
 truth, the median over its frames: one height per person, the same definition the answers are
-measured with). The reply path is the service's (input rules, model, service.replies). The error is
+measured with). The reply path is the service's (input rules, model, repnet.runtime.replies). The error is
 the Euclidean distance in mm between root_camera_m and the ground-truth pelvis in camera coordinates.
 
 `--split validation` uses the held-out tail of the training subjects' sequences (the last 10 %,
-training.data.build_training_sets) and also scores the depth from the weak-perspective scale alone
+repnet.train.data.build_training_sets) and also scores the depth from the weak-perspective scale alone
 (depth = f x size / (s x spread), the root back-projected at it): the comparison the service's
 choice of geometry.root_translation rests on. Report S9/S11 (`--split test`) as the final figure.
 """
@@ -33,15 +33,16 @@ if __package__ in (None, ""):  # `python bench/root_trajectory.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.h36m_args import h36m_parser
-from service import geometry
-from service.app import limits_of, load_lifter
-from service.config import Settings
-from service.formats import MODEL_PARENTS
-from service.keypoints import PoseInput, prepare_poses
-from service.lifter import Lifter
-from service.replies import build_replies
-from training import data
-from training.testset import DATASET_LABEL, build_test_set, select_sequences
+from repnet.core import geometry
+from repnet.core.formats import MODEL_PARENTS
+from repnet.core.inputs import PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.replies import build_replies
+from repnet.server.app import limits_of, load_lifter
+from repnet.server.config import Settings
+from repnet.train import data
+from repnet.train.testset import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.root_trajectory")
 BATCH = 4096
@@ -54,8 +55,12 @@ def frames_of(args: argparse.Namespace) -> dict[str, np.ndarray]:
         poses = select_sequences(data.load_poses(data_dir, "test"), list(data.TEST_SUBJECTS), [])
         test = build_test_set(poses, data.load_cameras(data_dir), None, args.frame_step)
         subject = np.array(test.subjects)[test.subject]
-        return {"points": test.points, "gt": test.gt, "camera": np.concatenate([test.focal, test.centre], 1),
-                "subject": subject}  # fmt: skip
+        return {
+            "points": test.points,
+            "gt": test.gt,
+            "camera": np.concatenate([test.focal, test.centre], 1),
+            "subject": subject,
+        }
     _, sets = data.build_training_sets(data_dir, "gt")
     val = sets["gt"]
     assert val.focal is not None and val.centre is not None
@@ -64,8 +69,12 @@ def frames_of(args: argparse.Namespace) -> dict[str, np.ndarray]:
         raise RuntimeError(f"expected {len(val.points_2d)} validation poses, counted {len(subjects)}")
     step = slice(None, None, args.frame_step)
     camera = np.concatenate([val.focal, val.centre], 1)
-    return {"points": val.points_2d[step], "gt": val.poses_camera[step], "camera": camera[step],
-            "subject": subjects[step]}  # fmt: skip
+    return {
+        "points": val.points_2d[step],
+        "gt": val.poses_camera[step],
+        "camera": camera[step],
+        "subject": subjects[step],
+    }
 
 
 def validation_subjects(data_dir: Path) -> np.ndarray:
@@ -104,8 +113,10 @@ def lift(lifter: Lifter, frames: dict[str, np.ndarray], heights: np.ndarray | No
         rows = range(start, min(start + BATCH, len(points)))
         given = [None] * len(rows) if heights is None else heights[rows].tolist()
         whole = np.ones(17, bool)
-        poses = [PoseInput(points[i], whole, intrinsics=intrinsics_of(camera[i]), person_height_m=h)
-                 for i, h in zip(rows, given, strict=True)]  # fmt: skip
+        poses = [
+            PoseInput(points[i], whole, intrinsics=intrinsics_of(camera[i]), person_height_m=h)
+            for i, h in zip(rows, given, strict=True)
+        ]
         inputs = prepare_poses(poses, limits).check()
         replies = build_replies(inputs, lifter.lift(inputs.keypoints_2d, inputs.visible)).check()
         parts["root"].append(1000.0 * np.array(replies.columns["root_camera_m"], np.float64))
@@ -113,8 +124,9 @@ def lift(lifter: Lifter, frames: dict[str, np.ndarray], heights: np.ndarray | No
         parts["answer_height"].append(geometry.skeleton_height(pose))
         parts["answer_bones"].append(bone_sum(pose))
         size = np.ones(len(pose)) if heights is None else 1000.0 * heights[rows] / parts["answer_height"][-1]
-        parts["weak"].append(weak_perspective_root(inputs.keypoints_2d, pose, replies.columns["scale"],
-                                                   camera[rows], size))  # fmt: skip
+        parts["weak"].append(
+            weak_perspective_root(inputs.keypoints_2d, pose, replies.columns["scale"], camera[rows], size)
+        )
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
@@ -142,10 +154,14 @@ def errors(root: np.ndarray, gt_root: np.ndarray) -> dict[str, float]:
     """Mean and median Euclidean error, mean depth and lateral errors, mm."""
     diff = root - gt_root
     euclid = np.linalg.norm(diff, axis=1)
-    return {"mean_mm": float(euclid.mean()), "median_mm": float(np.median(euclid)),
-            "depth_mean_abs_mm": float(np.abs(diff[:, 2]).mean()), "depth_bias_mm": float(diff[:, 2].mean()),
-            "xy_mean_mm": float(np.linalg.norm(diff[:, :2], axis=1).mean()),
-            "relative_to_distance": float((euclid / np.linalg.norm(gt_root, axis=1)).mean())}  # fmt: skip
+    return {
+        "mean_mm": float(euclid.mean()),
+        "median_mm": float(np.median(euclid)),
+        "depth_mean_abs_mm": float(np.abs(diff[:, 2]).mean()),
+        "depth_bias_mm": float(diff[:, 2].mean()),
+        "xy_mean_mm": float(np.linalg.norm(diff[:, :2], axis=1).mean()),
+        "relative_to_distance": float((euclid / np.linalg.norm(gt_root, axis=1)).mean()),
+    }
 
 
 def intrinsics_of(row: np.ndarray) -> tuple[float, float, float, float]:
@@ -181,7 +197,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "mean_distance_m": float(np.linalg.norm(gt_root, axis=1).mean() / 1000.0),
         "root_template_height": errors(template["root"], gt_root),
         "root_true_height": errors(given["root"], gt_root),
-    }  # fmt: skip
+    }
     if args.split == "validation":
         # the person's size from all 16 true bone lengths instead of the height: passed to the
         # service as the height that scales the answer by the same factor

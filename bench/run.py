@@ -1,4 +1,4 @@
-"""One benchmark run: the raw-model roof, then HTTP and gRPC against `python -m service` in a child process.
+"""One benchmark run: the raw-model roof, then HTTP and gRPC against `repnet serve` in a child process.
 
     python -m bench.run [--model PATH] [--duration 3] [--out runs/bench/bench.json]
 
@@ -32,7 +32,7 @@ from bench.http_load import measure_http
 from bench.roof import BATCHES, RoofRow, measure_roof, roof_table
 from bench.server import ServiceProcess, rss_bytes
 from bench.stats import Result, fmt, machine, results_table, write_json
-from service.app import parse_settings
+from repnet.server.app import parse_settings
 
 log = logging.getLogger("bench")
 
@@ -213,7 +213,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--service-flag",
         action="append",
         default=[],
-        help="extra flag for `python -m service`, e.g. --service-flag=--max-wait-ms=1",
+        help="extra flag for `python -m repnet serve`, e.g. --service-flag=--max-wait-ms=1",
     )
     parser.add_argument("--out", type=Path, default=Path("runs/bench/bench.json"), help="JSON results")
     return parser.parse_args(argv)

@@ -1,4 +1,4 @@
-"""`python -m service` in a child process on free localhost ports, for benchmarks and hardening tests."""
+"""`python -m repnet serve` in a child process on free localhost ports, for benchmarks and hardening tests."""
 
 from __future__ import annotations
 
@@ -60,7 +60,8 @@ def cpu_seconds(pid: int) -> float:
 
 
 class ServiceProcess:
-    """A `python -m service` child (or another `module` that takes its flags) bound to 127.0.0.1 on
+    """A `python -m repnet serve` child (or another module that takes its flags: `module`, e.g.
+    "bench.ceiling") bound to 127.0.0.1 on
     free ports; a context manager."""
 
     def __init__(
@@ -68,15 +69,22 @@ class ServiceProcess:
         *flags: str,
         log: Path | None = None,
         env: dict[str, str] | None = None,
-        module: str = "service",
+        module: str = "repnet serve",
     ) -> None:
         self.module = module
         self.http_port = free_port()
         self.grpc_port = free_port(exclude=(self.http_port,))
         self.flags = (
-            "--host", "127.0.0.1", "--http-port", str(self.http_port), "--grpc-port", str(self.grpc_port),
-            "--log-level", "warning", *flags,
-        )  # fmt: skip
+            "--host",
+            "127.0.0.1",
+            "--http-port",
+            str(self.http_port),
+            "--grpc-port",
+            str(self.grpc_port),
+            "--log-level",
+            "warning",
+            *flags,
+        )
         self.log = log
         self.env = env or {}
         self.process: subprocess.Popen[bytes] | None = None
@@ -106,7 +114,7 @@ class ServiceProcess:
         self._log_file = self.log.open("wb") if self.log else None
         out = self._log_file if self._log_file else subprocess.DEVNULL
         self.process = subprocess.Popen(
-            [sys.executable, "-m", self.module, *self.flags],
+            [sys.executable, "-m", *self.module.split(), *self.flags],
             cwd=ROOT,
             env=env,
             stdout=out,

@@ -213,12 +213,12 @@ def report(rows: dict[str, dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Measure each attack against a fresh `python -m service` with the given flags."""
+    """Measure each attack against a fresh `python -m repnet serve` with the given flags."""
     parser = argparse.ArgumentParser(prog="python -m bench.slow_clients", description=__doc__.split("\n")[0])
     parser.add_argument("--attack", choices=[*ATTACKS, "all"], default="all")
     parser.add_argument("--duration", type=float, default=15.0, help="seconds measured per attack")
     parser.add_argument("--json", type=Path, help="also write the figures here")
-    parser.add_argument("flags", nargs="*", help="flags for python -m service (after --)")
+    parser.add_argument("flags", nargs="*", help="flags for python -m repnet serve (after --)")
     args = parser.parse_args(argv)
     rows = {}
     for attack in ATTACKS if args.attack == "all" else (args.attack,):

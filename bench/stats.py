@@ -15,15 +15,12 @@ from typing import Any
 import numpy as np
 
 from bench.server import cpu_seconds
+from repnet.core.inputs import EXAMPLE_KEYPOINTS
 
 log = logging.getLogger(__name__)
 
-# A person in mid-stride seen from 4.5 m (h36m17, px); tests/conftest.py builds the same pose.
-BASE_POSE = np.array(
-    [[512.0, 515.0], [483.5, 516.3], [471.0, 624.2], [481.3, 730.0], [541.3, 513.7], [550.6, 628.1],
-     [561.9, 735.4], [514.8, 455.4], [516.4, 390.7], [511.1, 363.4], [516.6, 334.0], [550.1, 402.1],
-     [570.4, 466.5], [573.0, 525.4], [482.4, 405.9], [458.7, 469.6], [454.4, 527.5]],
-)  # fmt: skip
+# A person in mid-stride seen from 4.5 m (h36m17, px): the service's example person.
+BASE_POSE = np.array(EXAMPLE_KEYPOINTS)
 
 
 def sample_poses(n: int, seed: int = 0) -> np.ndarray:

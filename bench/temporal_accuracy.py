@@ -23,11 +23,12 @@ import numpy as np
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
-from service.app import build_app, build_engine, load_lifter, load_temporal
-from service.config import BUNDLED_CAUSAL, BUNDLED_OFFLINE, Settings
-from service.metrics import Metrics
-from training import data, sequences
-from training.temporal_data import figures
+from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_OFFLINE
+from repnet.server.app import build_app, build_batcher, load_lifter, load_temporal
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
+from repnet.train import data, sequences
+from repnet.train.temporal_data import figures
 
 MODES = ("off", "causal", "offline")
 KINDS = ("sh25", "sh50", "gt25")
@@ -51,7 +52,7 @@ def run(settings: Settings, data_dir: Path, kinds: tuple[str, ...], modes: tuple
     lifter = load_lifter(settings)
     registry = Metrics(CollectorRegistry())
     temporal = load_temporal(settings, lifter, registry)
-    engine = build_engine(lifter, registry, settings)
+    engine = build_batcher(lifter, registry, settings)
     results: dict[str, Any] = {}
     try:
         with TestClient(build_app(engine, registry, settings, temporal)) as client:

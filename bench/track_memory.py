@@ -2,7 +2,7 @@
 
     python -m bench.track_memory [--tracks 100,1000] [--streams 16] [--out runs/bench/track_memory.json]
 
-The server runs as `python -m service` in a child process, with tracks and streams that do not
+The server runs as `python -m repnet serve` in a child process, with tracks and streams that do not
 expire during the run. Tracked poses travel in LiftFrames of at most --people tracks each (a
 stream's tracks in turn for each frame number), at most --window frames in flight per stream, so
 that the poses in flight (whose windows the server holds until their run) are about as many
@@ -53,9 +53,9 @@ from bench.tracked import (
     single_frame,
     track_gauges,
 )
-from service.app import parse_settings
-from service.temporal import TemporalLifter
-from service.tracks import Observation, Track, track_bytes, track_capacity
+from repnet.runtime.temporal import TemporalLifter
+from repnet.runtime.tracks import Observation, Track, track_bytes, track_capacity
+from repnet.server.app import parse_settings
 
 log = logging.getLogger("bench.track_memory")
 MB = 2**20

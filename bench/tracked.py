@@ -24,7 +24,7 @@ import numpy as np
 from bench.grpc_load import LIFT_STREAM
 from bench.server import cpu_seconds
 from bench.stats import Result, Tally, latency_summary, sample_poses
-from service._proto.repnet.v1 import lifter_pb2
+from repnet._proto.repnet.v1 import lifter_pb2
 
 FPS = 30.0  # a camera's frame rate
 CYCLE = 60  # frames of one loop of a person's movement (2 s at 30 fps)

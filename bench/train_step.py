@@ -26,9 +26,10 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from bench.stats import write_json
-from training import data, skeleton
-from training.config import RepNetConfig, TrainConfig
-from training.trainer import Trainer
+from repnet.core import skeleton
+from repnet.train import data
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.trainer import Trainer
 
 J = skeleton.NUM_JOINTS
 

@@ -16,7 +16,7 @@ import grpc
 import httpx
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 
 # A standing person facing the camera, Human3.6M 17-joint order, pixels (x right, y down).
 STANDING_POSE = [

@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PROTO_DIR = ROOT / "proto"
 OUT_DIR = ROOT / "service" / "_proto"
 PROTOS = ["repnet/v1/lifter.proto"]
-PACKAGE = "service._proto"
+PACKAGE = "repnet._proto"
 
 
 def _fix_imports(path: Path) -> None:

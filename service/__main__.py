@@ -1,8 +1,8 @@
-"""`python -m service`: the server (service.app builds and runs it)."""
+"""`python -m repnet`: the `repnet` command (`python -m repnet serve` runs the server)."""
 
 import sys
 
-from service.app import main
+from repnet.cli.main import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -21,15 +21,17 @@ with warnings.catch_warnings():  # starlette's note about httpx2 is not ours to 
     warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
     from fastapi.testclient import TestClient
 
-from service._proto.repnet.v1 import lifter_pb2_grpc
-from service.app import build_app, build_grpc_server, limits_of
-from service.config import BUNDLED_MODEL, BUNDLED_OFFLINE, Settings
-from service.engine import Engine
-from service.grpc_server import Health
-from service.keypoints import Limits, PoseInput, prepare_poses
-from service.lifter import Lifter, Prediction
-from service.metrics import Metrics
-from service.replies import Replies, build_replies
+from repnet._proto.repnet.v1 import lifter_pb2_grpc
+from repnet.core.inputs import Limits, PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter, Prediction
+from repnet.runtime.loading import BUNDLED_MODEL, BUNDLED_OFFLINE
+from repnet.runtime.replies import Replies, build_replies
+from repnet.server.app import build_app, build_grpc_server, limits_of
+from repnet.server.config import Settings
+from repnet.server.grpc.server import Health
+from repnet.server.metrics import Metrics
 
 # A person in mid-stride, template frame (mm; x right in the image, y down, z away from the
 # camera, facing it), Human3.6M 17-joint order; the pelvis at the origin.
@@ -143,12 +145,16 @@ def gated(lifter: Lifter) -> Iterator[GatedLifter]:
 
 
 @pytest.fixture
-def engine_factory(metrics: Metrics) -> Iterator[Callable[..., Engine]]:
+def engine_factory(metrics: Metrics) -> Iterator[Callable[..., LiftBatcher]]:
     """Build Engines on the shared metrics; all are closed at teardown."""
-    engines: list[Engine] = []
+    engines: list[LiftBatcher] = []
 
-    def build(lifter: Lifter, max_batch: int = 64, max_wait_s: float = 0.001, queue_size: int = 64) -> Engine:
-        engine = Engine(lifter, metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size)
+    def build(
+        lifter: Lifter, max_batch: int = 64, max_wait_s: float = 0.001, queue_size: int = 64
+    ) -> LiftBatcher:
+        engine = LiftBatcher(
+            lifter, metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size
+        )
         engines.append(engine)
         return engine
 
@@ -158,12 +164,12 @@ def engine_factory(metrics: Metrics) -> Iterator[Callable[..., Engine]]:
 
 
 @pytest.fixture
-def engine(engine_factory: Callable[..., Engine], lifter: Lifter) -> Engine:
+def engine(engine_factory: Callable[..., LiftBatcher], lifter: Lifter) -> LiftBatcher:
     return engine_factory(lifter)
 
 
 @pytest.fixture
-def client(engine: Engine, metrics: Metrics, settings: Settings) -> Iterator[TestClient]:
+def client(engine: LiftBatcher, metrics: Metrics, settings: Settings) -> Iterator[TestClient]:
     with TestClient(build_app(engine, metrics, settings)) as client:
         yield client
 
@@ -177,7 +183,7 @@ class GrpcHandle:
 
 
 @pytest.fixture
-def grpc_handle(engine: Engine, metrics: Metrics, settings: Settings) -> Iterator[GrpcHandle]:
+def grpc_handle(engine: LiftBatcher, metrics: Metrics, settings: Settings) -> Iterator[GrpcHandle]:
     """A real gRPC server on a free localhost port, sharing `engine` with `client`."""
     server = build_grpc_server(engine, metrics, settings)
     server.start()
@@ -202,8 +208,8 @@ class LiveService:
 
 @contextlib.contextmanager
 def running_service(settings: Settings, lifter: Lifter) -> Iterator[LiveService]:
-    """`python -m service` in-process with `settings`: uvicorn and gRPC on their ports (0: free ones)."""
-    from service.app import build_service
+    """`python -m repnet serve` in-process with `settings`: uvicorn and gRPC on their ports (0: free ones)."""
+    from repnet.server.app import build_service
 
     service = build_service(settings, lifter)
     thread = threading.Thread(target=service.run, name="live-service", daemon=True)
@@ -230,12 +236,12 @@ def live_settings(**changes: Any) -> Settings:
 
 @pytest.fixture(scope="module")
 def live_service(lifter: Lifter) -> Iterator[LiveService]:
-    """`python -m service` in-process: uvicorn and gRPC on free localhost ports (for clients)."""
+    """`python -m repnet serve` in-process: uvicorn and gRPC on free localhost ports (for clients)."""
     with running_service(live_settings(), lifter) as service:
         yield service
 
 
-# A temporal request of the small service holds this many poses: a longer clip is cut (service.chunks).
+# A temporal request of the small service holds this many poses: a longer clip is cut (repnet.client.chunks).
 SMALL_TEMPORAL_POSES = 120
 
 

@@ -5,46 +5,47 @@ Network for 3D Human Pose Estimation", CVPR. Each equation of the paper (the see
 the code that implements it, and the test (in tests.training) that checks it:
 
 Eq. 1  W' = K X: the reprojection layer, weak perspective
-    code: training.camera.project_weak_perspective
+    code: repnet.train.camera.project_weak_perspective
     test: test_camera.test_projection_is_k_times_x_for_every_joint
 Eq. 2  L_rep = ||W - K X||_F: the reprojection loss (hidden joints' columns zeroed)
-    code: training.losses.reprojection_loss
+    code: repnet.train.losses.reprojection_loss
     test: test_losses.test_reprojection_loss_is_zero_for_exact_projection_with_any_translation
     test: test_losses.test_reprojection_loss_ignores_missing_joints
 Eq. 3  b = p_child - p_parent: a bone vector
-    code: training.losses.bone_lengths
-    code: training.skeleton.bone_matrix
+    code: repnet.train.losses.bone_lengths
+    code: repnet.core.skeleton.bone_matrix
     test: test_skeleton.test_each_bone_matrix_column_is_a_bone_vector_child_minus_parent
     test: test_losses.test_bone_loss_is_zero_at_the_mean_skeleton_and_grows_with_a_stretched_limb
 Eq. 4  c: the vector that defines a bone, +1 at its child and -1 at its parent, b = X c
-    code: training.skeleton.bone_matrix
+    code: repnet.core.skeleton.bone_matrix
     test: test_skeleton.test_each_bone_matrix_column_is_a_bone_vector_child_minus_parent
 Eq. 5-6  B = (b_1, ..., b_B) = X C: all bone vectors of a pose
-    code: training.skeleton.bone_matrix
-    code: training.model.KCS
+    code: repnet.core.skeleton.bone_matrix
+    code: repnet.train.model.KCS
     test: test_skeleton.test_each_bone_matrix_column_is_a_bone_vector_child_minus_parent
 Eq. 7  Psi = B^T B: the kinematic chain space (KCS) matrix the critic sees
-    code: training.model.KCS
+    code: repnet.train.model.KCS
     test: test_model.test_kcs_is_the_gram_matrix_of_the_bone_vectors
     test: test_model.test_kcs_diagonal_holds_squared_bone_lengths
 Eq. 8  K K^T = s^2 I: K is a scaled orthographic projection
-    code: training.losses.camera_loss
+    code: repnet.train.losses.camera_loss
+    code: repnet.core.geometry.rotation_of_camera
     test: test_camera.test_a_scaled_rotation_has_scale_s_and_k_kt_equal_to_s_squared_i
     test: test_losses.test_camera_loss_is_zero_for_scaled_orthographic_camera
 Eq. 9  s = sqrt(trace(K K^T) / 2): the scale in K
-    code: training.camera.camera_scale
+    code: repnet.train.camera.camera_scale
     test: test_camera.test_a_scaled_rotation_has_scale_s_and_k_kt_equal_to_s_squared_i
 Eq. 10  L_cam = ||2 / trace(K K^T) K K^T - I_2||_F: the camera loss
-    code: training.losses.camera_loss
+    code: repnet.train.losses.camera_loss
     test: test_losses.test_camera_loss_is_zero_for_scaled_orthographic_camera
     test: test_losses.test_camera_loss_is_positive_for_skewed_camera
 Sec. 4.3  the symmetry error: sum over the arm and leg bones of |left - right| length
-    code: training.metrics.symmetry_error
-    code: training.skeleton.SYMMETRIC_BONES
+    code: repnet.train.metrics.symmetry_error
+    code: repnet.core.skeleton.SYMMETRIC_BONES
     test: test_metrics.test_symmetry_error_sums_left_right_bone_differences
 
 Not numbered in the paper: the critic's WGAN-GP loss (Gulrajani et al. 2017) is
-training.losses.critic_loss and training.losses.gradient_penalty. Code cites the paper as
+repnet.train.losses.critic_loss and repnet.train.losses.gradient_penalty. Code cites the paper as
 "Wandt & Rosenhahn 2019, Eq. n"; tests/training/test_paper_map.py checks this map, and that each
 citation in training/ stands in a function or class the map names for that equation.
 

@@ -1,8 +1,8 @@
 """Weakly supervised adaptation of a shipped model to a user's own 2D detections (`repnet adapt`).
 
 No 3D of the user's is given or needed. The generator learns on two things that are never paired:
-the user's 2D poses, and 3D poses drawn from the shipped pose prior (training.prior). The steps
-are the Trainer's (training.trainer):
+the user's 2D poses, and 3D poses drawn from the shipped pose prior (repnet.train.prior). The steps
+are the Trainer's (repnet.train.trainer):
 
 - the paper's terms on the user's 2D: reprojection through the predicted camera with missing
   joints' columns zeroed, the camera term and the KCS critic's Wasserstein term (weights 0.1 by
@@ -32,14 +32,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import data, presets
-from training.camera import masked_centre, project_weak_perspective
-from training.checkpoint import read_state
-from training.config import RepNetConfig, TrainConfig
-from training.export import generator_of
-from training.model import LiftingGraph, RepNet, normalize_keypoints
-from training.prior import PosePrior
-from training.trainer import Terms, Trainer
+from repnet.train import data, presets
+from repnet.train.camera import masked_centre, project_weak_perspective
+from repnet.train.checkpoint import read_state
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.export import generator_of
+from repnet.train.model import LiftingGraph, RepNet, normalize_keypoints
+from repnet.train.prior import PosePrior
+from repnet.train.trainer import Terms, Trainer
 
 
 @dataclass(frozen=True)
@@ -79,7 +79,7 @@ RESUMABLE = ("steps", "minutes")
 
 def synthetic_settings() -> TrainConfig:
     """The synthetic task of the bundled model's last stage: its noise, mirroring, limb turns and
-    occlusions (training.presets)."""
+    occlusions (repnet.train.presets)."""
     return presets.get("repnet-h36m-v7").stages[-1].train
 
 
@@ -159,7 +159,7 @@ class ConfigMismatch(ValueError):
 
 
 class Adaptation:
-    """An adaptation of `parent` (a checkpoint state: training.checkpoint.load) to the user's
+    """An adaptation of `parent` (a checkpoint state: repnet.train.checkpoint.load) to the user's
     pixel points (N, J, 2) and visibility (N, J) of the training part (the holdout is not here).
     mirror_average -- the parent's export setting: its answers average each pose with its mirror."""
 
@@ -188,9 +188,12 @@ class Adaptation:
         )
         model_config = RepNetConfig(**parent["model_config"])
         self.trainer = Trainer(
-            train_config(config, threads), model_config, pool, torch.device("cpu"),
+            train_config(config, threads),
+            model_config,
+            pool,
+            torch.device("cpu"),
             torch.Generator().manual_seed(config.seed),
-        )  # fmt: skip
+        )
         self.trainer.generator.load_state_dict(parent["generator"])
         if parent.get("critic"):
             self.trainer.critic.load_state_dict(parent["critic"])

@@ -1,8 +1,8 @@
 """`repnet adapt INPUT... -o adapted.onnx`: adapt a model to the user's own unlabeled 2D detections.
 
-service.cli defines the flags (so `repnet adapt --help` works without torch) and calls run() here;
-this needs the `train` extra. The steps are training.adapt's; the report, the refusal of a worse
-model and the export are training.adapt_report's.
+repnet.cli.main defines the flags (so `repnet adapt --help` works without torch) and calls run() here;
+this needs the `train` extra. The steps are repnet.train.adapt's; the report, the refusal of a worse
+model and the export are repnet.train.adapt_report's.
 """
 
 from __future__ import annotations
@@ -22,11 +22,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from service.adapt_input import read_adapt_input
-from service.config import Settings
-from training import checkpoint, lineage
-from training.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
-from training.adapt_report import (
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.train import checkpoint, lineage
+from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
+from repnet.train.adapt_report import (
     export_adapted,
     measure,
     parent_scorer,
@@ -34,8 +33,8 @@ from training.adapt_report import (
     report_record,
     worse,
 )
-from training.export import generator_of
-from training.model import Critic
+from repnet.train.export import generator_of
+from repnet.train.model import Critic
 
 PROBE_POSES = 256  # held-out poses the progress bar's figures are measured on
 PROBE_EVERY = 50  # steps between two such measurements
@@ -103,21 +102,25 @@ def _progress(adaptation: Adaptation, probe: tuple[np.ndarray, np.ndarray], scor
     return on_step
 
 
-def run(args: argparse.Namespace) -> int:
-    """The command: read, adapt, report, refuse or write. 0 written, 1 refused (worse), 2 usage."""
+def run(
+    args: argparse.Namespace, points: np.ndarray, visible: np.ndarray, counts: tuple[int, ...], skipped: int
+) -> int:
+    """The command on the inputs' usable poses (`points` (N, 17, 2) px and `visible` (N, 17), `counts`
+    per input, `skipped` by the input rules: repnet.cli.adapt reads them): adapt, report, refuse or
+    write. 0 written, 1 refused (worse), 2 usage."""
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.output.suffix != ".onnx":
         say(f"-o {args.output}: the adapted model is an .onnx file")
         return 2
-    size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
-    data = read_adapt_input(args.input, args.format, args.confidence_threshold, size, lambda files: files)
-    held = split_holdout(list(data.counts), args.holdout_fraction)
-    train = (data.points[~held], data.visible[~held])
-    test = (data.points[held], data.visible[held]) if held.any() else train
-    say(f"{len(data.points)} poses ({data.skipped} skipped by the input rules): {len(train[0])} to adapt on, "
-        f"{int(held.sum())} held out")  # fmt: skip
-    parent_path = Path(args.model) if args.model else Settings().model_path
+    held = split_holdout(list(counts), args.holdout_fraction)
+    train = (points[~held], visible[~held])
+    test = (points[held], visible[held]) if held.any() else train
+    say(
+        f"{len(points)} poses ({skipped} skipped by the input rules): {len(train[0])} to adapt on, "
+        f"{int(held.sum())} held out"
+    )
+    parent_path = Path(args.model) if args.model else BUNDLED_MODEL
     parent = checkpoint.from_onnx(parent_path)  # one read of the file: weights and metadata
     meta = parent["metadata"]
     scorer = parent_scorer(parent, meta)
@@ -141,15 +144,19 @@ def run(args: argparse.Namespace) -> int:
         done = adaptation.run(config.minutes, state, on_step=_progress(adaptation, probe, scorer, bar))
     # Samples/s over the whole run (every call of a resumed one): what its wall time bought.
     rate = adaptation.step * config.batch_size / max(adaptation.elapsed, 1e-9)
-    say(f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
-        f"({rate:.0f} samples/s){'' if done else '; run again with --resume to go on'}")  # fmt: skip
+    say(
+        f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
+        f"({rate:.0f} samples/s){'' if done else '; run again with --resume to go on'}"
+    )
     before = measure(generator_of(parent), scorer, *test, mirror)
     after = measure(adaptation.trainer.generator, scorer, *test, mirror)
     print(render(before, after, len(test[0])))
     reasons = worse(before, after)
     if reasons and not args.force:
-        say("not written: the adapted model is worse on the held-out poses (" + "; ".join(reasons) + "); "
-            "--force writes it anyway")  # fmt: skip
+        say(
+            "not written: the adapted model is worse on the held-out poses (" + "; ".join(reasons) + "); "
+            "--force writes it anyway"
+        )
         return 1
     record = {
         "model_id": args.model_id or args.output.stem,
@@ -173,6 +180,8 @@ def run(args: argparse.Namespace) -> int:
     diff = export_adapted(adaptation.trainer.generator, scorer, meta, args.output, record, mirror, critic)
     took = time.monotonic() - start
     model = record["model_id"]
-    say(f"wrote {args.output} (model {model}, torch vs onnxruntime {diff:.1e} mm, {took:.1f} s): "
-        "serve it with --model-path or from REPNET_MODEL_DIR")  # fmt: skip
+    say(
+        f"wrote {args.output} (model {model}, torch vs onnxruntime {diff:.1e} mm, {took:.1f} s): "
+        "serve it with --model-path or from REPNET_MODEL_DIR"
+    )
     return 0

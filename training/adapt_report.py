@@ -17,11 +17,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import metrics, plausibility
-from training.adapt import answer
-from training.export import check_parity, export_onnx, parity_inputs
-from training.model import MM_PER_UNIT, Critic, Plausibility, RepNet
-from training.sequences import pose_spread
+from repnet.runtime.lifter import TRAINING_METHOD, training_method_of
+from repnet.train import metrics, plausibility
+from repnet.train.adapt import answer
+from repnet.train.export import check_parity, export_onnx, parity_inputs
+from repnet.train.model import MM_PER_UNIT, Critic, Plausibility, RepNet
+from repnet.train.sequences import pose_spread
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,11 @@ def export_adapted(
     meta["train_command"] = lineage["command"]
     parent_data = parent_meta.get("training_data", "")
     meta["training_data"] = f"{parent_data}; adapted (repnet adapt) on {lineage['poses']} unlabeled 2D poses"
+    meta[TRAINING_METHOD] = (
+        f"{training_method_of(parent_meta)} Then adapted by `repnet adapt`: the paper's weakly supervised "
+        f"losses (reprojection, camera, WGAN-GP critic with its KCS path) on {lineage['poses']} unlabeled "
+        "2D poses, with an anchor to the parent's answers."
+    ).strip()
     meta["evaluation"] = json.dumps({"adapt_holdout": lineage["report"]})
     meta["lineage"] = json.dumps(lineage)
     export_onnx(generator.eval(), output, meta, scorer, mirror_average, critic)

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import torch
 
-from training import data, metrics, skeleton
-from training.config import TrainConfig
-from training.model import normalize_keypoints
-from training.shapes import check_shape
+from repnet.core import skeleton
+from repnet.train import data, metrics
+from repnet.train.config import TrainConfig
+from repnet.train.model import normalize_keypoints
+from repnet.train.shapes import check_shape
 
 
 def augment_visibility(visible: torch.Tensor, config: TrainConfig, gen: torch.Generator) -> torch.Tensor:
@@ -88,19 +89,6 @@ def corrupt_poses(poses: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return out - out[:, skeleton.ROOT : skeleton.ROOT + 1]
 
 
-def rescale_bones(poses: torch.Tensor, sigma: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
-    """(N, J, 3) poses (metres) with every bone's length times 1 + N(0, sigma) and its direction kept,
-    sigma (N,) per pose: small, graded asymmetries and off-length bones, as a lifter's answer to
-    noisy 2D has (the joints below a bone move with it)."""
-    check_shape(poses, (None, skeleton.NUM_JOINTS, 3), "real poses (N, J, 3)")
-    factor = 1 + sigma[:, None] * torch.randn(poses.shape[:2], generator=gen, device=poses.device)
-    out = poses.clone()
-    for joint, parent in enumerate(skeleton.PARENTS):  # parents come before their children
-        if parent >= 0:
-            out[:, joint] = out[:, parent] + factor[:, joint, None] * (poses[:, joint] - poses[:, parent])
-    return out
-
-
 def with_detector_errors(
     pixels: torch.Tensor,
     visible: torch.Tensor,
@@ -114,7 +102,7 @@ def with_detector_errors(
         return pixels, visible
     if pool.detector_errors is None or pool.detector_visible is None:
         raise ValueError(
-            "detector_error_prob > 0 needs the pool's detector errors (training.sequences.residuals)"
+            "detector_error_prob > 0 needs the pool's detector errors (repnet.train.sequences.residuals)"
         )
     n = pixels.shape[0]
     check_shape(pixels, (n, skeleton.NUM_JOINTS, 2), "pixels")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from training.shapes import check_shape
+from repnet.train.shapes import check_shape
 
 
 def masked_centre(points: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:

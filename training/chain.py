@@ -4,7 +4,7 @@ Run again after an interruption, it skips the stages that recorded their complet
 and resumes the one that was running from its last.pt, bit for bit: the same chain, interrupted
 or not, gives the same weights. A stage starts only when the stages it starts from are done.
 
-Each stage is trained by the function it is given, training.train.train: train's command line
+Each stage is trained by the function it is given, repnet.train.train.train: train's command line
 runs presets, so this module does not import it (no import circle).
 """
 
@@ -20,9 +20,9 @@ from typing import Protocol
 
 import torch
 
-from training import checkpoint, export, lineage
-from training.config import RepNetConfig, TrainConfig
-from training.presets import Preset, Stage, StageRef
+from repnet.train import checkpoint, export, lineage
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.presets import Preset, Stage, StageRef
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,7 @@ DONE = "done.json"  # a finished stage's record: its last step, the sha256 of it
 
 
 class TrainFunction(Protocol):
-    """training.train.train's signature."""
+    """repnet.train.train.train's signature."""
 
     def __call__(
         self,

@@ -1,6 +1,6 @@
 """Read a training checkpoint, or recover one from an exported model.
 
-An exported graph (training.export) holds the generator's weights as ONNX initializers under their
+An exported graph (repnet.train.export) holds the generator's weights as ONNX initializers under their
 torch names (``generator.*``) and, with a plausibility output, the critic's (``plausibility.critic.*``);
 its metadata holds the model's shape and training command. That is enough to continue training a
 shipped model, or to reuse its critic, when the run's own checkpoints are gone.
@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from training.config import RepNetConfig, TrainConfig
+from repnet.train.config import RepNetConfig, TrainConfig
 
 GENERATOR_PREFIX = "generator."
 CRITIC_PREFIX = "critic."  # the "critic" output's; a critic-scored plausibility keeps it at SCORE_PREFIX
@@ -63,7 +63,7 @@ def join_commands(generator_command: str, critic_command: str) -> str:
 
 
 def load(path: str | Path) -> dict[str, Any]:
-    """The state of a checkpoint written by training.train, or the state recovered from an
+    """The state of a checkpoint written by repnet.train.train, or the state recovered from an
     exported ``.onnx`` (from_onnx)."""
     path = Path(path)
     if path.suffix == ".onnx":
@@ -116,7 +116,7 @@ def from_onnx(path: Path) -> dict[str, Any]:
     weights, model config, the training command and lineage, step 0 and no optimiser state, and
     the file's whole custom metadata ("metadata").
 
-    Raises ValueError when the file holds no generator weights (not a training.export graph).
+    Raises ValueError when the file holds no generator weights (not a repnet.train.export graph).
     """
     import onnx
     from onnx import numpy_helper
@@ -129,14 +129,14 @@ def from_onnx(path: Path) -> dict[str, Any]:
     generator = _strip(weights, GENERATOR_PREFIX)
     if not generator or "model_config" not in meta:
         raise ValueError(
-            f"{path}: no generator weights or model_config metadata (not a training.export model)"
+            f"{path}: no generator weights or model_config metadata (not a repnet.train.export model)"
         )
     command = meta.get("train_command", "")
     generator_command, _, critic_command = command.removeprefix(GENERATOR_LABEL).partition(CRITIC_COMMAND)
     # export writes "..., 2D inputs: gt+sh"; the rest of the run's configuration is not kept.
     inputs = meta.get("training_data", "").partition("2D inputs: ")[2]
     score = _strip(weights, SCORE_PREFIX)
-    density = score if "projection" in score else {}  # a training.density.PoseDensity
+    density = score if "projection" in score else {}  # a repnet.train.density.PoseDensity
     critic = _strip(weights, CRITIC_PREFIX) or _strip(weights, LEGACY_CRITIC_PREFIX)
     if not critic and not density:
         critic = score  # the plausibility is the critic's score

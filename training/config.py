@@ -36,7 +36,7 @@ class TrainConfig:
     camera losses, gradient-penalty weight 10. That is neither the paper's recipe (Wandt &
     Rosenhahn 2019: lr 0.001 with exponential decay) nor the authors' released script (batch 32,
     one critic update per generator update, Adam lr 1e-4 with betas (0.5, 0.9), L1 losses). A
-    shipped model comes from a named preset (training.presets), which sets every field it needs.
+    shipped model comes from a named preset (repnet.train.presets), which sets every field it needs.
     """
 
     data_dir: str = ""
@@ -92,20 +92,10 @@ class TrainConfig:
     # What the critic-only stage takes for fakes: "generator" (its poses) or "corrupted" (real
     # poses with a limb stretched or shrunk, joints swapped or jittered). Against the generator
     # alone a critic learns the generator's signature (e.g. its too-regular bone lengths), not
-    # what makes a pose implausible: garbage then scores as real.
-    # "lifted": the frozen generator's own answers to noisy and detected training 2D (noise up to
-    # critic_noise_px, hidden joints as mask_prob), with corrupted real poses in a
-    # critic_corrupted_share of each batch (critic_fakes.lifted); it learns the generator's
-    # signature and ranks worse. "paired": each of those answers against the generator's answer to
-    # the same 2D without the noise and the hidden joints on the real side, and corrupted real poses
-    # against the same real poses (critic_fakes.paired), meant to teach what damage does, not the
-    # signature both sides share (neither beat v2 by much: docs/RESULTS.md, critic round 2).
-    # "graded": real poses with every bone rescaled by 1 + N(0, sigma), sigma ~ U(0, critic_bone_sigma)
-    # per pose, and corrupted ones in a critic_corrupted_share (critic_fakes.graded).
+    # what makes a pose implausible: garbage then scores as real. (Three more sources, the
+    # generator's answers to noisy 2D, pairs and graded bones, were tried and ranked no better:
+    # docs/RESULTS.md, "Plausibility"; they are gone with the code no preset used.)
     critic_fakes: str = "generator"
-    critic_noise_px: float = 40.0
-    critic_corrupted_share: float = 0.5
-    critic_bone_sigma: float = 0.15
     # Weight of the synthetic camera's rotation as a target for the camera branch: mean |K / s -
     # the first two rows of the rotation from the template frame to the synthetic camera|. The
     # reprojection alone leaves K's rotation ~9 degrees off on validation (its P-I gap to P-II).
@@ -153,5 +143,5 @@ class TrainConfig:
     # Start from the generator weights of this checkpoint (and its critic's, when the critic has
     # the same shape), at step 0 with fresh optimisers and schedule: ablations of the
     # adversarial phase that all start from one warm start. An exported .onnx works too
-    # (training.checkpoint): a shipped model trains on when its run's checkpoints are gone.
+    # (repnet.train.checkpoint): a shipped model trains on when its run's checkpoints are gone.
     init_from: str = ""

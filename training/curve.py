@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 # Validation figures: val_* in the single-frame trainer's history; <set>_* in the temporal one's
-# (training.temporal_train: sh25, sh50 and gt25 clips).
+# (repnet.train.temporal_train: sh25, sh50 and gt25 clips).
 VALIDATION_PREFIXES = ("val_", "sh25_", "sh50_", "gt25_")
 
 
@@ -117,7 +117,7 @@ def plot_runs(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.curve: tables and figures of runs' validation histories."""
+    """python -m repnet.train.curve: tables and figures of runs' validation histories."""
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument(
         "--history",

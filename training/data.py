@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from training import skeleton
+from repnet.core import skeleton
 
 TRAIN_SUBJECTS: tuple[str, ...] = ("S1", "S5", "S6", "S7", "S8")
 TEST_SUBJECTS: tuple[str, ...] = ("S9", "S11")
@@ -180,7 +180,7 @@ class TrainingPool:
     poses_world: np.ndarray | None = None
     # Real detector errors for synthetic 2D (TrainConfig.detector_error_prob): (E, J, 2) Stacked-
     # Hourglass detection minus projected truth over the pose's spread, and the detector's (E, J)
-    # visibility, of the training frames (training.sequences.residuals).
+    # visibility, of the training frames (repnet.train.sequences.residuals).
     detector_errors: np.ndarray | None = None
     detector_visible: np.ndarray | None = None
 

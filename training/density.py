@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training import skeleton
+from repnet.core import skeleton
 
 # The proportions' Gaussian: the training subjects' covariance, every direction with a standard
 # deviation of at least LENGTH_FLOOR (log length), widened LENGTH_WIDEN times. Chosen on validation

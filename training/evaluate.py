@@ -14,8 +14,9 @@ import numpy as np
 import onnxruntime as ort
 from tqdm import tqdm
 
-from training import data, metrics, report, skeleton
-from training.testset import DATASET_LABEL, TestSet, build_test_set, select_sequences
+from repnet.core import geometry, skeleton
+from repnet.train import data, metrics, report
+from repnet.train.testset import DATASET_LABEL, TestSet, build_test_set, select_sequences
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +81,7 @@ def score(
         for start in range(0, len(points), batch_size):
             batch = slice(start, start + batch_size)
             pose, camera, plausibility = lift(points[batch], visible[batch])  # (n, 17, 3), (n, 2, 3), (n,)
-            ray = metrics.ray_rotation(points[batch], visible[batch], test.focal[batch], test.centre[batch])
+            ray = geometry.ray_turn(points[batch], visible[batch], test.focal[batch], test.centre[batch])
             pose_cam, pose_ray = metrics.camera_frames(pose, camera, ray)  # Protocol I, and along the ray
             p1.append(metrics.joint_errors(pose_cam, gt[batch]).astype(np.float32))
             p1_ray.append(metrics.joint_errors(pose_ray, gt[batch]).astype(np.float32))
@@ -122,7 +123,7 @@ def bone_length_figures(scores: Scores, test: TestSet) -> dict[str, Any]:
 def off_axis_floor(test: TestSet) -> dict[str, float]:
     """The plain P-I (mm) of a lifter whose pose and view along the ray are exact, over all frames
     (metrics.off_axis_errors), and how far off the optical axis the people stand (degrees)."""
-    ray = metrics.ray_rotation(test.points, test.visible, test.focal, test.centre)
+    ray = geometry.ray_turn(test.points, test.visible, test.focal, test.centre)
     errors, angles = metrics.off_axis_errors(test.gt, ray)
     return {
         "mpjpe": float(errors.mean()),
@@ -317,7 +318,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    """python -m training.evaluate: evaluate a model and write its report; returns the results."""
+    """python -m repnet.train.evaluate: evaluate a model and write its report; returns the results."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     result = evaluate(args)

@@ -14,12 +14,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import checkpoint, data, lineage, skeleton
-from training import plausibility as plausibility_of
-from training.config import RepNetConfig
-from training.density import PoseDensity
-from training.model import Critic, LiftingGraph, Plausibility, RepNet, load_critic
-from training.plausibility import SCORES, DensityConfig, Score
+from repnet.core import skeleton
+from repnet.runtime.lifter import TRAINING_METHOD
+from repnet.train import checkpoint, data, lineage
+from repnet.train import plausibility as plausibility_of
+from repnet.train.config import RepNetConfig
+from repnet.train.density import PoseDensity
+from repnet.train.model import Critic, LiftingGraph, Plausibility, RepNet, load_critic
+from repnet.train.plausibility import SCORES, DensityConfig, Score
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +34,8 @@ LICENCE = (
 
 
 def load_generator(path: Path) -> tuple[RepNet, dict[str, Any]]:
-    """Rebuild the generator from a checkpoint written by training.train, or from an exported
-    model (training.checkpoint.from_onnx); no flags needed."""
+    """Rebuild the generator from a checkpoint written by repnet.train.train, or from an exported
+    model (repnet.train.checkpoint.from_onnx); no flags needed."""
     state = checkpoint.load(path)
     return generator_of(state), state
 
@@ -126,10 +128,11 @@ def build_metadata(
     plausibility: dict[str, str] | None = None,
     mirror_average: bool = False,
     lineage: dict[str, Any] | None = None,
+    training_method: str = "",
 ) -> dict[str, str]:
-    """ONNX custom metadata: joints, skeleton, provenance (train_command and, given, the lineage as
-    JSON), licence, evaluation figures and, with a plausibility output, what it means and its
-    calibration (training.plausibility.metadata's entries)."""
+    """ONNX custom metadata: joints, skeleton, provenance (train_command, how it was trained and,
+    given, the lineage as JSON), licence, evaluation figures and, with a plausibility output, what it
+    means and its calibration (repnet.train.plausibility.metadata's entries)."""
     extra: dict[str, str] = {} if lineage is None else {"lineage": json.dumps(lineage)}
     extra.update(plausibility or {})
     return {
@@ -142,12 +145,28 @@ def build_metadata(
         "and divided by their standard deviation, up to a translation",
         "model_config": json.dumps(asdict(config)),
         "training_data": training_data,
+        TRAINING_METHOD: training_method,
         "licence": LICENCE,
         "train_command": train_command,
         "evaluation": json.dumps(evaluation or {}),
         "mirror_average": json.dumps(mirror_average),
         **extra,
     }
+
+
+def method_of(train: dict[str, Any]) -> str:
+    """How a run of TrainConfig `train` (its checkpoint's config) trained the generator, in words."""
+    supervised = int(train.get("warm_start_steps", 0))
+    if supervised >= int(train.get("iterations", 0)):
+        return (
+            "Supervised on synthetic projections of Human3.6M 3D poses (the training subjects through "
+            "random cameras): the adversarial phase is empty. The paper's weakly supervised losses are "
+            "used by `repnet adapt`."
+        )
+    return (
+        f"{supervised} steps supervised on synthetic projections of Human3.6M 3D poses, then the paper's "
+        "weak supervision: the reprojection and camera losses on 2D inputs and the WGAN-GP critic."
+    )
 
 
 def check_parity(
@@ -250,6 +269,7 @@ def export_model(
         model_id=model_id or output.stem,
         train_command=lineage.path_free(train_command, root),
         training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
+        training_method=method_of(train),
         evaluation=evaluation,
         plausibility=entries,
         mirror_average=mirror_average,
@@ -267,7 +287,7 @@ def export_model(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.export: a checkpoint (or an exported model) to an ONNX model."""
+    """python -m repnet.train.export: a checkpoint (or an exported model) to an ONNX model."""
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--output", type=Path, required=True)
@@ -317,7 +337,9 @@ def main(argv: list[str] | None = None) -> None:
             mirror_average=args.mirror_average,
             evaluation=json.loads(args.evaluation.read_text()) if args.evaluation else None,
             data_dir=args.data_dir,
-            command=lineage.command_line(argv if argv is not None else sys.argv[1:], root, "training.export"),
+            command=lineage.command_line(
+                argv if argv is not None else sys.argv[1:], root, "repnet.train.export"
+            ),
             root=root,
         )
     except NoCritic as err:

@@ -117,7 +117,7 @@ def path_free(command: str, root: Path | None) -> str:
     return _PATH_WORD.sub(lambda match: path_free_path(match[0], root), command)
 
 
-def command_line(argv: list[str], root: Path | None, module: str = "training.train") -> str:
+def command_line(argv: list[str], root: Path | None, module: str = "repnet.train.train") -> str:
     """`python -m module argv...`, path free."""
     return path_free(shlex.join(["python", "-m", module, *argv]), root)
 

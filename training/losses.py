@@ -6,9 +6,9 @@ from collections.abc import Callable
 
 import torch
 
-from training import skeleton
-from training.camera import masked_centre, project_weak_perspective
-from training.shapes import check_shape
+from repnet.core import skeleton
+from repnet.train.camera import masked_centre, project_weak_perspective
+from repnet.train.shapes import check_shape
 
 
 def reprojection_loss(

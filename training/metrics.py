@@ -1,62 +1,25 @@
-"""Pose metrics: MPJPE (Protocol I and II), PCK3D, AUC, symmetry error, rotation from K."""
+"""Pose metrics: MPJPE (Protocol I and II), PCK3D, AUC, symmetry error (the rotation in K, and the
+turn along the ray, are repnet.core.geometry's, as the service computes them)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from training import skeleton
-from training.data import procrustes
-
-
-def rotation_from_camera(camera: np.ndarray) -> np.ndarray:
-    """(N, 2, 3) weak-perspective K -> (N, 3, 3) rotation: orthonormalised rows of K and their cross.
-
-    The two rows are the closest orthonormal pair to K's rows (polar decomposition), so the
-    result is a proper rotation even when K is not exactly scaled-orthographic.
-    """
-    u, _, vt = np.linalg.svd(camera.astype(np.float64), full_matrices=False)  # (N,2,2), (N,2,3)
-    rows = u @ vt  # (N, 2, 3)
-    third = np.cross(rows[:, 0], rows[:, 1])
-    return np.concatenate([rows, third[:, None]], axis=1)
-
-
-def rotation_to_ray(direction: np.ndarray) -> np.ndarray:
-    """(N, 3) directions in front of a camera (z > 0) -> (N, 3, 3) the smallest rotations that
-    take the optical axis (0, 0, 1) onto each of them."""
-    z = direction.astype(np.float64) / np.linalg.norm(direction, axis=1, keepdims=True)
-    v = np.stack([-z[:, 1], z[:, 0], np.zeros(len(z))], axis=1)  # (0, 0, 1) x z
-    vx = np.zeros((len(z), 3, 3))
-    vx[:, 0, 2], vx[:, 1, 2], vx[:, 2, 0], vx[:, 2, 1] = v[:, 1], -v[:, 0], -v[:, 1], v[:, 0]
-    return np.eye(3)[None] + vx + vx @ vx / (1.0 + z[:, 2])[:, None, None]
-
-
-def ray_rotation(
-    points: np.ndarray, visible: np.ndarray, focal: np.ndarray, centre: np.ndarray
-) -> np.ndarray:
-    """(N, 3, 3) rotations from the view along the ray through the centroid of each pose's visible
-    (N, J, 2) pixel points into the camera frame, for pinhole intrinsics focal, centre (N, 2) px.
-
-    A weak-perspective K sees a person along the ray to them, not along the optical axis: the
-    normalised input has lost where in the image the person stood. With the intrinsics known,
-    ray_rotation @ rotation_from_camera(K) is the camera-frame orientation (to_camera_frame's ray).
-    """
-    w = visible[..., None]
-    centroid = (points * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)  # (N, 2)
-    direction = np.concatenate([(centroid - centre) / focal, np.ones((len(points), 1))], axis=1)
-    return rotation_to_ray(direction)
+from repnet.core import geometry, skeleton
+from repnet.train.data import procrustes
 
 
 def camera_frames(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, J, 3) poses turned by K's rotation (Protocol I), and the same turned along the ray too:
     to_camera_frame without and with `ray`, with one polar decomposition of K."""
-    rotation = rotation_from_camera(camera)
+    rotation = geometry.rotation_of_camera(camera)
     return np.einsum("nrc,njc->njr", rotation, pose), np.einsum("nrc,njc->njr", ray @ rotation, pose)
 
 
 def to_camera_frame(pose: np.ndarray, camera: np.ndarray, ray: np.ndarray | None = None) -> np.ndarray:
     """Rotate (N, J, 3) template-frame poses into the camera's orientation (Protocol I): by the
-    rotation in K, then, given (N, 3, 3) ray rotations (ray_rotation), by the turn of the ray."""
-    rotation = rotation_from_camera(camera)
+    rotation in K, then, given (N, 3, 3) ray rotations (geometry.ray_turn), by the turn of the ray."""
+    rotation = geometry.rotation_of_camera(camera)
     if ray is not None:
         rotation = ray @ rotation
     return np.einsum("nrc,njc->njr", rotation, pose)

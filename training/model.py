@@ -7,10 +7,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from training import skeleton
-from training.camera import masked_centre
-from training.config import RepNetConfig
-from training.losses import bone_lengths
+from repnet.core import skeleton
+from repnet.train.camera import masked_centre
+from repnet.train.config import RepNetConfig
+from repnet.train.losses import bone_lengths
 
 # The generator works in metres so its outputs are O(1); the exported graph speaks mm.
 MM_PER_UNIT = 1000.0
@@ -144,7 +144,7 @@ class Plausibility(nn.Module):
     """A pose score calibrated to [0, 1]: its percentile among real validation poses.
 
     score -- (N, J, 3) pose in metres -> (N,), higher = more like a real pose: the pose density
-    (training.density), or in models exported before it the critic.
+    (repnet.train.density), or in models exported before it the critic.
     table -- the score of real poses, sorted; a pose scores the share of them it reaches or beats,
     so 0.5 is a typical real pose and 0.01 one that 99 % of them beat.
     bone_range -- optional (2, B) shortest and longest length (metres) a real pose's bones may

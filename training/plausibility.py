@@ -1,6 +1,6 @@
 """The plausibility output: what scores a pose, its calibration among real poses, its metadata.
 
-A score (the pose density, training.density, or in models exported before it the critic) becomes
+A score (the pose density, repnet.train.density, or in models exported before it the critic) becomes
 a percentile among the real validation poses (model.Plausibility), and a pose with a bone outside
 the real poses' range scores 0. export builds it from the Human3.6M data; adapt rebuilds a parent's
 from its file (from_state).
@@ -16,10 +16,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from training import skeleton
-from training.density import PoseDensity
-from training.losses import bone_lengths
-from training.model import MM_PER_UNIT, Plausibility, load_critic
+from repnet.core import skeleton
+from repnet.train.density import PoseDensity
+from repnet.train.losses import bone_lengths
+from repnet.train.model import MM_PER_UNIT, Plausibility, load_critic
 
 CALIBRATION_LEVELS = 1001  # quantiles of the score over real poses: 0.1 % steps
 # A real pose's bone may be this much shorter than the shortest or longer than the longest of

@@ -3,7 +3,7 @@
 A preset lists its stages in order (each a full TrainConfig and RepNetConfig, stopping on a step,
 never on wall time), the stage that trains the plausibility critic, and what is exported: one
 config per released checkpoint, as mmpose keeps them, written as data in the spirit of nanoGPT's
-config/*.py. `python -m training.train --preset NAME` runs one (training.chain); the thread count,
+config/*.py. `python -m repnet.train.train --preset NAME` runs one (repnet.train.chain); the thread count,
 device and folders are set on the command line, not here.
 """
 
@@ -12,10 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
-from training.config import RepNetConfig, TrainConfig
-from training.plausibility import DensityConfig, Score
-from training.sequences import ClipConfig, ClipNoise
-from training.temporal import TemporalConfig, TemporalTrainConfig
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.plausibility import DensityConfig, Score
+from repnet.train.sequences import ClipConfig, ClipNoise
+from repnet.train.temporal import TemporalConfig, TemporalTrainConfig
 
 
 @dataclass(frozen=True)
@@ -66,9 +66,11 @@ class Stage:
 
     def summary(self) -> str:
         """One line: steps, schedule and start."""
-        steps = f"{self.stop:,} steps" if self.stop == self.train.iterations else (
-            f"{self.train.iterations:,}-step schedule stopped at step {self.stop:,}"
-        )  # fmt: skip
+        steps = (
+            f"{self.stop:,} steps"
+            if self.stop == self.train.iterations
+            else (f"{self.train.iterations:,}-step schedule stopped at step {self.stop:,}")
+        )
         if self.extends:
             start = f"goes on from {self.extends}/last.pt (its whole state) from its step"
         elif self.init_from:
@@ -265,7 +267,7 @@ def get(name: str) -> Preset:
 
 @dataclass(frozen=True)
 class TemporalPreset:
-    """A shipped temporal model pair (training.temporal_train): the single-frame model whose answers
+    """A shipped temporal model pair (repnet.train.temporal_train): the single-frame model whose answers
     they refine (a file of this repository), the synthetic clips, and one (model id, shape) per mode,
     each trained by `train`."""
 

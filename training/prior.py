@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from training import skeleton
+from repnet.core import skeleton
 
 PRIOR_FILE = Path(__file__).parent / "assets" / "pose_prior_h36m.npz"
 LICENCE = (
@@ -137,11 +137,11 @@ def fit(poses_world: np.ndarray, components: int = 48, dims: int = 32, seed: int
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.prior: fit the prior to the training subjects' poses (validation tails
+    """python -m repnet.train.prior: fit the prior to the training subjects' poses (validation tails
     left out) and write it; reproduces the shipped file."""
     import argparse
 
-    from training import data
+    from repnet.train import data
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument(

@@ -1,13 +1,13 @@
 """Carry temporal models over to a new single-frame model whose generator is unchanged.
 
-A temporal model (training.temporal_train) refines the answers of one single-frame model and names it
+A temporal model (repnet.train.temporal_train) refines the answers of one single-frame model and names it
 by its file's sha256 (metadata base_model_sha256), which the service checks at start. A new export that
 changes only the critic (the plausibility output) gives the same pose_3d and camera to the bit but a
 new file, so the temporal models would be left out. This checks that the two single-frame models
 hold the same generator weights and answer the same inputs identically, then rewrites the temporal
 models' base_model_sha256 and base_model_id and records the move in their lineage:
 
-python -m training.rebase --old v6.onnx --new service/models/repnet-h36m.onnx \
+python -m repnet.train.rebase --old v6.onnx --new service/models/repnet-h36m.onnx \
     service/models/repnet-h36m-temporal-causal.onnx service/models/repnet-h36m-temporal-offline.onnx
 """
 
@@ -22,7 +22,8 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from training import checkpoint, lineage, skeleton
+from repnet.core import skeleton
+from repnet.train import checkpoint, lineage
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +89,7 @@ def rebase(temporal: Path, old: Path, new: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.rebase --old OLD.onnx --new NEW.onnx TEMPORAL.onnx..."""
+    """python -m repnet.train.rebase --old OLD.onnx --new NEW.onnx TEMPORAL.onnx..."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

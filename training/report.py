@@ -1,4 +1,4 @@
-"""Markdown tables, JSON and the per-action bar chart of a training.evaluate result."""
+"""Markdown tables, JSON and the per-action bar chart of a repnet.train.evaluate result."""
 
 from __future__ import annotations
 
@@ -10,12 +10,19 @@ SUBSET_LABELS = {"all": "all sequences", "without_misaligned": "without misalign
 DASH = "–"
 # (header, key in metrics.summarize) of the overall table after "test set" and "poses".
 OVERALL_COLUMNS = (
-    ("MPJPE P-I", "mpjpe"), ("median", "mpjpe_median"), ("P-I ray", "mpjpe_ray"),
-    ("PA-MPJPE P-II", "pa_mpjpe"), ("median", "pa_mpjpe_median"), ("PCK3D", "pck3d_150"), ("AUC", "auc"),
+    ("MPJPE P-I", "mpjpe"),
+    ("median", "mpjpe_median"),
+    ("P-I ray", "mpjpe_ray"),
+    ("PA-MPJPE P-II", "pa_mpjpe"),
+    ("median", "pa_mpjpe_median"),
+    ("PCK3D", "pck3d_150"),
+    ("AUC", "auc"),
     ("PA-PCK3D", "pa_pck3d_150"),
-    ("PA-AUC", "pa_auc"), ("symmetry mean", "symmetry_mean"), ("std", "symmetry_std"),
+    ("PA-AUC", "pa_auc"),
+    ("symmetry mean", "symmetry_mean"),
+    ("std", "symmetry_std"),
     ("max", "symmetry_max"),
-)  # fmt: skip
+)
 ROBUSTNESS_HEADER = [
     "P-I",
     "P-I ray",
@@ -25,8 +32,18 @@ ROBUSTNESS_HEADER = [
     "symmetry",
     "paper P-II",
 ]
-PER_ACTION_HEADER = ["action", "poses", "MPJPE P-I", "P-I ray", "PA-MPJPE P-II", "P-I w/o misaligned",
-                     "P-II w/o misaligned", "PCK3D", "AUC", "symmetry"]  # fmt: skip
+PER_ACTION_HEADER = [
+    "action",
+    "poses",
+    "MPJPE P-I",
+    "P-I ray",
+    "PA-MPJPE P-II",
+    "P-I w/o misaligned",
+    "P-II w/o misaligned",
+    "PCK3D",
+    "AUC",
+    "symmetry",
+]
 
 
 def _fmt(value: float | None, digits: int = 1) -> str:
@@ -134,13 +151,21 @@ def render_markdown(result: dict[str, Any]) -> str:
             *_table(
                 ["", "mean over the 8 arm and leg bones", "largest", *bones["per_bone_std"]],
                 [
-                    ["prediction", _fmt(bones["mean_std"]), _fmt(bones["max_std"]),
-                     *(_fmt(v) for v in bones["per_bone_std"].values())],
-                    ["ground truth", _fmt(bones["gt_mean_std"]), _fmt(bones["gt_max_std"]),
-                     *(DASH for _ in bones["per_bone_std"])],
+                    [
+                        "prediction",
+                        _fmt(bones["mean_std"]),
+                        _fmt(bones["max_std"]),
+                        *(_fmt(v) for v in bones["per_bone_std"].values()),
+                    ],
+                    [
+                        "ground truth",
+                        _fmt(bones["gt_mean_std"]),
+                        _fmt(bones["gt_max_std"]),
+                        *(DASH for _ in bones["per_bone_std"]),
+                    ],
                 ],
             ),
-        ]  # fmt: skip
+        ]
     tables = result.get("tables")
     if tables:
         subset = f"GT 2D, frame step {tables['frame_step']}, {tables['poses']:,} poses, seed {result['seed']}"
@@ -188,13 +213,17 @@ def render_markdown(result: dict[str, Any]) -> str:
                 *_table(
                     ["decile", "poses", "plausibility", "P-II", "symmetry"],
                     [
-                        [str(r["decile"]), f"{r['poses']:,}",
-                         f"{r['plausibility_min']:.3f}-{r['plausibility_max']:.3f}", _fmt(r["pa_mpjpe"]),
-                         _fmt(r["symmetry"])]
+                        [
+                            str(r["decile"]),
+                            f"{r['poses']:,}",
+                            f"{r['plausibility_min']:.3f}-{r['plausibility_max']:.3f}",
+                            _fmt(r["pa_mpjpe"]),
+                            _fmt(r["symmetry"]),
+                        ]
                         for r in rows or []
                     ],
                 ),
-            ]  # fmt: skip
+            ]
     if result["notes"]:
         lines += ["", "Notes: " + "; ".join(result["notes"])]
     return "\n".join(lines) + "\n"

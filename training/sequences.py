@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from training import data, skeleton, synthetic
+from repnet.core import skeleton
+from repnet.train import data, synthetic
 
 SOURCE_HZ = 25.0  # the rate of the training copy's 3D poses and detections
 FPS_CHOICES: tuple[float, ...] = (25.0, 30.0, 50.0, 60.0)
@@ -262,8 +263,13 @@ def validation_clips(
         truth = truth - truth[:, skeleton.ROOT : skeleton.ROOT + 1]
         clips.append(
             ValidationClip(
-                name, points.astype(np.float32), seen, fps, truth.astype(np.float32),
-                source.astype(np.float32), source_format,
+                name,
+                points.astype(np.float32),
+                seen,
+                fps,
+                truth.astype(np.float32),
+                source.astype(np.float32),
+                source_format,
             )
-        )  # fmt: skip
+        )
     return clips

@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from training import metrics, skeleton
+from repnet.core import geometry, skeleton
 
 FOCAL_PX = 1150.0
 CENTRE_PX = 500.0
@@ -191,7 +191,7 @@ def sample(
             template_to_world = torch.where(flip[:, None, None], turned, template_to_world)
         to_camera = rot @ template_to_world
         if rotation_target == "ray":
-            ray = torch.from_numpy(metrics.rotation_to_ray(position.numpy()))
+            ray = torch.from_numpy(geometry.rotation_to_ray(position.numpy()))
             to_camera = ray.transpose(1, 2) @ to_camera
         elif rotation_target != "axis":
             raise ValueError(f"rotation target must be axis or ray, got {rotation_target!r}")

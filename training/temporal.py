@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training import skeleton
+from repnet.core import skeleton
 
 GRID_FPS = 50.0
 J = skeleton.NUM_JOINTS
@@ -135,9 +135,11 @@ class TemporalNet(nn.Module):
         strided: for L = T exactly, the same answer with strided convolutions (the frames each layer
         reads, not every frame): what the exported model runs, about 5x cheaper per answer."""
         widths, act = self.config.widths, torch.relu
-        h = self.expand(features) if not strided else nn.functional.conv1d(
-            features, self.expand.weight, stride=widths[0]
-        )  # fmt: skip
+        h = (
+            self.expand(features)
+            if not strided
+            else nn.functional.conv1d(features, self.expand.weight, stride=widths[0])
+        )
         h = self.drop(act(self.expand_norm(h)))
         dilation = widths[0]
         for conv, mix, conv_norm, mix_norm, w in zip(

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from training import data, lineage, metrics, sequences
-from training.sequences import ClipConfig
-from training.temporal import GRID_FPS, TemporalConfig, TemporalNet, grid_features
+from repnet.train import data, lineage, metrics, sequences
+from repnet.train.sequences import ClipConfig
+from repnet.train.temporal import GRID_FPS, TemporalConfig, TemporalNet, grid_features
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
-"""Train and export the temporal model (training.temporal): python -m training.temporal_train.
+"""Train and export the temporal model (repnet.train.temporal): python -m repnet.train.temporal_train.
 
-python -m training.temporal_train --preset repnet-h36m-temporal-v1 --threads 1
-trains the preset's causal and offline models on synthetic clips (training.temporal_data) from the
+python -m repnet.train.temporal_train --preset repnet-h36m-temporal-v1 --threads 1
+trains the preset's causal and offline models on synthetic clips (repnet.train.temporal_data) from the
 base single-frame model, resumable (run it again after an interruption), validates on the held-out
 tails with real detections, and exports both ONNX files. Steps, not wall time, end each model.
 """
@@ -22,9 +22,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import checkpoint, lineage, presets, skeleton
-from training.export import LICENCE, write_onnx
-from training.temporal import (
+from repnet.core import skeleton
+from repnet.train import checkpoint, lineage, presets
+from repnet.train.export import LICENCE, write_onnx
+from repnet.train.temporal import (
     GRID_FPS,
     TemporalConfig,
     TemporalGraph,
@@ -32,7 +33,7 @@ from training.temporal import (
     TemporalTrainConfig,
     slots_needed,
 )
-from training.temporal_data import (
+from repnet.train.temporal_data import (
     ClipSet,
     answer_clips,
     chunk,
@@ -157,8 +158,13 @@ def export_temporal(
     example = _example(3, slots_needed(config, MAX_FPS), 30.0)
     inputs = ["poses", "keypoints_2d", "visibility", "fps"]
     windows = {0: "N", 1: "K"}
-    axes = {"poses": windows, "keypoints_2d": windows, "visibility": windows, "fps": {0: "N"},
-            "pose_3d_camera": {0: "N"}}  # fmt: skip
+    axes = {
+        "poses": windows,
+        "keypoints_2d": windows,
+        "visibility": windows,
+        "fps": {0: "N"},
+        "pose_3d_camera": {0: "N"},
+    }
     contract = {
         "mode": config.mode,
         "grid_fps": GRID_FPS,
@@ -210,7 +216,7 @@ def run_preset(
     preset = presets.temporal(name)
     out = out_dir or lineage.cache_dir() / "runs" / preset.name
     out.mkdir(parents=True, exist_ok=True)
-    command = lineage.command_line(argv, out, "training.temporal_train")
+    command = lineage.command_line(argv, out, "repnet.train.temporal_train")
     base = Path(preset.base_model)
     if not base.is_file():
         raise FileNotFoundError(f"base model {base} not found (run from the repository root)")
@@ -237,8 +243,11 @@ def run_preset(
             "clips": dataclasses.asdict(preset.clips),
             "train": dataclasses.asdict(preset.train),
         }
-        extra = {"validation": json.dumps(figures_now), "lineage": json.dumps(lineage_record),
-                 "base_model_id": preset.base_model_id}  # fmt: skip
+        extra = {
+            "validation": json.dumps(figures_now),
+            "lineage": json.dumps(lineage_record),
+            "base_model_id": preset.base_model_id,
+        }
         worst = export_temporal(net, path, model_id, base, extra)
         log.info(
             "%s: exported %s (torch vs onnxruntime within %.2g mm); validation %s",
@@ -252,14 +261,14 @@ def run_preset(
 
 
 def sequences_data_dir(path: str) -> Path:
-    """The Human3.6M folder (training.data.resolve_data_dir)."""
-    from training import data
+    """The Human3.6M folder (repnet.train.data.resolve_data_dir)."""
+    from repnet.train import data
 
     return data.resolve_data_dir(path or None)
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.temporal_train --preset NAME [--out-dir DIR] [--threads N] [--data-dir DIR]."""
+    """python -m repnet.train.temporal_train --preset NAME [--out-dir DIR] [--threads N] [--data-dir DIR]."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

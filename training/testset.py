@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training import data
+from repnet.train import data
 
 DATASET_LABEL = "S9/S11 without S9 Discussion 1"
 # Detections may miss a few frames at a sequence's end; more means the wrong frame rate.

@@ -1,9 +1,9 @@
 """Train RepNet on Human3.6M: the training loop, its checkpoints and resume, and the command line.
 
 A shipped model's whole chain, its presets, or one run from flags (as in TrainConfig):
-python -m training.train --preset repnet-h36m-v6 --threads 2
-python -m training.train --list-presets
-python -m training.train --out-dir runs/x --warm-start-steps 20000 ...
+python -m repnet.train.train --preset repnet-h36m-v6 --threads 2
+python -m repnet.train.train --list-presets
+python -m repnet.train.train --out-dir runs/x --warm-start-steps 20000 ...
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from typing import Any, TextIO
 import torch
 from tqdm import tqdm
 
-from training import chain, checkpoint, data, lineage, presets, sequences
-from training.config import RepNetConfig, TrainConfig
-from training.trainer import Terms, Trainer, adversarial_weight, learning_rate, pick_device
-from training.validation import validate, validation_sets
+from repnet.train import chain, checkpoint, data, lineage, presets, sequences
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.trainer import Terms, Trainer, adversarial_weight, learning_rate, pick_device
+from repnet.train.validation import validate, validation_sets
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +140,7 @@ def train(
     configuration must be the checkpoint's but for checkpoint.RESUME_MAY_CHANGE (ConfigChanged);
     extend -- also let iterations and warm_start_steps grow: the run goes on along a longer schedule.
 
-    Every checkpoint records its lineage (training.lineage): the stages it comes from and its own,
+    Every checkpoint records its lineage (repnet.train.lineage): the stages it comes from and its own,
     named by preset and stage when a preset runs it; command is recorded free of absolute paths.
     """
     torch.manual_seed(config.seed)
@@ -243,7 +243,7 @@ def _list_presets() -> str:
 
 
 def _run_preset(parser: argparse.ArgumentParser, args: argparse.Namespace, argv: list[str]) -> None:
-    """--preset NAME [--stage NAME]: the preset's chain (training.chain) into --out-dir."""
+    """--preset NAME [--stage NAME]: the preset's chain (repnet.train.chain) into --out-dir."""
     values = vars(args)
     fields = {f.name for cls in (TrainConfig, RepNetConfig) for f in dataclasses.fields(cls)}
     extra = sorted((fields & set(values)) - set(PRESET_FLAGS))
@@ -288,7 +288,7 @@ def _log_to(path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.train: a preset's whole chain (--preset), or one run from flags."""
+    """python -m repnet.train.train: a preset's whole chain (--preset), or one run from flags."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

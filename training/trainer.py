@@ -15,19 +15,28 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import critic_fakes, data, synthetic
-from training.augment import (
+from repnet.train import data, synthetic
+from repnet.train.augment import (
     augment_visibility,
+    corrupt_poses,
     sample_2d,
     with_detector_errors,
 )
-from training.camera import camera_scale
-from training.config import RepNetConfig, TrainConfig
-from training.losses import bone_lengths, bone_loss, camera_loss, critic_loss, pose_loss, reprojection_loss
-from training.model import MM_PER_UNIT, Critic, RepNet, normalize_keypoints
+from repnet.train.camera import camera_scale
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.losses import (
+    bone_lengths,
+    bone_loss,
+    camera_loss,
+    critic_loss,
+    pose_loss,
+    reprojection_loss,
+)
+from repnet.train.model import MM_PER_UNIT, Critic, RepNet, normalize_keypoints
 
 # The losses every step reports (0 where its mode has no such term), in the history's order.
 TERMS = ("rep", "cam", "adv", "bone", "synthetic_pose", "w_dist")
+CRITIC_FAKES = ("generator", "corrupted")  # what a critic-only stage judges (TrainConfig.critic_fakes)
 Terms = dict[str, torch.Tensor]
 
 
@@ -109,16 +118,13 @@ class Trainer:
         self.opt_c = torch.optim.Adam(self.critic.parameters(), lr=config.lr, betas=betas, fused=fused)
         # Poses of the last generator step, judged by the next critic steps (reuse_fakes).
         self.fakes: torch.Tensor | None = None
-        if config.critic_fakes not in critic_fakes.SOURCES:
+        if config.critic_fakes not in CRITIC_FAKES:
             raise ValueError(
-                f"critic_fakes must be one of {', '.join(critic_fakes.SOURCES)}, got {config.critic_fakes!r}"
+                f"critic_fakes must be one of {', '.join(CRITIC_FAKES)}, got {config.critic_fakes!r}"
             )
-        # Real poses of the next critic step when a fake source pairs them with its fakes (paired).
-        self.reals: torch.Tensor | None = None
-        self._critic_only_fakes = critic_fakes.SOURCES[config.critic_fakes]
         self.phases = self._phases()
         # A frozen model whose answers to the synthetic 2D (before detector errors and occlusions)
-        # replace the synthetic truth as the target: distillation (training.adapt); None: the truth.
+        # replace the synthetic truth as the target: distillation (repnet.train.adapt); None: the truth.
         self.teacher: torch.nn.Module | None = None
 
     def _phases(self) -> tuple[Phase, ...]:
@@ -186,7 +192,12 @@ class Trainer:
         """critic_steps critic updates against critic_fakes, the generator frozen."""
         terms = self._zero_terms()
         for _ in range(self.config.critic_steps):
-            self.fakes = self._critic_only_fakes(self)
+            # "corrupted": real poses with a limb stretched or shrunk, joints swapped or jittered;
+            # "generator": None, critic_step generates fresh poses for every update
+            corrupted = self.config.critic_fakes == "corrupted"
+            self.fakes = (
+                corrupt_poses(self.real_batch(self.config.batch_size), self.gen) if corrupted else None
+            )
             terms["w_dist"] = self.critic_step()
         self.fakes = None
         return terms
@@ -276,9 +287,7 @@ class Trainer:
             points, visible = sample_2d(self.pool, config, self.device, self.gen)
             with torch.no_grad():
                 self.fakes, _ = self.generate(points, visible)
-        real, self.reals = self.reals, None
-        if real is None:
-            real = self.real_batch(config.batch_size)
+        real = self.real_batch(config.batch_size)
         loss_c, wasserstein = critic_loss(self.critic, real, self.fakes, config.gp_weight)
         self.opt_c.zero_grad(set_to_none=True)
         loss_c.backward()  # type: ignore[no-untyped-call]

@@ -3,9 +3,9 @@
 The sets are rebuilt from the checkpoint's own training configuration (seed, held-out fraction,
 size, noise), so the figures are those of the run's history.jsonl; `--mirror-average` adds the
 graph that averages every answer with the mirrored answer to the mirrored input (the choice
-`training.export --mirror-average` makes). Validation only: never S9/S11.
+`repnet.train.export --mirror-average` makes). Validation only: never S9/S11.
 
-    python -m training.validate --checkpoint ~/.cache/repnet/runs/NAME/best.pt --mirror-average
+    python -m repnet.train.validate --checkpoint ~/.cache/repnet/runs/NAME/best.pt --mirror-average
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from training import data, validation
-from training.config import TrainConfig
-from training.export import load_generator
+from repnet.train import data, validation
+from repnet.train.config import TrainConfig
+from repnet.train.export import load_generator
 
 
 def run_config(state: dict[str, Any]) -> TrainConfig:
@@ -76,7 +76,7 @@ def score(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m training.validate: print (and write) a checkpoint's validation figures."""
+    """python -m repnet.train.validate: print (and write) a checkpoint's validation figures."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

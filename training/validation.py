@@ -2,7 +2,7 @@
 
 The sets are the tails of the training subjects' sequences (data.build_training_sets), never
 S9/S11: val_size poses of each 2D input kind, and of GT 2D also with pixel noise and mirrored.
-training.validate re-scores a checkpoint on the same sets from the command line.
+repnet.train.validate re-scores a checkpoint on the same sets from the command line.
 """
 
 from __future__ import annotations
@@ -12,10 +12,11 @@ import dataclasses
 import numpy as np
 import torch
 
-from training import data, metrics, skeleton
-from training.config import TrainConfig
-from training.losses import bone_lengths
-from training.model import LiftingGraph, RepNet
+from repnet.core import geometry, skeleton
+from repnet.train import data, metrics
+from repnet.train.config import TrainConfig
+from repnet.train.losses import bone_lengths
+from repnet.train.model import LiftingGraph, RepNet
 
 # A bone over this many times its true mean length makes an answer "wild" (validation's wild_pct).
 WILD_RATIO = 3.0
@@ -42,7 +43,7 @@ def validate(
     pose, camera = np.concatenate(poses), np.concatenate(cameras)
     ray: dict[str, float] = {}
     if val.focal is not None and val.centre is not None:
-        rotation = metrics.ray_rotation(val.points_2d, val.visible, val.focal, val.centre)
+        rotation = geometry.ray_turn(val.points_2d, val.visible, val.focal, val.centre)
         pose_cam, pose_ray = metrics.camera_frames(pose, camera, rotation)
         ray["mpjpe_ray"] = metrics.mpjpe(pose_ray, val.poses_camera)
     else:
@@ -64,7 +65,7 @@ def validation_sets(
 ) -> dict[str, data.ValidationSet]:
     """The sets a run validates on, from build_training_sets' held-out tails: val_size poses of each
     input kind, and of GT 2D also with noise (gt_noise) and mirrored (gt_mirror). The same draw
-    for the same seed, so runs and training.validate score the same poses."""
+    for the same seed, so runs and repnet.train.validate score the same poses."""
     rng = np.random.default_rng(config.seed)
     sets = {kind: _subsample(val, config.val_size, rng) for kind, val in held_out.items()}
     if config.val_noise_px > 0 and "gt" in sets:

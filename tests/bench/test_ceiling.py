@@ -8,7 +8,7 @@ from bench.ceiling import ConstantLifter
 from bench.roof import RoofRow
 from bench.run import CEILING, Report
 from bench.stats import Result, sample_poses
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
 from tests.conftest import reply_of
 
 

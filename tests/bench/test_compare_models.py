@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bench import compare_models
-from service.config import BUNDLED_MODEL
+from repnet.runtime.loading import BUNDLED_MODEL
 from tests.conftest import load_model
 
 

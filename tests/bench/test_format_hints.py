@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from bench.format_hints import hints, markdown, parse_args, row, warned
-from service.formats import FORMATS, from_model_joints
-from service.lifter import Lifter
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.runtime.lifter import Lifter
 from tests.conftest import POSE_3D, project
 
 

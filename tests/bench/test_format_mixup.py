@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bench.format_mixup import detector_poses, frames, markdown, parse_args, send
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
 from tests.conftest import POSE_3D, project
 
 

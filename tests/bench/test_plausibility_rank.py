@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from bench import plausibility_rank
+from repnet.train import data
 from tests.training.conftest import STANDING
-from training import data
 
 
 def _lifter(error_mm: np.ndarray, plausibility: np.ndarray) -> Any:

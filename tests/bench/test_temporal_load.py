@@ -11,9 +11,11 @@ import pytest
 
 from bench.roof import RoofRow
 from bench.stats import Result
-from bench.temporal_load import PEOPLE_KINDS, Report, clip_windows, held, main, per_pose_roof, search
-from service.lifter import Lifter
-from service.temporal import Contract
+from bench.temporal_load import PEOPLE_KINDS, held, main, search
+from bench.temporal_report import Report
+from bench.temporal_roof import clip_windows, per_pose_roof
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.temporal import Contract
 
 
 def test_the_search_stops_at_the_first_count_not_held_then_halves_the_gap() -> None:

@@ -10,8 +10,8 @@ import pytest
 
 from bench import long_tracks, track_memory
 from bench.long_tracks import Frames, Rotation, lane_plan, tracks_opened
-from service._proto.repnet.v1 import lifter_pb2
-from service.tracks import track_bytes
+from repnet._proto.repnet.v1 import lifter_pb2
+from repnet.runtime.tracks import track_bytes
 
 
 def test_tracks_are_dealt_over_the_streams_and_keep_their_stream_as_more_open() -> None:

@@ -17,7 +17,7 @@ from bench.tracked import (
     result_of,
     single_frame,
 )
-from service._proto.repnet.v1 import lifter_pb2
+from repnet._proto.repnet.v1 import lifter_pb2
 
 
 def test_a_moving_clip_moves_smoothly_and_closes_its_loop() -> None:

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from bench import train_step
-from training.config import RepNetConfig, TrainConfig
+from repnet.train.config import RepNetConfig, TrainConfig
 
 TINY = RepNetConfig(width=32, critic_width=16, kcs_width=16)
 

@@ -1,4 +1,4 @@
-"""Fixtures for deploy tests: the real service started as `python -m service` on free localhost ports."""
+"""Fixtures for deploy tests: the real service started as `python -m repnet serve` on free localhost ports."""
 
 from __future__ import annotations
 
@@ -20,14 +20,14 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def running_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningService]:
-    """`python -m service` with the bundled model; stopped with SIGTERM, which must exit 0."""
+    """`python -m repnet serve` with the bundled model; stopped with SIGTERM, which must exit 0."""
     http_port, grpc_port = free_port(), free_port()
     path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
     env = {**os.environ, "REPNET_HOST": "127.0.0.1", "REPNET_HTTP_PORT": str(http_port),
            "REPNET_GRPC_PORT": str(grpc_port), "REPNET_INTRA_OP_THREADS": "1",
            "PYTHONPATH": path}  # fmt: skip
     log = (tmp_path_factory.mktemp("service") / "service.log").open("wb")
-    process = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env, stdout=log,
+    process = subprocess.Popen([sys.executable, "-m", "repnet", "serve"], cwd=ROOT, env=env, stdout=log,
                                stderr=subprocess.STDOUT)  # fmt: skip
     service = RunningService(f"http://127.0.0.1:{http_port}", f"127.0.0.1:{grpc_port}", process)
     try:

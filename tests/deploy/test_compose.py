@@ -12,8 +12,8 @@ from typing import Any
 import pytest
 from prometheus_client import CollectorRegistry
 
-from service.config import Settings
-from service.metrics import Metrics
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
 
 yaml = pytest.importorskip("yaml", reason="PyYAML is in the dev extra: pip install -e '.[dev]'")
 

@@ -37,7 +37,7 @@ def test_container_test_creates_the_venv_and_runs_the_script_with_its_python(tmp
     commands = dry_run(f"VENV={venv}")
     assert any(f"-m venv {venv}" in c for c in commands), commands  # the venv is made first
     # with the service in it (and the `cli` extra: `repnet plot` works after `make serve`)
-    assert any("pip install" in c and "-e '.[cli]'" in c for c in commands), commands
+    assert any("pip install" in c and "-e '.[server,cli]'" in c for c in commands), commands
     assert script_python(commands[-1]) == str(venv / "bin" / "python")
 
 

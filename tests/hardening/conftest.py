@@ -1,4 +1,4 @@
-"""Fixtures of the hardening tests: the real service as a `python -m service` child process."""
+"""Fixtures of the hardening tests: the real service as a `python -m repnet serve` child process."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from contextlib import contextmanager
 import pytest
 
 from bench.server import ServiceProcess
-from service.app import Service, build_service
-from service.config import Settings
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
+from repnet.server.app import Service, build_service
+from repnet.server.config import Settings
 
 # Small limits keep generated and overload requests cheap on a 2-core CI machine.
 SMALL_LIMITS = ("--max-request-poses", "16", "--queue-size", "64", "--intra-op-threads", "1")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import resource
 
-from service.app import main
+from repnet.server.app import main
 
 if __name__ == "__main__":
     resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from service.app import parse_settings
-from service.cli import main as repnet
-from service.config import Settings
+from repnet.cli.main import main as repnet
+from repnet.server.app import parse_settings
+from repnet.server.config import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -24,12 +24,12 @@ def test_make_serve_and_repnet_serve_bind_loopback(
 ) -> None:
     monkeypatch.delenv("REPNET_HOST", raising=False)
     assert Settings().host == "127.0.0.1"
-    assert parse_settings([]).host == "127.0.0.1"  # `python -m service`, what `make serve` runs
+    assert parse_settings([]).host == "127.0.0.1"  # `python -m repnet serve`, what `make serve` runs
     with pytest.raises(SystemExit):
         repnet(["serve", "--help"])  # `repnet serve` is the same parser, whose help gives the default
     assert "(default: 127.0.0.1)" in " ".join(capsys.readouterr().out.split())
     makefile = (ROOT / "Makefile").read_text()
-    assert re.search(r"^serve: .*\n\t\$\(PY\) -m service$", makefile, re.M)  # no --host of its own
+    assert re.search(r"^serve: .*\n\t\$\(PY\) -m repnet serve$", makefile, re.M)  # no --host of its own
 
 
 def test_the_image_and_the_deployment_bind_every_address() -> None:

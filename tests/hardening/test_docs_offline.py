@@ -18,9 +18,9 @@ from urllib.parse import urlsplit
 import pytest
 from fastapi.testclient import TestClient
 
-from service.api_docs import ASSETS
-from service.lifter import Lifter
-from service.page import CSP
+from repnet.runtime.lifter import Lifter
+from repnet.server.http.api_docs import ASSETS
+from repnet.server.http.page import CSP
 from tests.service.test_page import driver, serving
 
 __all__ = ["driver"]  # the module's headless chromium fixture, shared with the page's tests

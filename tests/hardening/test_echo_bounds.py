@@ -10,10 +10,10 @@ import httpx
 import pytest
 
 from bench.server import ServiceProcess
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 from tests.conftest import POSE_2D
 
-MAX_ECHO_CHARS = 100  # service.errors.MAX_ECHO_CHARS, the figure the issue asks for
+MAX_ECHO_CHARS = 100  # repnet.core.errors.MAX_ECHO_CHARS, the figure the issue asks for
 
 # Room for the field name, the reason's own words and the list of formats around an echo.
 MAX_ITEM_CHARS = MAX_ECHO_CHARS + 300

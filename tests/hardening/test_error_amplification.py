@@ -12,7 +12,7 @@ import httpx
 from bench.server import ServiceProcess
 from tests.conftest import POSE_2D
 
-MAX_ERROR_ITEMS = 20  # service.errors.MAX_ERROR_ITEMS, the figure the issue asks for
+MAX_ERROR_ITEMS = 20  # repnet.core.errors.MAX_ERROR_ITEMS, the figure the issue asks for
 
 # The issue's probe: a flat list of 300,000 numbers (600 KB) got 300,000 error items, 63 MB, 15.6 s.
 FLAT_NUMBERS = 300_000

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 
 from bench.probe import expire_lifts
-from service._proto.repnet.v1 import lifter_pb2
-from service.config import Settings
-from service.engine import Engine
-from service.keypoints import ModelInput
-from service.lifter import Lifter
-from service.metrics import Metrics
+from repnet._proto.repnet.v1 import lifter_pb2
+from repnet.core.inputs import ModelInput
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
 from tests.conftest import POSE_2D, GatedLifter
 from tests.hardening.conftest import running
 from tests.service.test_engine import model_input as model_input_of
@@ -32,7 +32,7 @@ def model_input(n: int) -> ModelInput:
 
 
 def test_a_cancelled_lift_takes_every_queued_chunk_out_of_the_queue(
-    engine_factory: Callable[..., Engine], gated: GatedLifter
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter
 ) -> None:
     engine = engine_factory(gated, max_batch=8, queue_size=64)
     gated.gate.clear()  # the first run blocks: everything after it stays queued
@@ -73,8 +73,10 @@ class SlowLifter(Lifter):
 @pytest.fixture
 def slow_service(lifter: Lifter) -> Iterator[tuple[str, Metrics, SlowLifter]]:
     slow = SlowLifter(lifter)
+    # A queue that holds all 40 calls' poses: the calls end by their deadline, never by a full queue
+    # (on a fast machine every handler queues its poses well within the 250 ms).
     settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1, shutdown_grace_s=1,
-                        max_batch=256, queue_size=8192)  # fmt: skip
+                        max_batch=256, queue_size=65536)  # fmt: skip
     with running(settings, slow) as service:
         yield f"127.0.0.1:{service.grpc_server.port}", service.metrics, slow
 

@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 from prometheus_client import CollectorRegistry
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import build_grpc_server, limits_of
-from service.config import Settings
-from service.engine import Engine
-from service.formats import FORMATS, from_model_joints
-from service.keypoints import PoseInput, prepare_poses
-from service.lifter import Lifter
-from service.metrics import Metrics
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.core.inputs import PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter
+from repnet.server.app import build_grpc_server, limits_of
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
 from tests.conftest import POSE_2D, GrpcHandle
 
 INVALID_ARGUMENT = grpc.StatusCode.INVALID_ARGUMENT.value[0]
@@ -137,7 +138,7 @@ def expected_poses(lifter: Lifter, frames: list[lifter_pb2.LiftFrame]) -> np.nda
 
 @pytest.fixture
 def roomy_stub(
-    engine_factory: Callable[..., Engine], lifter: Lifter, metrics: Metrics, settings: Settings
+    engine_factory: Callable[..., LiftBatcher], lifter: Lifter, metrics: Metrics, settings: Settings
 ) -> Iterator[lifter_pb2_grpc.PoseLifterStub]:
     """A server whose queue holds a whole stream window, as the defaults do: no frame is refused."""
     engine = engine_factory(lifter, max_batch=64, queue_size=1024)

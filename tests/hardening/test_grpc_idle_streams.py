@@ -12,10 +12,10 @@ import grpc
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import Service
-from service.config import Settings
-from service.lifter import Lifter
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.runtime.lifter import Lifter
+from repnet.server.app import Service
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D, GatedLifter
 from tests.hardening.conftest import running
 

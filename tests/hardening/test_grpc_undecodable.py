@@ -9,7 +9,7 @@ from __future__ import annotations
 import grpc
 import pytest
 
-from service.metrics import Metrics
+from repnet.server.metrics import Metrics
 from tests.conftest import GrpcHandle
 
 LIFT = "/repnet.v1.PoseLifter/Lift"

@@ -11,9 +11,9 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
-from service.app import Service
-from service.config import Settings
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
+from repnet.server.app import Service
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D, GatedLifter
 from tests.hardening.conftest import http_url, running
 

@@ -12,10 +12,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from service.app import Service, build_service
-from service.config import Settings
-from service.http_server import FIRST_REQUEST_WAIT_S
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
+from repnet.server.app import Service, build_service
+from repnet.server.config import Settings
+from repnet.server.http.server import FIRST_REQUEST_WAIT_S
 from tests.conftest import POSE_2D
 
 

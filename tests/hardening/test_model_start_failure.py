@@ -1,4 +1,4 @@
-"""A broken model file stops `python -m service` at start, exit status 1, with a message naming the fault.
+"""A broken model file stops `repnet serve` at start, exit status 1, with a message naming the fault.
 
 tests/service/test_main.py covers a missing --model-path and a truncated file (as a child
 process); these are the other ways a model can be wrong.
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from bench.server import ROOT
-from service.app import main
-from service.config import BUNDLED_MODEL
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.server.app import main
 
 onnx = pytest.importorskip("onnx")
 
@@ -114,7 +114,7 @@ def test_a_model_that_loads_but_cannot_infer_refuses_to_start(
     _weights_overwritten(dtypes)(path)
     flags = ["--model-path", str(path), "--host", "127.0.0.1", "--http-port", "0", "--grpc-port", "0"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    command = [sys.executable, "-m", "service", *flags]
+    command = [sys.executable, "-m", "repnet", "serve", *flags]
     done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
     assert done.returncode == 1, done.stderr[-2000:]
     (error,) = [line for line in (done.stderr + done.stdout).splitlines() if " ERROR " in line]
@@ -134,7 +134,12 @@ def test_model_path_from_the_environment_that_does_not_exist_exits_1(tmp_path: P
     absent = tmp_path / "absent" / "model.onnx"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "REPNET_MODEL_PATH": str(absent)}
     done = subprocess.run(
-        [sys.executable, "-m", "service"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60
+        [sys.executable, "-m", "repnet", "serve"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert done.returncode == 1
     assert f"cannot start: model file not found: {absent}" in done.stderr + done.stdout

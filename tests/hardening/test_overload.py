@@ -14,10 +14,10 @@ import httpx
 import numpy as np
 import pytest
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import Service, build_service
-from service.config import Settings
-from service.lifter import Lifter, Prediction
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.runtime.lifter import Lifter, Prediction
+from repnet.server.app import Service, build_service
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D
 
 # Each model run takes at least this long: the queue fills without burning CPU, and a server

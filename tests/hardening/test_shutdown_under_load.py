@@ -1,4 +1,4 @@
-"""SIGTERM to `python -m service` under HTTP, gRPC and stream load: every accepted request is answered."""
+"""SIGTERM to `repnet serve` under HTTP, gRPC and stream load: every accepted request is answered."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 
 from bench.server import ServiceProcess
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 from tests.conftest import POSE_2D
 
 HTTP_CLIENTS = 6

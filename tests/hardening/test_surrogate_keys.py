@@ -9,10 +9,10 @@ from __future__ import annotations
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import build_app
-from service.config import Settings
-from service.engine import Engine
-from service.metrics import Metrics
+from repnet.runtime.batchers import LiftBatcher
+from repnet.server.app import build_app
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
 from tests.conftest import POSE_2D
 
 POSE = '{"keypoints": ' + str(POSE_2D.tolist()) + "}"
@@ -28,7 +28,7 @@ BODIES = {
 
 
 @pytest.fixture
-def app_client(engine: Engine, metrics: Metrics, settings: Settings) -> TestClient:
+def app_client(engine: LiftBatcher, metrics: Metrics, settings: Settings) -> TestClient:
     return TestClient(build_app(engine, metrics, settings), raise_server_exceptions=False)
 
 

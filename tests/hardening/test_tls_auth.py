@@ -25,14 +25,14 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service import auth
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import Service
-from service.auth import UNAUTHENTICATED_MESSAGE
-from service.client import LiftClient, LiftClientError
-from service.config import Settings
-from service.lifter import Lifter
-from service.stream_client import StreamClient
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.client.http import LiftClient, LiftClientError
+from repnet.client.stream import StreamClient
+from repnet.runtime.lifter import Lifter
+from repnet.server import auth
+from repnet.server.app import Service
+from repnet.server.auth import UNAUTHENTICATED_MESSAGE
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D
 from tests.hardening.conftest import running
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from service._proto.repnet.v1 import lifter_pb2
+from repnet._proto.repnet.v1 import lifter_pb2
 from tests.conftest import POSE_2D
 
 NAN, INF = float("nan"), float("inf")

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from service.formats import FORMATS, MODEL_JOINTS
-from service.page import STATIC_DIR
-from service.schemas import EXAMPLE_KEYPOINTS
+from repnet.core.formats import FORMATS, MODEL_JOINTS
+from repnet.core.inputs import EXAMPLE_KEYPOINTS
+from repnet.server.http.page import STATIC_DIR
 from tests.conftest import POSE_3D, project
 
 EXAMPLES_PATH = STATIC_DIR / "examples.json"

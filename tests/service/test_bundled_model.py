@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
 from tests.conftest import POSE_3D, project, reply_of
 
 # (parent, child) arm and leg bones of the Human3.6M 17-joint skeleton.

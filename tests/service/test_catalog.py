@@ -20,20 +20,22 @@ import onnx
 import pytest
 from prometheus_client import CollectorRegistry
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import build_service, limits_of, main
-from service.catalog import Catalog
-from service.cli import EXIT_REJECTED
-from service.cli import main as repnet
-from service.client import AsyncLiftClient, LiftClient
-from service.config import BUNDLED_CAUSAL, BUNDLED_MODEL, Settings
-from service.engine import Engine
-from service.errors import InvalidKeypoints, ModelLoadError, Overloaded
-from service.keypoints import PoseInput, prepare_poses
-from service.lifter import Lifter, Prediction
-from service.metrics import Metrics
-from service.startup import load_dir_lifters
-from service.stream_client import StreamClient
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.cli.main import EXIT_REJECTED
+from repnet.cli.main import main as repnet
+from repnet.client.http import AsyncLiftClient, LiftClient
+from repnet.client.stream import StreamClient
+from repnet.core.errors import InvalidKeypoints, ModelLoadError, Overloaded
+from repnet.core.inputs import PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.catalog import Catalog
+from repnet.runtime.lifter import Lifter, Prediction
+from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_MODEL
+from repnet.server.app import build_service, limits_of, main
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
+from repnet.server.startup import load_dir_lifters
 from tests.conftest import POSE_2D, LiveService, live_settings, running_service
 from tests.service.invalid_inputs import to_proto_pose
 
@@ -208,7 +210,7 @@ def test_batches_never_mix_models(lifter: Lifter, registry: CollectorRegistry) -
     metrics = Metrics(registry)
     lifters = {name: RecordingLifter(lifter, name) for name in ("a", "b")}
     engines = {
-        n: Engine(m, metrics, max_batch=64, max_wait_s=0.01, queue_size=64) for n, m in lifters.items()
+        n: LiftBatcher(m, metrics, max_batch=64, max_wait_s=0.01, queue_size=64) for n, m in lifters.items()
     }
     models = Catalog(engines)
     limits = limits_of(Settings())
@@ -243,8 +245,8 @@ def test_queue_of_one_model_full_leaves_the_other_served(lifter: Lifter, registr
     metrics = Metrics(registry)
     held = RecordingLifter(lifter, "busy")
     engines = {
-        "busy": Engine(held, metrics, max_batch=1, max_wait_s=0.0, queue_size=2),
-        "free": Engine(lifter, metrics, max_batch=1, max_wait_s=0.0, queue_size=2),
+        "busy": LiftBatcher(held, metrics, max_batch=1, max_wait_s=0.0, queue_size=2),
+        "free": LiftBatcher(lifter, metrics, max_batch=1, max_wait_s=0.0, queue_size=2),
     }
     models = Catalog(engines)
     one = prepare_poses([PoseInput(POSE_2D, np.ones(17, bool))], limits_of(Settings())).check()

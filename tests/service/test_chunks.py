@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.chunks import Part, assemble, batches, split_clip
-from service.contract import Contract
-from service.tracks import Observation, Track, clip_windows, track_capacity
+from repnet.client.chunks import Part, assemble, batches, split_clip
+from repnet.core.contract import Contract
+from repnet.runtime.tracks import Observation, Track, clip_windows, track_capacity
 
 CAUSAL = Contract("causal", grid_fps=50.0, window=81, max_fps=60.0)
 OFFLINE = Contract("offline", grid_fps=50.0, window=81, max_fps=60.0)

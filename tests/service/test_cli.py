@@ -13,9 +13,18 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service import cli
-from service.cli import EXIT_OK, EXIT_REJECTED, EXIT_UNREACHABLE, EXIT_USAGE, load_poses, main, progress_bar
-from service.formats import FORMATS, MODEL_JOINTS, MODEL_PARENTS, from_model_joints
+from repnet.cli import local
+from repnet.cli import main as cli
+from repnet.cli.main import (
+    EXIT_OK,
+    EXIT_REJECTED,
+    EXIT_UNREACHABLE,
+    EXIT_USAGE,
+    load_poses,
+    main,
+    progress_bar,
+)
+from repnet.core.formats import FORMATS, MODEL_JOINTS, MODEL_PARENTS, from_model_joints
 from tests.conftest import POSE_2D, POSE_3D, SMALL_TEMPORAL_POSES, TEMPORAL_MODES, LiveService, project
 
 
@@ -407,7 +416,7 @@ def test_the_files_frame_rate_and_tracks_are_used(tmp_path: Path, capsys: pytest
 def test_without_temporal_models_a_sequence_falls_back_and_an_asked_mode_is_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setenv("REPNET_TEMPORAL", "false")
+    monkeypatch.setattr(local, "TEMPORAL_MODELS", {})
     npz = _h36m_npz(tmp_path, 5)
     data = _lifted(["lift", str(npz), "--local", "-o", str(tmp_path / "out.json")])
     assert data["temporal"] == "off" and not any(p["temporal"] for p in data["poses"])

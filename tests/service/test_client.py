@@ -13,10 +13,10 @@ import httpx
 import numpy as np
 import pytest
 
-from service.client import AsyncLiftClient, LiftClient, LiftClientError, LiftResult
-from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
-from service.lifter import Lifter
-from service.stream_client import Frame, Person, StreamClient
+from repnet.client.http import AsyncLiftClient, LiftClient, LiftClientError, LiftResult
+from repnet.client.stream import Frame, Person, StreamClient
+from repnet.core.formats import FORMATS, MODEL_JOINTS, from_model_joints
+from repnet.runtime.lifter import Lifter
 from tests.conftest import POSE_2D, SMALL_TEMPORAL_POSES, TEMPORAL_MODES, LiveService, reply_of
 from tests.service.test_temporal import clip
 

@@ -17,10 +17,10 @@ import httpx
 import numpy as np
 import pytest
 
-from service.config import Settings
-from service.formats import FORMATS, MODEL_JOINTS, from_model_joints
-from service.schemas import EXAMPLE_KEYPOINTS
-from service.startup import load_dir_lifters, load_lifter
+from repnet.core.formats import FORMATS, MODEL_JOINTS, from_model_joints
+from repnet.core.inputs import EXAMPLE_KEYPOINTS
+from repnet.server.config import Settings
+from repnet.server.startup import load_dir_lifters, load_lifter
 from tests.conftest import LiveService
 from tests.service.page_examples import detector_pose
 
@@ -78,7 +78,7 @@ def test_readme_detector_commands_run_as_written(live_service: LiveService, tmp_
     made = write_detector_outputs(tmp_path)
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
-    (bin_dir / "repnet").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m service.cli "$@"\n')
+    (bin_dir / "repnet").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m repnet.cli.main "$@"\n')
     (bin_dir / "repnet").chmod(0o755)
     env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHONPATH": str(ROOT)}
     host = live_service.http_url.removeprefix("http://")
@@ -115,9 +115,7 @@ def test_readme_adapt_commands_run_as_written(tmp_path: Path) -> None:
     write_detector_outputs(tmp_path)
     (tmp_path / "models").mkdir()
     short = f" --steps 2 --prior-poses 2000 --threads 1 --force --run-dir {tmp_path / 'run'}"
-    command = (
-        lines[1].split("#")[0].strip().replace("repnet ", f"{sys.executable} -m service.cli ", 1) + short
-    )
+    command = lines[1].split("#")[0].strip().replace("repnet ", f"{sys.executable} -m repnet ", 1) + short
     done = subprocess.run(["bash", "-c", command], cwd=tmp_path, capture_output=True, text=True,
                           timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
     assert done.returncode == 0, (command, done.stdout, done.stderr)
@@ -149,6 +147,19 @@ def test_api_grpc_example_runs_as_written(
     exec(compile(snippet, "docs/API.md", "exec"), {"__name__": "api_doc"})
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("repnet-") and lines[1:] == ["0 pose", "1 pose", "2 pose"]
+
+
+def test_readme_python_example_runs_as_written(
+    live_service: LiveService, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """README "From Python": the example with repnet's clients, against a live service."""
+    snippet = fenced(README, "## From Python", "python")
+    snippet = snippet.replace('"http://localhost:8000"', repr(live_service.http_url))
+    snippet = snippet.replace('"localhost:50051"', repr(live_service.grpc_target))
+    exec(compile(snippet, "README.md", "exec"), {"__name__": "readme"})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("(17, 3) ") and lines[0].endswith(" True")
+    assert lines[1:] == ["0 (17, 3)", "1 (17, 3)", "2 (17, 3)"]
 
 
 def slug(heading: str) -> str:

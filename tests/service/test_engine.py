@@ -15,18 +15,19 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
-from service.app import limits_of
-from service.config import Settings
-from service.engine import Engine
-from service.errors import ModelNotReady, Overloaded
-from service.keypoints import ModelInput, PoseInput, prepare_poses
-from service.lifter import Lifter, Prediction
+from repnet.core.errors import ModelNotReady, Overloaded
+from repnet.core.inputs import ModelInput, PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter, Prediction
+from repnet.server.app import limits_of
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D, GatedLifter, GrpcHandle
 from tests.service.invalid_inputs import to_proto_pose
 
 
 @pytest.fixture
-def engine(engine_factory: Callable[..., Engine], gated: GatedLifter) -> Engine:
+def engine(engine_factory: Callable[..., LiftBatcher], gated: GatedLifter) -> LiftBatcher:
     """Shared by `client` and `grpc_handle`: real runs, held back while the gate is closed."""
     return engine_factory(gated, max_batch=64, max_wait_s=0.0, queue_size=8)
 
@@ -84,7 +85,7 @@ def test_concurrent_http_and_grpc_requests_share_one_run(
 
 
 def _request(points: np.ndarray) -> Any:
-    from service._proto.repnet.v1 import lifter_pb2
+    from repnet._proto.repnet.v1 import lifter_pb2
 
     return lifter_pb2.LiftRequest(poses=[to_proto_pose({"keypoints": points.tolist()})])
 
@@ -119,7 +120,7 @@ def test_full_queue_answers_503_and_resource_exhausted_at_once(
 
 
 def test_large_request_is_run_in_chunks_and_answered_in_order(
-    engine_factory: Callable[..., Engine],
+    engine_factory: Callable[..., LiftBatcher],
     gated: GatedLifter,
     lifter: Lifter,
 ) -> None:
@@ -131,7 +132,7 @@ def test_large_request_is_run_in_chunks_and_answered_in_order(
     np.testing.assert_allclose(prediction.pose_3d, alone.pose_3d, rtol=1e-4, atol=1e-2)
 
 
-def test_close_finishes_queued_work_then_refuses_new(engine: Engine, gated: GatedLifter) -> None:
+def test_close_finishes_queued_work_then_refuses_new(engine: LiftBatcher, gated: GatedLifter) -> None:
     gated.gate.clear()
     futures = engine.submit(model_input(variant(0)), "test")
     wait_until(gated.entered.is_set, "the first run")
@@ -146,7 +147,7 @@ def test_close_finishes_queued_work_then_refuses_new(engine: Engine, gated: Gate
     assert len(futures[0].result(timeout=5)) == 1 and len(queued_futures[0].result(timeout=5)) == 2
 
 
-def test_queue_overflow_raises_before_queueing(engine: Engine, gated: GatedLifter) -> None:
+def test_queue_overflow_raises_before_queueing(engine: LiftBatcher, gated: GatedLifter) -> None:
     gated.gate.clear()
     engine.submit(model_input(variant(0)), "test")
     wait_until(gated.entered.is_set, "the first run")
@@ -155,7 +156,7 @@ def test_queue_overflow_raises_before_queueing(engine: Engine, gated: GatedLifte
         engine.submit(model_input(variant(9)), "test")
 
 
-def test_a_waiting_submit_gets_in_once_the_queue_has_room(engine: Engine, gated: GatedLifter) -> None:
+def test_a_waiting_submit_gets_in_once_the_queue_has_room(engine: LiftBatcher, gated: GatedLifter) -> None:
     gated.gate.clear()
     engine.submit(model_input(variant(0)), "test")
     wait_until(gated.entered.is_set, "the first run")
@@ -171,7 +172,7 @@ def test_a_waiting_submit_gets_in_once_the_queue_has_room(engine: Engine, gated:
     np.testing.assert_allclose(prediction.pose_3d, expected.pose_3d, atol=1e-3)
 
 
-def test_a_waiting_submit_still_fails_when_no_room_comes(engine: Engine, gated: GatedLifter) -> None:
+def test_a_waiting_submit_still_fails_when_no_room_comes(engine: LiftBatcher, gated: GatedLifter) -> None:
     gated.gate.clear()
     engine.submit(model_input(variant(0)), "test")
     wait_until(gated.entered.is_set, "the first run")
@@ -183,7 +184,7 @@ def test_a_waiting_submit_still_fails_when_no_room_comes(engine: Engine, gated: 
 
 
 def test_an_awaiting_submit_gets_in_once_the_queue_has_room_or_fails_in_time(
-    engine: Engine, gated: GatedLifter
+    engine: LiftBatcher, gated: GatedLifter
 ) -> None:
     """submit_async waits like submit, but suspends its coroutine: the loop runs on meanwhile."""
     gated.gate.clear()
@@ -224,7 +225,7 @@ class FailingLifter(Lifter):
 
 
 def test_a_failed_run_reaches_every_caller_and_the_worker_goes_on(
-    engine_factory: Callable[..., Engine],
+    engine_factory: Callable[..., LiftBatcher],
     lifter: Lifter,
 ) -> None:
     engine = engine_factory(FailingLifter(lifter.session, lifter.path), max_wait_s=0.05)
@@ -237,7 +238,7 @@ def test_a_failed_run_reaches_every_caller_and_the_worker_goes_on(
 
 
 def test_an_idle_batcher_runs_a_lone_request_without_waiting(
-    engine_factory: Callable[..., Engine], lifter: Lifter
+    engine_factory: Callable[..., LiftBatcher], lifter: Lifter
 ) -> None:
     """max_wait only applies under load: a request to an idle engine does not wait for company."""
     engine = engine_factory(lifter, max_wait_s=5.0)
@@ -248,7 +249,7 @@ def test_an_idle_batcher_runs_a_lone_request_without_waiting(
 
 
 def test_work_queued_during_a_run_waits_for_company(
-    engine_factory: Callable[..., Engine], gated: GatedLifter
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter
 ) -> None:
     """Under load the batcher gives the next batch max_wait to fill: requests that arrive shortly
     after the run that held them up ends still join the same batch."""

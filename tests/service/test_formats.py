@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.formats import (
+from repnet.core.format_hints import format_table
+from repnet.core.formats import (
     FORMATS,
     MODEL_JOINTS,
     MODEL_PARENTS,
     KeypointFormat,
-    format_table,
     from_model_joints,
     to_model_joints,
 )
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
 
 # A standing person in pixels (image y down), Human3.6M 17-joint order; the spine sits off the
 # pelvis-thorax midpoint and the thorax above the shoulders, as in the real skeleton.

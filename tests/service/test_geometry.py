@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service import geometry
+from repnet.core import geometry
 from tests.conftest import POSE_3D
 
 

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from google.protobuf.json_format import MessageToDict
 
-from service._proto.repnet.v1 import lifter_pb2
-from service.config import Settings
-from service.formats import FORMATS, from_model_joints
+from repnet._proto.repnet.v1 import lifter_pb2
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.server.config import Settings
 from tests.conftest import POSE_3D, load_model, project
 from tests.service.test_temporal import Temporal, temporal_service
 

@@ -15,9 +15,9 @@ from grpc_health.v1 import health_pb2
 from grpc_reflection.v1alpha import reflection_pb2
 from prometheus_client import CollectorRegistry
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.formats import FORMATS, from_model_joints
-from service.grpc_api import SERVICE_NAME
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.server.grpc.api import SERVICE_NAME
 from tests.conftest import POSE_2D, GrpcHandle
 from tests.service.invalid_inputs import CASES, Case, good, to_proto_pose, to_proto_request, with_joint
 

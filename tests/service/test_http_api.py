@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import re
 from collections.abc import Iterator
@@ -12,10 +13,10 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
-from service.engine import Engine
-from service.formats import FORMATS, from_model_joints
-from service.http_api import LiftJSONResponse
-from service.lifter import Lifter
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter
+from repnet.server.http.api import LiftJSONResponse
 from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_2D, POSE_3D, expected_reprojection
 
 JOINTS = 17
@@ -145,7 +146,7 @@ def test_trained_model_reprojects_a_plausible_pose(client: TestClient, trained: 
     np.testing.assert_allclose(pose["pose_3d"][0], [0, 0, 0], atol=1e-3)
 
 
-def test_health_readiness_and_shutdown(client: TestClient, engine: Engine) -> None:
+def test_health_readiness_and_shutdown(client: TestClient, engine: LiftBatcher) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
     assert client.get("/readyz").status_code == 200
     engine.stop_serving()
@@ -165,6 +166,25 @@ def test_model_endpoint_lists_joints_formats_limits_and_metadata(client: TestCli
     assert info["metadata"]["model_id"] == lifter.info.model_id and isinstance(info["evaluation"], dict)
     assert info["metadata"] == lifter.info.public_metadata and "/root/" not in json.dumps(info)
     assert "millimetres" in info["coordinate_contract"]
+
+
+def test_model_endpoint_says_how_the_model_was_trained_and_the_rules_clients_follow(
+    client: TestClient, lifter: Lifter
+) -> None:
+    info = client.get("/v1/model").json()
+    if lifter.info.model_id == "repnet-h36m-v7":  # the bundled model: said by model_id (exported before)
+        assert info["training_method"].startswith("Supervised on synthetic projections of Human3.6M")
+        assert "`repnet adapt`" in info["training_method"]
+    rules = info["rules"]
+    assert rules["temporal_modes"] == ["off", "causal", "offline"] and rules["default_format"] == "h36m17"
+    assert rules["max_gap_s"] == 0.5 and rules["max_fps"] == 240 and rules["max_frame"] == 2**53 - 1
+    assert (
+        rules["assumed_fps"] == 30 and rules["envelope_bytes"] == 1024 and rules["max_track_id_chars"] == 128
+    )
+
+
+def test_openapi_version_is_the_package_version(client: TestClient) -> None:
+    assert client.get("/openapi.json").json()["info"]["version"] == importlib.metadata.version("repnet")
 
 
 def test_openapi_documents_the_coordinate_contract(client: TestClient) -> None:

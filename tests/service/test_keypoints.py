@@ -1,4 +1,4 @@
-"""Input rules and format conversion of service.keypoints, without a transport."""
+"""Input rules and format conversion of repnet.core.keypoints, without a transport."""
 
 from __future__ import annotations
 
@@ -7,11 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.app import limits_of
-from service.config import Settings
-from service.errors import InvalidKeypoints
-from service.formats import FORMATS, from_model_joints
-from service.keypoints import Limits, ModelInput, PoseInput, check_request, check_threshold, prepare_poses
+from repnet.core.errors import InvalidKeypoints
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.core.inputs import Limits, ModelInput, PoseInput
+from repnet.core.keypoints import check_request, check_threshold, prepare_poses
+from repnet.server.app import limits_of
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D
 
 LIMITS = limits_of(Settings())

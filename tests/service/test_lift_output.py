@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import bvh
-from service.cli import EXIT_OK, EXIT_USAGE, main
-from service.formats import MODEL_JOINTS, MODEL_PARENTS
-from service.lift_output import CAMERA_TO_BVH, CSV_HEADER
+from repnet.cli.main import EXIT_OK, EXIT_USAGE, main
+from repnet.core.formats import MODEL_JOINTS, MODEL_PARENTS
+from repnet.io import bvh
+from repnet.io.output import CAMERA_TO_BVH, CSV_HEADER
 from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_3D, project
 
 INTRINSICS = f"{FOCAL_PX},{FOCAL_PX},{CENTRE_PX[0]},{CENTRE_PX[1]}"
@@ -159,8 +159,8 @@ def test_readme_export_snippet_runs_as_written(tmp_path: Path, monkeypatch: pyte
 
 
 def test_a_frame_without_the_person_repeats_the_pose_before_it() -> None:
-    from service.lift_output import person_positions
-    from service.lift_result import LiftResult
+    from repnet.client.result import LiftResult
+    from repnet.io.output import person_positions
 
     def result(shift: float) -> LiftResult:
         pose = np.asarray(POSE_3D, np.float32) + [shift, 0.0, 0.0]

@@ -7,10 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import geometry
-from service.config import BUNDLED_MODEL, Settings
-from service.errors import InvalidKeypoints, ModelLoadError
-from service.lifter import Lifter, without_build_paths
+from repnet.core import geometry
+from repnet.core.errors import InvalidKeypoints, ModelLoadError
+from repnet.runtime.lifter import Lifter, without_build_paths
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D, load_model
 
 
@@ -103,12 +104,13 @@ def test_load_sets_whether_onnxruntime_threads_spin(spinning: bool) -> None:
 
 def test_build_paths_are_cut_to_what_means_something_elsewhere() -> None:
     command = (
-        "generator: python -m training.train --out-dir /root/.cache/repnet/runs/s5_r2_limbs "
+        "generator: python -m repnet.train.train --out-dir /root/.cache/repnet/runs/s5_r2_limbs "
         "--init-from=/root/.cache/repnet/runs/s5_mask25/last.pt --data /data/h36m/poses.npz; see "
         "https://example.org/a/b and runs/x/last.pt"
     )
     assert without_build_paths(command) == (
-        "generator: python -m training.train --out-dir runs/s5_r2_limbs --init-from=runs/s5_mask25/last.pt "
+        "generator: python -m repnet.train.train --out-dir runs/s5_r2_limbs "
+        "--init-from=runs/s5_mask25/last.pt "
         "--data poses.npz; see https://example.org/a/b and runs/x/last.pt"
     )
 

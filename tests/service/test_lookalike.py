@@ -5,13 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.app import limits_of
-from service.config import Settings
-from service.formats import FORMATS, from_model_joints, lookalike_of, nose_height
-from service.keypoints import ModelInput, PoseInput, prepare_poses
-from service.lifter import Lifter
-from service.lookalike import PLAUSIBILITY_FLOOR, PLAUSIBILITY_WEIGHT, mixup_scores
-from service.replies import Replies, build_replies
+from repnet.core.format_hints import lookalike_of, nose_height
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.core.inputs import ModelInput, PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.core.lookalike import PLAUSIBILITY_FLOOR, PLAUSIBILITY_WEIGHT, mixup_scores
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.replies import Replies, build_replies
+from repnet.server.app import limits_of
+from repnet.server.config import Settings
 from tests.conftest import POSE_3D, project
 
 LIMITS = limits_of(Settings())

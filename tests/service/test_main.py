@@ -1,4 +1,4 @@
-"""`python -m service`: settings from env and flags, start-up failures, shutdown that drains."""
+"""`python -m repnet serve`: settings from env and flags, start-up failures, shutdown that drains."""
 
 from __future__ import annotations
 
@@ -18,10 +18,11 @@ import pytest
 from grpc_health.v1 import health_pb2
 from pydantic import ValidationError
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import build_service, main, parse_settings
-from service.config import BUNDLED_MODEL, Settings
-from service.lifter import Lifter
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.server.app import build_service, main, parse_settings
+from repnet.server.config import Settings
 from tests.conftest import POSE_2D, GatedLifter
 from tests.service.invalid_inputs import good, to_proto_pose
 
@@ -69,7 +70,11 @@ def run_service(*flags: str, log: Path) -> subprocess.Popen[bytes]:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "REPNET_INTRA_OP_THREADS": "1"}
     with log.open("wb") as out:
         return subprocess.Popen(
-            [sys.executable, "-m", "service", *flags], cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT
+            [sys.executable, "-m", "repnet", "serve", *flags],
+            cwd=ROOT,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
         )
 
 
@@ -196,7 +201,7 @@ def test_health_flips_on_the_wire_during_the_shutdown_delay(lifter: Lifter) -> N
 
 
 def test_help_renders_every_flag_with_its_description(capsys: pytest.CaptureFixture[str]) -> None:
-    """`python -m service --help` once printed argparse's internal dict: a description held a bare %."""
+    """`python -m repnet serve --help` once printed argparse's internal dict: a description held a bare %."""
     with pytest.raises(SystemExit) as exited:
         main(["--help"])
     assert exited.value.code == 0

@@ -10,9 +10,9 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry, generate_latest
 
-from service._proto.repnet.v1 import lifter_pb2_grpc
-from service.errors import InvalidKeypoints, ModelNotReady, Overloaded, Violation
-from service.metrics import Metrics
+from repnet._proto.repnet.v1 import lifter_pb2_grpc
+from repnet.core.errors import InvalidKeypoints, ModelNotReady, Overloaded, Violation
+from repnet.server.metrics import Metrics
 from tests.conftest import POSE_2D
 from tests.service.invalid_inputs import good, to_proto_request
 

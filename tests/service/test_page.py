@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import build_app
-from service.client import LiftClient
-from service.config import Settings
-from service.engine import Engine
-from service.formats import FORMATS, from_model_joints
-from service.lifter import Lifter
-from service.metrics import Metrics
-from service.page import ASSETS, CSP, STATIC_DIR
-from service.tracker import assign_tracks
+from repnet.client.http import LiftClient
+from repnet.client.tracker import assign_tracks
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter
+from repnet.server.app import build_app
+from repnet.server.config import Settings
+from repnet.server.http.page import ASSETS, CSP, STATIC_DIR
+from repnet.server.metrics import Metrics
 from tests.conftest import POSE_3D, TEMPORAL_MODES, live_settings, load_model, project, running_service
 from tests.service.page_examples import EXAMPLES_PATH, build_examples, detector_pose
 
@@ -51,7 +51,7 @@ def test_page_and_its_files_are_served_with_a_same_origin_policy(client: TestCli
 
 
 def test_ui_false_serves_the_api_alone(
-    engine: Engine, metrics: Metrics, monkeypatch: pytest.MonkeyPatch
+    engine: LiftBatcher, metrics: Metrics, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv("REPNET_UI", "false")
     assert Settings().ui is False
@@ -84,7 +84,7 @@ def test_bundled_examples_are_current() -> None:
 
 @contextlib.contextmanager
 def serving(lifter: Lifter, **changes: Any) -> Iterator[str]:
-    """The service as `python -m service` runs it, with a small body limit for the upload test."""
+    """The service as `python -m repnet serve` runs it, with a small body limit for the upload test."""
     with running_service(live_settings(max_body_bytes=BODY_LIMIT, **changes), lifter) as service:
         yield service.http_url
 
@@ -216,7 +216,7 @@ def page_mode(driver: Any) -> str:
 
 
 def tracked(body: dict[str, Any], frames: list[int], mode: str, fps: float) -> dict[str, Any]:
-    """`body` as the page sends a sequence: each pose with its track (service.tracker, which the page's
+    """`body` as the page sends a sequence: each pose with its track (repnet.client.tracker, which the page's
     track.js follows) and frame number, with `temporal` and `fps`."""
     points = np.array(
         [[[np.nan, np.nan] if r is None else r[:2] for r in p["keypoints"]] for p in body["poses"]]
@@ -461,7 +461,7 @@ def test_page_shows_the_plausibility_of_a_model_that_has_it(driver: Any, tmp_pat
 def test_cli_output_and_coco_annotations_files_are_read(driver: Any, page_url: str, tmp_path: Path) -> None:
     from selenium.webdriver.common.by import By
 
-    from service.cli import EXIT_OK, main
+    from repnet.cli.main import EXIT_OK, main
 
     coco = np.stack([detector_pose("coco17", y) for y in (10.0, 40.0)])
     source = tmp_path / "poses.json"
@@ -498,7 +498,7 @@ def test_cli_output_and_coco_annotations_files_are_read(driver: Any, page_url: s
 TRACK_JS = """
 const done = arguments[arguments.length - 1];
 import("/ui/track.js").then((m) => done({
-  tracks: arguments[0].map((c) => m.assignTracks(c.frames, c.poses, c.fps)),
+  tracks: arguments[0].map((c) => m.assignTracks(c.frames, c.poses, c.fps, c.max_gap_s)),
   parts: arguments[1].map((c) => m.splitClip(c.tracks, c.frames, c.reach, c.most)),
   reach: arguments[2].map((c) => m.reach(c.contract, c.fps)),
 })).catch((err) => done({error: String(err)}));
@@ -520,8 +520,8 @@ def crowd(frames: int, seed: int = 0) -> list[list[np.ndarray]]:
 
 
 def test_the_pages_tracker_and_cuts_follow_the_services_rules(driver: Any, page_url: str) -> None:
-    from service.chunks import split_clip
-    from service.contract import Contract
+    from repnet.client.chunks import split_clip
+    from repnet.core.contract import Contract
 
     open_page(driver, page_url)
     clips = []
@@ -533,8 +533,14 @@ def test_the_pages_tracker_and_cuts_follow_the_services_rules(driver: Any, page_
             keep = [k for k, f in enumerate(numbers) if not 20 <= f < 33]
             numbers, poses = [numbers[k] for k in keep], [poses[k] for k in keep]
         clips.append((numbers, poses, fps))
+    rules = httpx.get(f"{page_url}/v1/model").json()["rules"]  # what the page reads of the service
     rows = [
-        {"frames": n, "fps": fps, "poses": [{"keypoints": p.tolist()} for p in poses]}
+        {
+            "frames": n,
+            "fps": fps,
+            "max_gap_s": rules["max_gap_s"],
+            "poses": [{"keypoints": p.tolist()} for p in poses],
+        }
         for n, poses, fps in clips
     ]
     rng = np.random.default_rng(4)

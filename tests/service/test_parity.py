@@ -16,12 +16,12 @@ import httpx
 import numpy as np
 import pytest
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.cli import EXIT_OK, main
-from service.client import LiftClient, build_request
-from service.formats import FORMATS, from_model_joints
-from service.pose_file import read_input
-from service.stream_client import Frame, StreamClient
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.cli.main import EXIT_OK, main
+from repnet.client.http import LiftClient, build_request
+from repnet.client.stream import Frame, StreamClient
+from repnet.core.formats import FORMATS, from_model_joints
+from repnet.io.pose_file import read_input
 from tests.conftest import POSE_2D, POSE_3D, LiveService, project
 from tests.service import test_page
 from tests.service.page_examples import detector_pose
@@ -50,7 +50,7 @@ class Shape:
     format: str
     write: Callable[[Path], Path]
     # The poses the reference lifts, where they differ from `points`: exact (0, 0) joints of pairs
-    # without confidence are missing (the input rule of service.keypoints), on every interface.
+    # without confidence are missing (the input rule of repnet.core.keypoints), on every interface.
     same_as: np.ndarray | None = None
 
 
@@ -150,7 +150,7 @@ CELLS: dict[str, dict[str, str]] = {
     },  # fmt: skip
     "python client": {
         name: "LiftClient.lift_batch of (N, J, 2) or (N, J, 3) arrays; files through "
-        "service.pose_file.read_input, as repnet lift reads them"
+        "repnet.io.pose_file.read_input, as repnet lift reads them"
         for name in SHAPES
     },  # fmt: skip
     "cli": {name: "repnet lift FILE (--temporal off: each pose alone, as the reference)" for name in SHAPES},

@@ -1,5 +1,5 @@
 """The optional `plausibility` model output, followed through every module that carries it: Lifter,
-Engine batching, HTTP, gRPC (unary and stream), the clients, the CLI and the metrics. A model with
+LiftBatcher batching, HTTP, gRPC (unary and stream), the clients, the CLI and the metrics. A model with
 the output is built here from the bundled graph, so the plumbing does not wait for a trained one."""
 
 from __future__ import annotations
@@ -13,15 +13,16 @@ import numpy as np
 import pytest
 from prometheus_client import CollectorRegistry
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import build_app, build_grpc_server
-from service.cli import EXIT_OK, main
-from service.config import BUNDLED_MODEL, Settings
-from service.engine import Engine
-from service.errors import ModelLoadError
-from service.lifter import PLAUSIBILITY_CALIBRATION, Lifter
-from service.metrics import Metrics
-from service.stream_client import StreamClient
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.cli.main import EXIT_OK, main
+from repnet.client.stream import StreamClient
+from repnet.core.errors import ModelLoadError
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import PLAUSIBILITY_CALIBRATION, Lifter
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.server.app import build_app, build_grpc_server
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
 from tests.conftest import POSE_2D, POSE_3D, TestClient, load_model, project
 
 onnx = pytest.importorskip("onnx")  # the dev extra has it; service tests need no torch
@@ -128,7 +129,7 @@ def _body(points: np.ndarray) -> dict[str, object]:
 
 @pytest.fixture
 def app_for(
-    engine_factory: Callable[..., Engine], metrics: Metrics, settings: Settings
+    engine_factory: Callable[..., LiftBatcher], metrics: Metrics, settings: Settings
 ) -> Iterator[Callable[[Lifter], TestClient]]:
     clients: list[TestClient] = []
 
@@ -181,7 +182,7 @@ def test_http_plausibility_is_null_without_the_output(
 
 @pytest.mark.parametrize("with_output", [True, False])
 def test_grpc_lift_and_stream_carry_plausibility(
-    engine_factory: Callable[..., Engine],
+    engine_factory: Callable[..., LiftBatcher],
     metrics: Metrics,
     settings: Settings,
     plausible: Lifter,

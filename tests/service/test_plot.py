@@ -1,4 +1,4 @@
-"""service.plot: a blitted animation frame shows the same pose as a frame drawn in full."""
+"""repnet.io.plot: a blitted animation frame shows the same pose as a frame drawn in full."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cli import EXIT_OK, EXIT_USAGE, main
-from service.plot import animate_poses
+from repnet.cli.main import EXIT_OK, EXIT_USAGE, main
+from repnet.io.plot import animate_poses
 from tests.conftest import POSE_3D, project
 
 

@@ -8,17 +8,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from google.protobuf.descriptor import FieldDescriptor
 
-from service import client, geometry, lift_result
-from service._proto.repnet.v1 import lifter_pb2
-from service.app import limits_of
-from service.cli import EXIT_OK, main
-from service.config import Settings
-from service.errors import ModelOutputError
-from service.keypoints import ModelInput, PoseInput, prepare_poses
-from service.lifter import Lifter, Prediction
-from service.replies import ANY, FIELDS, NAMES, Replies, build_replies
-from service.schemas import PoseResult
+from repnet._proto.repnet.v1 import lifter_pb2
+from repnet.cli.main import EXIT_OK, main
+from repnet.client import http as client
+from repnet.core import fields, geometry
+from repnet.core.errors import ModelOutputError
+from repnet.core.fields import ANY, FIELDS, NAMES
+from repnet.core.inputs import ModelInput, PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.lifter import Lifter, Prediction
+from repnet.runtime.replies import Replies, build_replies
+from repnet.server.app import limits_of
+from repnet.server.config import Settings
+from repnet.server.http.schemas import PoseResult
 from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_2D
 
 INTRINSICS = (FOCAL_PX, FOCAL_PX, *CENTRE_PX)
@@ -44,7 +48,8 @@ def test_every_carrier_of_the_reply_has_exactly_the_declared_fields(tmp_path: Pa
     assert [f.name for f in lifter_pb2.PoseResult.DESCRIPTOR.fields] == list(NAMES)
     assert client.LiftResult.pose_fields() == NAMES
     matrices = {f.name: f.shape for f in FIELDS if f.kind is float and len(f.shape) == 2}
-    assert lift_result._SHAPES == matrices
+    assert fields.MATRICES == matrices == {"pose_3d": (ANY, 3), "pose_3d_camera": (ANY, 3), "camera": (2, 3),
+                                           "rotation": (3, 3), "reprojection": (ANY, 2)}  # fmt: skip
     path, out = tmp_path / "poses.json", tmp_path / "out.json"
     path.write_text(json.dumps({"keypoints": POSE_2D.tolist()}))
     assert main(["lift", str(path), "--local", "-o", str(out)]) == EXIT_OK
@@ -175,3 +180,20 @@ def test_root_translation_inverts_a_pinhole_projection() -> None:
     np.testing.assert_allclose(geometry.root_translation(pixels, visible, pose, camera), root, atol=1e-6)
     visible[2, 1:] = False  # one joint cannot place a root
     assert np.isnan(geometry.root_translation(pixels, visible, pose, camera)[2]).all()
+
+
+def test_the_protos_pose_result_has_each_fields_kind_shape_and_presence() -> None:
+    """core.fields against the proto's descriptor: float, bool or string; repeated unless a scalar;
+    a scalar that may be absent has presence (`optional`)."""
+    kinds = {
+        float: FieldDescriptor.TYPE_FLOAT,
+        bool: FieldDescriptor.TYPE_BOOL,
+        str: FieldDescriptor.TYPE_STRING,
+    }
+    by_name = lifter_pb2.PoseResult.DESCRIPTOR.fields_by_name
+    for field in FIELDS:
+        proto = by_name[field.name]
+        assert proto.type == kinds[field.kind], field.name
+        assert proto.is_repeated == bool(field.shape), field.name
+        if not field.shape:
+            assert proto.has_presence == field.optional, field.name

@@ -11,17 +11,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.engine import Engine
-from service.errors import InvalidKeypoints, LiftError, ModelNotReady, Violation
-from service.keypoints import Limits, PoseInput, prepare_poses
-from service.lifter import Lifter
-from service.replies import build_replies
-from service.stream import (
+from repnet.core.errors import InvalidKeypoints, LiftError, ModelNotReady, Violation
+from repnet.core.inputs import Limits, PoseInput
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.replies import build_replies
+from repnet.server.stream import (
     Answer,
     Answers,
-    Frame,
+    FrameIn,
     Group,
-    Person,
+    PersonIn,
     StreamIdle,
     StreamState,
     UnreadableFrame,
@@ -35,8 +36,8 @@ def pose(i: int) -> PoseInput:
     return PoseInput(POSE_2D + [5.0 * i, -2.0 * i], np.ones(17, bool))
 
 
-def frame(i: int, error: LiftError | None = None) -> Frame:
-    return Frame(i, time.perf_counter(), None if error else pose(i), error)
+def frame(i: int, error: LiftError | None = None) -> FrameIn:
+    return FrameIn(i, time.perf_counter(), None if error else pose(i), error)
 
 
 def same(answers: Answers) -> Answers:
@@ -132,8 +133,11 @@ def test_a_groups_answers_follow_its_frames(lifter: Lifter, limits: Limits) -> N
 
 
 async def source(
-    frames: list[Frame], pulled: list[int], pause: asyncio.Event | None = None, fail: Exception | None = None
-) -> AsyncIterator[Frame]:
+    frames: list[FrameIn],
+    pulled: list[int],
+    pause: asyncio.Event | None = None,
+    fail: Exception | None = None,
+) -> AsyncIterator[FrameIn]:
     """Yield `frames` (the first alone, the rest once `pause` is set), recording each frame pulled;
     then raise `fail`, if given."""
     for k, f in enumerate(frames):
@@ -157,7 +161,7 @@ async def until(condition: Callable[[], bool]) -> None:
 
 
 def test_a_stream_is_answered_in_order_and_fills_batches(
-    engine_factory: Callable[..., Engine], gated: GatedLifter, limits: Limits
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter, limits: Limits
 ) -> None:
     """The frames that arrive while a run is in progress are lifted together after it, in groups of
     at most max_batch, and every frame gets the answer to its own pose."""
@@ -184,9 +188,9 @@ def test_a_stream_is_answered_in_order_and_fills_batches(
     assert all(isinstance(a.outcome, int) for a in answers)
 
 
-def crowd(i: int, people: int) -> Frame:
-    persons = tuple(Person(f"t{k}", f"people[{k}].pose", pose(i + k)) for k in range(people))
-    return Frame(i, time.perf_counter(), fps=30.0, people=persons)
+def crowd(i: int, people: int) -> FrameIn:
+    persons = tuple(PersonIn(f"t{k}", f"people[{k}].pose", pose(i + k)) for k in range(people))
+    return FrameIn(i, time.perf_counter(), fps=30.0, people=persons)
 
 
 def test_groups_count_poses_so_that_frames_of_many_people_fit_the_queue() -> None:
@@ -200,7 +204,7 @@ def test_groups_count_poses_so_that_frames_of_many_people_fit_the_queue() -> Non
 
 
 def test_a_stream_of_many_people_per_frame_is_answered_within_the_queue(
-    engine_factory: Callable[..., Engine], gated: GatedLifter, limits: Limits
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter, limits: Limits
 ) -> None:
     """Frames of 3 people that pile up during a run are lifted in groups of at most max_batch
     poses, never more than the queue holds (it refused them all at once before)."""
@@ -228,7 +232,7 @@ def test_a_stream_of_many_people_per_frame_is_answered_within_the_queue(
 
 
 def test_the_reader_stops_reading_when_the_window_is_full(
-    engine_factory: Callable[..., Engine], gated: GatedLifter, limits: Limits
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter, limits: Limits
 ) -> None:
     engine = engine_factory(gated, max_batch=64, queue_size=64)
     frames = [frame(i) for i in range(10)]
@@ -252,7 +256,7 @@ def test_the_reader_stops_reading_when_the_window_is_full(
 
 
 def test_an_unreadable_frame_ends_the_stream_after_the_frames_before_it(
-    engine: Engine, limits: Limits
+    engine: LiftBatcher, limits: Limits
 ) -> None:
     got: list[Answer] = []
 
@@ -269,8 +273,8 @@ def test_an_unreadable_frame_ends_the_stream_after_the_frames_before_it(
     assert str(raised.value) == "bytes that are no frame"
 
 
-def test_a_stream_without_frames_is_closed_as_idle(engine: Engine, limits: Limits) -> None:
-    async def silent() -> AsyncIterator[Frame]:
+def test_a_stream_without_frames_is_closed_as_idle(engine: LiftBatcher, limits: Limits) -> None:
+    async def silent() -> AsyncIterator[FrameIn]:
         await asyncio.Event().wait()  # never sends, never ends
         yield frame(0)
 
@@ -290,7 +294,7 @@ def test_ticks_do_not_count_as_frames_for_the_idle_timeout() -> None:
     """A stream that wakes every tick (to drop its idle tracks) is still closed idle_timeout_s after
     its last frame, not a tick later each time."""
 
-    async def silent() -> AsyncIterator[Frame]:
+    async def silent() -> AsyncIterator[FrameIn]:
         await asyncio.Event().wait()
         yield frame(0)
 
@@ -312,7 +316,7 @@ def test_ticks_do_not_count_as_frames_for_the_idle_timeout() -> None:
 
 
 def test_frames_the_engine_refuses_get_its_error_and_the_stream_goes_on(
-    engine: Engine, limits: Limits
+    engine: LiftBatcher, limits: Limits
 ) -> None:
     engine.close(timeout=10)
 

@@ -14,13 +14,13 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
-from service._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
-from service.app import build_app, build_engine, build_grpc_server, load_temporal
-from service.config import Settings
-from service.engine import Engine
-from service.lifter import Lifter
-from service.metrics import Metrics
-from service.tracking import TemporalModels
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.plans import TemporalModels
+from repnet.server.app import build_app, build_batcher, build_grpc_server, load_temporal
+from repnet.server.config import Settings
+from repnet.server.metrics import Metrics
 from tests.conftest import POSE_3D, project
 
 
@@ -49,7 +49,7 @@ def temporal_service(lifter: Lifter, settings: Settings) -> Iterator[Temporal]:
     metrics = Metrics(CollectorRegistry())
     models = load_temporal(settings, lifter, metrics)
     assert models is not None and "causal" in models.engines
-    engine: Engine = build_engine(lifter, metrics, settings)
+    engine: LiftBatcher = build_batcher(lifter, metrics, settings)
     server = build_grpc_server(engine, metrics, settings, models)
     server.start()
     channel = grpc.insecure_channel(f"localhost:{server.port}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.tracker import GATE, assign_tracks, costs, match
+from repnet.client.tracker import GATE, assign_tracks, costs, match
 from tests.conftest import POSE_3D, project
 
 
@@ -51,7 +51,7 @@ def test_poses_with_too_few_joints_in_common_are_never_matched() -> None:
 
 
 def test_cost_is_the_mean_joint_distance_in_body_sizes_and_matching_takes_the_cheapest_first() -> None:
-    from service.tracker import _Track
+    from repnet.client.tracker import _Track
 
     base = person(0)
     visible = np.ones((2, 17), bool)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.temporal import Contract
-from service.tracks import (
+from repnet.runtime.temporal import Contract
+from repnet.runtime.tracks import (
     Observation,
     Track,
     TrackBudget,

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from training import data, lineage
-from training.config import TrainConfig
+from repnet.train import data, lineage
+from repnet.train.config import TrainConfig
 
 # A standing pose in the template frame (mm; x right, y down, z away from the camera).
 STANDING = np.array(
@@ -118,7 +118,7 @@ MPII_FROM_H36M = [3, 2, 1, 4, 5, 6, 0, 8, 8, 10, 16, 15, 14, 11, 12, 13]  # data
 
 def write_test_h36m(folder: Path) -> Path:
     """poses_3d_{train,test}.npz and cameras.json of the test subjects, with distortion as in the
-    real data: what training.evaluate reads."""
+    real data: what repnet.train.evaluate reads."""
     rng = np.random.default_rng(3)
     folder.mkdir(parents=True, exist_ok=True)
     distortion = {"k": [-0.2, 0.24, -0.0015], "p": [-0.0009, -0.0002]}
@@ -153,7 +153,7 @@ def _cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
 
 @pytest.fixture(scope="session")
 def h36m_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A test-subject folder for training.evaluate (write_test_h36m)."""
+    """A test-subject folder for repnet.train.evaluate (write_test_h36m)."""
     return write_test_h36m(tmp_path_factory.mktemp("h36m_eval"))
 
 

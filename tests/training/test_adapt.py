@@ -10,17 +10,18 @@ import numpy as np
 import pytest
 import torch
 
-from service.cli import main as repnet
-from service.config import Settings
-from service.startup import load_lifter
+from repnet.cli.main import main as repnet
+from repnet.core import skeleton
+from repnet.server.config import Settings
+from repnet.server.startup import load_lifter
+from repnet.train import adapt_report, checkpoint, lineage, metrics, prior, synthetic
+from repnet.train.adapt import answer, split_holdout
+from repnet.train.adapt_report import Figures, worse
+from repnet.train.camera import masked_centre, project_weak_perspective
+from repnet.train.checkpoint import read_metadata
+from repnet.train.config import RepNetConfig
+from repnet.train.model import MM_PER_UNIT, RepNet, normalize_keypoints
 from tests.training.conftest import plant
-from training import adapt_report, checkpoint, lineage, metrics, prior, skeleton, synthetic
-from training.adapt import answer, split_holdout
-from training.adapt_report import Figures, worse
-from training.camera import masked_centre, project_weak_perspective
-from training.checkpoint import read_metadata
-from training.config import RepNetConfig
-from training.model import MM_PER_UNIT, RepNet, normalize_keypoints
 
 FAST = ["--threads", "1", "--prior-poses", "2000"]
 
@@ -73,6 +74,7 @@ def test_adapt_writes_a_model_the_service_serves_with_its_lineage(
     points = np.nan_to_num(np.load(poses_file)["keypoints"][:5]).astype(np.float32)
     prediction = lifter.lift(points, np.ones((5, 17), bool))
     assert lifter.info.model_id == "mine" and np.isfinite(prediction.pose_3d).all()
+    assert "adapted by `repnet adapt`" in lifter.info.training_method  # GET /v1/model says so
 
 
 def test_adapt_resumes_bit_for_bit(poses_file: Path, parent: Path, tmp_path: Path) -> None:

@@ -9,11 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from tests.training.conftest import STANDING
-from training import augment, data, skeleton
-from training.augment import with_detector_errors
-from training.config import TrainConfig
-from training.losses import bone_lengths
+from repnet.train import data
+from repnet.train.augment import with_detector_errors
+from repnet.train.config import TrainConfig
 
 
 def _pool(errors: np.ndarray, seen: np.ndarray) -> data.TrainingPool:
@@ -53,20 +51,3 @@ def test_only_the_asked_share_of_poses_changes_and_none_draws_nothing(share: flo
     assert abs(changed - share) < 0.03
     if share == 0.0:  # the generator is untouched: runs without detector errors stay bit for bit
         assert torch.equal(generator.get_state(), torch.Generator().manual_seed(1).get_state())
-
-
-def test_rescale_bones_changes_each_bone_length_by_its_factor_and_keeps_its_direction() -> None:
-    gen = torch.Generator().manual_seed(0)
-    poses = torch.from_numpy(STANDING[None].repeat(3, axis=0) / 1000).float()
-    out = augment.rescale_bones(poses, torch.tensor([0.0, 0.1, 0.3]), gen)
-    torch.testing.assert_close(out[0], poses[0])  # sigma 0: the pose itself
-    before, after = bone_lengths(poses), bone_lengths(out)
-    ratio = after / before
-    assert 0.05 < ratio[1].std() < 0.2 and ratio[2].std() > ratio[1].std()
-    parents, children = (list(ends) for ends in zip(*skeleton.BONES, strict=True))
-
-    def direction(pose: torch.Tensor) -> torch.Tensor:
-        return torch.nn.functional.normalize(pose[:, children] - pose[:, parents], dim=2)
-
-    torch.testing.assert_close(direction(out), direction(poses), atol=1e-5, rtol=0)
-    assert torch.equal(out[:, skeleton.ROOT], poses[:, skeleton.ROOT])

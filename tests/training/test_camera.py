@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from repnet.train.camera import camera_scale, masked_centre, project_weak_perspective
 from tests.training.conftest import STANDING
-from training.camera import camera_scale, masked_centre, project_weak_perspective
 
 
 def test_projection_is_k_times_x_for_every_joint() -> None:

@@ -1,5 +1,5 @@
 """A preset's whole chain: every stage, an interruption and its resume, the export, and the
-export -> service contract (the tiny model loads and lifts through service.lifter.Lifter)."""
+export -> service contract (the tiny model loads and lifts through repnet.runtime.lifter.Lifter)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from service.lifter import Lifter
+from repnet.runtime.lifter import Lifter
+from repnet.train import chain, checkpoint, presets, train
+from repnet.train.trainer import Terms, Trainer
 from tests.training.conftest import STANDING
-from training import chain, checkpoint, presets, train
-from training.trainer import Terms, Trainer
 
 
 def _run(out: Path, data_dir: Path, *extra: str) -> None:

@@ -1,4 +1,4 @@
-"""training.checkpoint: a shipped ONNX model gives back the weights it was exported from."""
+"""repnet.train.checkpoint: a shipped ONNX model gives back the weights it was exported from."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
+from repnet.train import checkpoint, export, train, validate
+from repnet.train import plausibility as plausibility_of
+from repnet.train.config import RepNetConfig
+from repnet.train.model import Critic, Plausibility, RepNet
 from tests.training.conftest import tiny_config
-from training import checkpoint, export, train, validate
-from training import plausibility as plausibility_of
-from training.config import RepNetConfig
-from training.model import Critic, Plausibility, RepNet
 
 TINY = RepNetConfig(width=32, critic_width=16, kcs_width=8)
 
@@ -27,7 +27,7 @@ def _exported(tmp_path: Path, plausibility: bool, mirror_average: bool) -> tuple
     meta = export.build_metadata(
         TINY,
         "tiny",
-        "generator: python -m training.train --a; critic: python -m training.train --b",
+        "generator: python -m repnet.train.train --a; critic: python -m repnet.train.train --b",
         "Human3.6M S1 S5 S6 S7 S8, 2D inputs: gt+sh",
         plausibility=plausibility_of.metadata("critic", table.numpy(), None) if plausibility else None,
         mirror_average=mirror_average,
@@ -51,8 +51,8 @@ def test_an_exported_model_gives_back_every_weight_of_its_generator_and_critic(
     assert state["critic"].keys() == critic.state_dict().keys()
     for name, value in critic.state_dict().items():
         assert torch.equal(state["critic"][name], value), name
-    assert state["command"] == "python -m training.train --a"
-    assert state["critic_command"] == "python -m training.train --b"
+    assert state["command"] == "python -m repnet.train.train --a"
+    assert state["critic_command"] == "python -m repnet.train.train --b"
     assert state["train_config"] == {"inputs": "gt+sh"}
     # The rebuilt generator answers as the one exported (export's own parity check).
     rebuilt, _ = export.load_generator(path)
@@ -80,7 +80,7 @@ def test_a_model_without_plausibility_has_no_critic_and_other_onnx_files_are_ref
     )
     other = tmp_path / "other.onnx"
     onnx.save(helper.make_model(graph), str(other))
-    with pytest.raises(ValueError, match="not a training.export model"):
+    with pytest.raises(ValueError, match="not a repnet.train.export model"):
         checkpoint.load(other)
 
 
@@ -122,5 +122,5 @@ def test_training_starts_from_a_shipped_model_and_export_reuses_its_critic(
     for name, value in critic.state_dict().items():
         assert torch.equal(state["critic"][name], value), name
     meta_command = state["command"] + checkpoint.CRITIC_COMMAND + state["critic_command"]
-    assert meta_command == "run arm; critic: python -m training.train --b"
+    assert meta_command == "run arm; critic: python -m repnet.train.train --b"
     assert json.loads(json.dumps(state["model_config"])) == dataclasses.asdict(TINY)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from training import curve
+from repnet.train import curve
 
 
 def _history(path: Path, offset: float) -> Path:
@@ -61,7 +61,7 @@ def test_many_runs_plot_one_panel_per_named_figure(tmp_path: Path) -> None:
 
 
 def test_a_temporal_runs_history_is_read_and_drawn_by_its_set_figures(tmp_path: Path) -> None:
-    """training.temporal_train writes sh25_/sh50_/gt25_ figures without the val_ prefix."""
+    """repnet.train.temporal_train writes sh25_/sh50_/gt25_ figures without the val_ prefix."""
     path = tmp_path / "temporal.jsonl"
     rows = [{"step": 10, "minutes": 0.1, "position": 70.0}]
     rows += [

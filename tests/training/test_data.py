@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from repnet.core import skeleton
+from repnet.train import data
 from tests.training.conftest import STANDING
-from training import data, skeleton
 
 
 def _rotation_z(angle: float) -> np.ndarray:

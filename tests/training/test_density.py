@@ -1,4 +1,4 @@
-"""training.density and training.plausibility: the pose density behind the plausibility output, how
+"""repnet.train.density and repnet.train.plausibility: the pose density behind the plausibility output, how
 it travels in the ONNX file with the critic, and how adapt rebuilds a parent's plausibility."""
 
 from __future__ import annotations
@@ -14,12 +14,13 @@ import pytest
 import torch
 from sklearn.mixture import GaussianMixture  # type: ignore[import-untyped]
 
+from repnet.core import skeleton
+from repnet.train import checkpoint, density, export
+from repnet.train import plausibility as plausibility_of
+from repnet.train.config import RepNetConfig
+from repnet.train.model import Critic, LiftingGraph, Plausibility, RepNet
+from repnet.train.plausibility import Score
 from tests.training.conftest import STANDING
-from training import checkpoint, density, export, skeleton
-from training import plausibility as plausibility_of
-from training.config import RepNetConfig
-from training.model import Critic, LiftingGraph, Plausibility, RepNet
-from training.plausibility import Score
 
 TINY = RepNetConfig(width=32, critic_width=16, kcs_width=8)
 

@@ -8,17 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from repnet.core import geometry, skeleton
+from repnet.train import data, evaluate, metrics, testset
 from tests.training.conftest import MISSING_DETECTIONS, SEQUENCES, write_detections
-from training import data, evaluate, metrics, skeleton, testset
 
 
 @pytest.fixture(scope="module")
 def tiny_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     torch = pytest.importorskip("torch")
     pytest.importorskip("onnx")
-    from training.config import RepNetConfig
-    from training.export import build_metadata, export_onnx
-    from training.model import RepNet
+    from repnet.train.config import RepNetConfig
+    from repnet.train.export import build_metadata, export_onnx
+    from repnet.train.model import RepNet
 
     torch.manual_seed(0)
     config = RepNetConfig(width=32, critic_width=32, kcs_width=8)
@@ -112,7 +113,7 @@ def test_protocol_one_along_the_ray_is_zero_for_an_oracle_of_the_view_along_the_
     """A lifter that gives K the rotation of the view along the ray to the person (all that a
     centred input shows) is exact under P-I along the ray, and off under K's rotation alone."""
     test = testset.build_test_set(data.load_poses(h36m_dir, "test"), data.load_cameras(h36m_dir), None)
-    ray = metrics.ray_rotation(test.points, test.visible, test.focal, test.centre)
+    ray = geometry.ray_turn(test.points, test.visible, test.focal, test.centre)
     view = ray.transpose(0, 2, 1)  # camera frame -> the frame looking along the ray
     template = np.einsum("nij,nkj->nki", view, test.gt)  # what the lifter outputs (K's rotation: view)
     start = [0]

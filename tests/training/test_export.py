@@ -11,13 +11,14 @@ import onnxruntime as ort
 import pytest
 import torch
 
+from repnet.core import skeleton
+from repnet.train import checkpoint, data, export, train
+from repnet.train import plausibility as plausibility_of
+from repnet.train.config import RepNetConfig
+from repnet.train.density import PoseDensity
+from repnet.train.losses import bone_lengths
+from repnet.train.model import Critic, Plausibility, RepNet
 from tests.training.conftest import STANDING, tiny_config
-from training import checkpoint, data, export, skeleton, train
-from training import plausibility as plausibility_of
-from training.config import RepNetConfig
-from training.density import PoseDensity
-from training.losses import bone_lengths
-from training.model import Critic, Plausibility, RepNet
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +27,7 @@ def tiny_onnx(tmp_path_factory: pytest.TempPathFactory) -> tuple[RepNet, Path]:
     generator = RepNet(RepNetConfig(width=32, critic_width=32, kcs_width=8)).eval()
     path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
     meta = export.build_metadata(
-        generator.config, "tiny-test", "python -m training.train --x", "synthetic", {"pa_mpjpe": 1.0}
+        generator.config, "tiny-test", "python -m repnet.train.train --x", "synthetic", {"pa_mpjpe": 1.0}
     )
     export.export_onnx(generator, path, meta)
     return generator, path

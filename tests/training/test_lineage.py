@@ -12,9 +12,9 @@ import onnx
 import pytest
 import torch
 
+from repnet.train import checkpoint, data, export, lineage, train
+from repnet.train.config import RepNetConfig
 from tests.training.conftest import tiny_config
-from training import checkpoint, data, export, lineage, train
-from training.config import RepNetConfig
 
 TINY = RepNetConfig(width=32, critic_width=16, kcs_width=8)
 
@@ -22,18 +22,19 @@ TINY = RepNetConfig(width=32, critic_width=16, kcs_width=8)
 def test_path_free_writes_paths_inside_the_root_relative_and_the_others_as_basenames(tmp_path: Path) -> None:
     root = tmp_path / "runs"
     command = (
-        f"python -m training.train --out-dir {root}/s7 --init-from {root}/s6/last.pt "
+        f"python -m repnet.train.train --out-dir {root}/s7 --init-from {root}/s6/last.pt "
         f"--data-dir=/data/h36m --x ~/.cache/repnet/v5.onnx --inputs gt+sh --out {root} --y runs/rel"
     )
     assert lineage.path_free(command, root) == (
-        "python -m training.train --out-dir s7 --init-from s6/last.pt --data-dir=h36m --x v5.onnx "
+        "python -m repnet.train.train --out-dir s7 --init-from s6/last.pt --data-dir=h36m --x v5.onnx "
         "--inputs gt+sh --out . --y runs/rel"
     )
     assert (
         lineage.path_free("generator: run /a/gen; critic: run b", None) == "generator: run gen; critic: run b"
     )
     assert (
-        lineage.command_line(["--out-dir", str(root / "a")], root) == "python -m training.train --out-dir a"
+        lineage.command_line(["--out-dir", str(root / "a")], root)
+        == "python -m repnet.train.train --out-dir a"
     )
 
 
@@ -119,7 +120,7 @@ def test_a_model_exported_from_a_checkpoint_without_lineage_records_its_command_
     train.train(config, TINY)
     state = torch.load(tmp_path / "old" / "last.pt", weights_only=False)
     del state["lineage"]
-    state["command"] = f"python -m training.train --out-dir {tmp_path}/old --data-dir {synthetic_h36m}"
+    state["command"] = f"python -m repnet.train.train --out-dir {tmp_path}/old --data-dir {synthetic_h36m}"
     torch.save(state, tmp_path / "old" / "last.pt")
     model = tmp_path / "model.onnx"
     export.main(
@@ -127,12 +128,15 @@ def test_a_model_exported_from_a_checkpoint_without_lineage_records_its_command_
         + ["--data-dir", str(synthetic_h36m)]
     )
     meta = {p.key: p.value for p in onnx.load(str(model)).metadata_props}
-    assert meta["train_command"] == f"python -m training.train --out-dir old --data-dir {synthetic_h36m.name}"
+    assert (
+        meta["train_command"]
+        == f"python -m repnet.train.train --out-dir old --data-dir {synthetic_h36m.name}"
+    )
     found = json.loads(meta["lineage"])
     assert found["generator"] == [
-        {"command": f"python -m training.train --out-dir old --data-dir {synthetic_h36m.name}"}
+        {"command": f"python -m repnet.train.train --out-dir old --data-dir {synthetic_h36m.name}"}
     ]
     assert found["export"]["command"].startswith(
-        "python -m training.export --checkpoint old/last.pt --output "
+        "python -m repnet.train.export --checkpoint old/last.pt --output "
     )
     assert all(str(tmp_path) not in value for value in meta.values())

@@ -5,10 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.training.conftest import STANDING
-from training import skeleton
-from training.camera import camera_scale, masked_centre, project_weak_perspective
-from training.losses import (
+from repnet.core import skeleton
+from repnet.train.camera import camera_scale, masked_centre, project_weak_perspective
+from repnet.train.losses import (
     bone_lengths,
     bone_loss,
     camera_loss,
@@ -16,6 +15,7 @@ from training.losses import (
     gradient_penalty,
     reprojection_loss,
 )
+from tests.training.conftest import STANDING
 
 
 def _rotation(angle: float) -> torch.Tensor:

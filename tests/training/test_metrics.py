@@ -1,12 +1,13 @@
-"""Known-value tests for training.metrics: MPJPE, Procrustes, PCK, AUC, symmetry, camera rotation."""
+"""Known-value tests for repnet.train.metrics: MPJPE, Procrustes, PCK, AUC, symmetry, camera rotation."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from training import metrics, skeleton
-from training.data import procrustes
+from repnet.core import geometry, skeleton
+from repnet.train import metrics
+from repnet.train.data import procrustes
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -102,14 +103,14 @@ def test_symmetry_error_sums_left_right_bone_differences():
 def test_rotation_from_camera_recovers_a_known_rotation():
     rot = np.stack([_rotation(np.array([1.0, 2.0, -0.5]), 0.8), _rotation(np.array([0.0, 1.0, 0.0]), -2.5)])
     camera = np.array([0.004, 2.5])[:, None, None] * rot[:, :2]  # K = s R[:2]
-    recovered = metrics.rotation_from_camera(camera)
+    recovered = geometry.rotation_of_camera(camera)
     np.testing.assert_allclose(recovered, rot, atol=1e-9)
     np.testing.assert_allclose(np.linalg.det(recovered), 1.0)
 
 
 def test_rotation_from_camera_is_proper_for_a_skewed_camera():
     rng = np.random.default_rng(1)
-    recovered = metrics.rotation_from_camera(rng.normal(size=(50, 2, 3)))
+    recovered = geometry.rotation_of_camera(rng.normal(size=(50, 2, 3)))
     np.testing.assert_allclose(
         recovered @ recovered.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (50, 3, 3)), atol=1e-9
     )
@@ -143,7 +144,7 @@ def test_summarize_reports_means_medians_and_symmetry():
 
 def test_rotation_to_ray_turns_the_optical_axis_onto_the_ray() -> None:
     direction = np.array([[0.0, 0.0, 2.0], [0.3, -0.2, 1.0], [-1.0, 0.5, 1.5]])
-    rot = metrics.rotation_to_ray(direction)
+    rot = geometry.rotation_to_ray(direction)
     np.testing.assert_allclose(rot[0], np.eye(3), atol=1e-12)
     unit = direction / np.linalg.norm(direction, axis=1, keepdims=True)
     np.testing.assert_allclose(rot @ np.array([0.0, 0.0, 1.0]), unit, atol=1e-12)
@@ -157,7 +158,7 @@ def test_rotation_to_ray_turns_the_optical_axis_onto_the_ray() -> None:
 def test_ray_rotation_goes_through_the_centroid_of_the_visible_joints() -> None:
     points = np.array([[[600.0, 400.0], [700.0, 500.0], [1e6, 1e6]]])
     visible = np.array([[1.0, 1.0, 0.0]])
-    rot = metrics.ray_rotation(points, visible, np.array([[1000.0, 1000.0]]), np.array([[500.0, 500.0]]))
+    rot = geometry.ray_turn(points, visible, np.array([[1000.0, 1000.0]]), np.array([[500.0, 500.0]]))
     expected = np.array([0.15, -0.05, 1.0]) / np.linalg.norm([0.15, -0.05, 1.0])
     np.testing.assert_allclose(rot[0] @ np.array([0.0, 0.0, 1.0]), expected, atol=1e-12)
 
@@ -165,7 +166,7 @@ def test_ray_rotation_goes_through_the_centroid_of_the_visible_joints() -> None:
 def test_off_axis_errors_are_the_chords_of_the_turn_onto_the_ray() -> None:
     """A joint r mm from the pelvis moves 2 r sin(a / 2) when the pose turns by a onto the ray."""
     angle = np.radians(10.0)
-    ray = metrics.rotation_to_ray(np.array([[np.sin(angle), 0.0, np.cos(angle)], [0.0, 0.0, 1.0]]))
+    ray = geometry.rotation_to_ray(np.array([[np.sin(angle), 0.0, np.cos(angle)], [0.0, 0.0, 1.0]]))
     gt = np.repeat(_pose(), 2, axis=0) + 500.0  # anywhere: the root is aligned first
     errors, angles = metrics.off_axis_errors(gt, ray)
     np.testing.assert_allclose(angles, [10.0, 0.0], atol=1e-9)

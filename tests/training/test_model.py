@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import torch
 
+from repnet.core import skeleton
+from repnet.train.config import RepNetConfig
+from repnet.train.model import KCS, Critic, LiftingGraph, RepNet, normalize_keypoints
 from tests.training.conftest import STANDING
-from training import skeleton
-from training.config import RepNetConfig
-from training.model import KCS, Critic, LiftingGraph, RepNet, normalize_keypoints
 
 TINY = RepNetConfig(width=32, critic_width=32, kcs_width=8)
 

@@ -10,11 +10,14 @@ import tokenize
 from pathlib import Path
 from typing import Any
 
-import training
+from repnet import core
+from repnet import train as training
 
 CITATION = re.compile(r"\b(Eq\. \d+(?:-\d+)?|Sec\. \d+(?:\.\d+)+)")
 AUTHORS = "Wandt & Rosenhahn 2019"
-SOURCES = sorted(Path(training.__file__).parent.glob("*.py"))
+SOURCES = sorted(Path(training.__file__).parent.glob("*.py")) + sorted(
+    Path(core.__file__).parent.glob("*.py")
+)
 
 
 def _paper_map() -> dict[str, dict[str, list[str]]]:
@@ -74,7 +77,7 @@ def _citations(path: Path) -> list[tuple[int, str, str, str]]:
     every paper citation in a module's docstrings and comments."""
     source = path.read_text()
     tree = ast.parse(source)
-    module = f"training.{path.stem}"
+    module = f"{'repnet.core' if path.parent.name == 'core' else 'repnet.train'}.{path.stem}"
     scopes: list[tuple[int, int, str]] = []  # (first line, last line, dotted name) of defs and classes
     texts: list[tuple[int, int, str]] = []  # (first line, last line, text) of docstrings
 

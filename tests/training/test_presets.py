@@ -1,4 +1,4 @@
-"""The presets: repnet-h36m-v6 is, flag for flag, the chain docs/RESULTS.md lists as run."""
+"""The presets: repnet-h36m-v6 is, flag for flag, the chain as run (v6_commands_as_run.sh)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from typing import Any
 
 import pytest
 
-from training import presets
-from training.config import RepNetConfig, TrainConfig
-from training.plausibility import DensityConfig
-from training.presets import Preset, Stage, StageRef
+from repnet.train import presets
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.plausibility import DensityConfig
+from repnet.train.presets import Preset, Stage, StageRef
 
-RESULTS = Path(__file__).resolve().parents[2] / "docs" / "RESULTS.md"
+AS_RUN = Path(__file__).with_name("v6_commands_as_run.sh")
 # Flags of the commands as run that say where and how fast a run ran, not what it computed.
 RUNTIME = {"out_dir", "threads", "max_minutes", "resume", "init_from"}
 # The run folders and shipped files of the commands as run, by the preset's names for them: v4
@@ -34,16 +34,15 @@ SOURCES = {
 
 
 def _commands_as_run() -> dict[str, list[str]]:
-    """{stage name: the argv of its first `python -m training.train` in "Commands (as run)"}."""
-    block = RESULTS.read_text().split("## Commands (as run)", 1)[1].split("```bash", 1)[1].split("```", 1)[0]
-    lines = block.replace("\\\n", " ").splitlines()
+    """{stage name: the argv of its first `python -m repnet.train.train` in the commands as run}."""
+    lines = AS_RUN.read_text().replace("\\\n", " ").splitlines()
     commands: dict[str, list[str]] = {}
     label = None
     for line in lines:
         stretch = re.search(r"^# .*\bstretch (\d)\b", line)
         if stretch or line.startswith("# v2's critic"):
             label = f"stretch{stretch[1]}" if stretch else "critic"
-        elif label and line.startswith("python -m training.train") and label not in commands:
+        elif label and line.startswith("python -m repnet.train.train") and label not in commands:
             commands[label] = shlex.split(line)[3:]
     return commands
 

@@ -1,4 +1,4 @@
-"""training.rebase: temporal models move to another single-frame model only when it answers as the old."""
+"""repnet.train.rebase: temporal models move to another single-frame model only when it answers as the old."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import onnx
 import pytest
 import torch
 
-from training import export, lineage, rebase
-from training.config import RepNetConfig
-from training.model import Critic, Plausibility, RepNet
+from repnet.train import export, lineage, rebase
+from repnet.train.config import RepNetConfig
+from repnet.train.model import Critic, Plausibility, RepNet
 
 TINY = RepNetConfig(width=32, critic_width=16, kcs_width=8)
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from repnet.train import checkpoint
 from tests.training.conftest import plant
-from training import checkpoint
 
 
 def test_a_planted_checkpoint_is_refused_and_runs_nothing(tmp_path: Path) -> None:

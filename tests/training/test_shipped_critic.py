@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from service.config import BUNDLED_MODEL
+from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.train import checkpoint, data
+from repnet.train.density import PoseDensity
+from repnet.train.export import load_critic
+from repnet.train.model import MM_PER_UNIT
 from tests.conftest import POSE_3D
-from training import checkpoint, data
-from training.density import PoseDensity
-from training.export import load_critic
-from training.model import MM_PER_UNIT
 
 # (parent, child) of the arm and leg bones; the joints below child move with it when it stretches.
 LIMBS = {

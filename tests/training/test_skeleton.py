@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from repnet.core import skeleton
 from tests.training.conftest import STANDING
-from training import skeleton
 
 
 def test_each_bone_matrix_column_is_a_bone_vector_child_minus_parent() -> None:

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from repnet.core import geometry, skeleton
+from repnet.train import data, metrics, synthetic
 from tests.training.conftest import STANDING
-from training import data, metrics, skeleton, synthetic
 
 HEAD, LEFT_ANKLE, RIGHT_ANKLE = 10, 6, 3
 
@@ -124,7 +125,7 @@ def test_the_ray_target_is_the_camera_target_seen_along_the_ray_to_the_pelvis() 
     gen = torch.Generator().manual_seed(5)
     torch.randint(0, 20, (32,), generator=gen)
     _, position = synthetic.random_views(32, gen)
-    turn = torch.from_numpy(metrics.rotation_to_ray(position.numpy())).to(torch.float32)
+    turn = torch.from_numpy(geometry.rotation_to_ray(position.numpy())).to(torch.float32)
     torch.testing.assert_close(turn @ ray, axis, atol=1e-5, rtol=0.0)
     # The people stand off the axis, so the two targets differ; by at most the largest offset angle.
     angle = torch.rad2deg(torch.arccos(((turn.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)))

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
+from repnet.train import metrics, presets, temporal_train
+from repnet.train.temporal import GRID_FPS, TemporalConfig, TemporalGraph, TemporalNet, slots_needed
+from repnet.train.temporal_data import clip_features, onnx_lift, padded_grid
 from tests.training.conftest import STANDING
-from training import metrics, presets, temporal_train
-from training.temporal import GRID_FPS, TemporalConfig, TemporalGraph, TemporalNet, slots_needed
-from training.temporal_data import clip_features, onnx_lift, padded_grid
 
 BUNDLED = Path(__file__).resolve().parents[2] / "service" / "models" / "repnet-h36m.onnx"
 
@@ -140,7 +140,7 @@ def test_the_tiny_temporal_preset_trains_resumes_exports_and_loads_in_the_servic
         ]
         assert [record["step"] for record in history] == [2, 4]
         assert {"sh25_accel", "sh50_pa_mpjpe", "gt25_bone_std"} <= set(history[-1])
-        from service.temporal import TemporalLifter
+        from repnet.runtime.temporal import TemporalLifter
 
         lifter = TemporalLifter.load(tmp_path / f"{model_id}.onnx")
         assert lifter.mode == config.mode and lifter.window == config.window

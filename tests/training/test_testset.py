@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from training import data, testset
+from repnet.train import data, testset
 
 
 def test_action_name_merges_the_takes_of_an_action() -> None:

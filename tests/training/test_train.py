@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from repnet.train import augment, checkpoint, data, metrics, train, trainer, validation
+from repnet.train.config import RepNetConfig, TrainConfig
+from repnet.train.model import RepNet
 from tests.training.conftest import STANDING, tiny_config
-from training import augment, checkpoint, data, metrics, skeleton, train, trainer, validation
-from training.config import RepNetConfig, TrainConfig
-from training.model import RepNet, normalize_keypoints
 
 TINY = RepNetConfig(width=64, critic_width=64, kcs_width=16)
 CPU = torch.device("cpu")
@@ -284,8 +284,8 @@ def test_corrupted_poses_break_one_thing_and_keep_the_root() -> None:
 
 
 def test_a_critic_trained_against_corrupted_poses_ranks_a_real_pose_above_a_stretched_limb() -> None:
-    from training.model import Plausibility
-    from training.plausibility import calibrate
+    from repnet.train.model import Plausibility
+    from repnet.train.plausibility import calibrate
 
     rng = np.random.default_rng(0)
     n = 4000
@@ -329,7 +329,7 @@ def test_a_compiled_generator_trains_and_saves_plain_weights(synthetic_h36m: Pat
 def test_training_validate_rescores_a_checkpoint_on_the_runs_own_validation_sets(
     synthetic_h36m: Path, tmp_path: Path
 ) -> None:
-    from training import validate
+    from repnet.train import validate
 
     best = train.train(dataclasses.replace(_config(synthetic_h36m, tmp_path, 20), mirror_prob=0.5), TINY)
     record = next(r for r in reversed(_history(tmp_path)) if "val_gt_pa_mpjpe" in r)
@@ -366,102 +366,7 @@ def test_validation_counts_the_answers_with_a_bone_no_person_has() -> None:
     assert figures["pa_mpjpe"] > 0
 
 
-def test_lifted_fakes_are_the_generators_answers_to_noisy_2d_mixed_with_corrupted_poses() -> None:
-    rng = np.random.default_rng(0)
-    poses = (STANDING[None] + rng.normal(0, 5, (64, 17, 3))).astype(np.float32)
-    points = (STANDING[None, :, :2] + 500 + rng.normal(0, 2, (64, 17, 2))).astype(np.float32)
-    pool = data.TrainingPool(poses - poses[:, :1], points, np.ones((64, 17), np.float32))
-    answer = torch.full((17, 3), 0.25)
-    answer[0] = 0.0
-    seen: list[torch.Tensor] = []
-
-    def fakes(noise_px: float, share: float) -> torch.Tensor:
-        config = TrainConfig(
-            batch_size=512, critic_only=True, critic_fakes="lifted", critic_noise_px=noise_px,
-            critic_corrupted_share=share, mask_prob=0.0, spine_mask_prob=0.0,
-        )  # fmt: skip
-        critic_trainer = trainer.Trainer(config, TINY, pool, CPU, torch.Generator().manual_seed(0))
-
-        def generate(points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            seen.append(points)
-            return answer.expand(len(points), 17, 3), torch.zeros(len(points), 2, 3)
-
-        critic_trainer.generate = generate
-        return critic_trainer._critic_only_fakes(critic_trainer)
-
-    lifted = (fakes(0.0, 0.5) == answer).all(dim=(1, 2))
-    assert 0.4 < lifted.float().mean() < 0.6  # the rest are corrupted real poses
-    assert not (fakes(0.0, 1.0) == answer).all(dim=(1, 2)).any()
-    clean = seen[0]  # without noise the generator sees the pool's own 2D, normalised
-    own = normalize_keypoints(torch.from_numpy(points), torch.ones(64, 17))
-    assert (clean[:, None] - own[None]).abs().amax(dim=(2, 3)).amin(dim=1).max() < 1e-5
-    assert (fakes(40.0, 0.0) == answer).all()
-    spread = (seen[-1] - clean).abs().mean(dim=(1, 2))  # the same draws, per-pose sigma ~ U(0, 40 px)
-    assert spread.max() > 0.05 and spread.min() < spread.max() / 10
-    with pytest.raises(ValueError, match="generator, corrupted, lifted, paired, graded"):
+def test_an_unknown_critic_fake_source_is_refused(synthetic_h36m: Path) -> None:
+    pool, _ = data.build_training_sets(synthetic_h36m, "gt", 1, 0.1)
+    with pytest.raises(ValueError, match="critic_fakes must be one of generator, corrupted"):
         trainer.Trainer(TrainConfig(critic_fakes="real"), TINY, pool, CPU, torch.Generator().manual_seed(0))
-
-
-def test_paired_fakes_set_each_damaged_answer_against_the_answer_to_the_same_clean_2d() -> None:
-    rng = np.random.default_rng(0)
-    poses = (STANDING[None] + rng.normal(0, 5, (64, 17, 3))).astype(np.float32)
-    points = (STANDING[None, :, :2] + 500 + rng.normal(0, 2, (64, 17, 2))).astype(np.float32)
-    pool = data.TrainingPool(poses - poses[:, :1], points, np.ones((64, 17), np.float32))
-    config = TrainConfig(
-        batch_size=256, critic_only=True, critic_fakes="paired", critic_noise_px=40.0,
-        critic_corrupted_share=0.5, mask_prob=1.0, mask_max=2,
-    )  # fmt: skip
-    critic_trainer = trainer.Trainer(config, TINY, pool, CPU, torch.Generator().manual_seed(0))
-
-    def generate(points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """An answer that shows its input: x, y the normalised 2D, z the visibility."""
-        return torch.cat([points, visible[..., None]], dim=2), torch.zeros(len(points), 2, 3)
-
-    critic_trainer.generate = generate
-    fakes = critic_trainer._critic_only_fakes(critic_trainer)
-    reals = critic_trainer.reals
-    assert reals is not None and reals.shape == fakes.shape == (256, 17, 3)
-    answered = (reals[..., 2] == 1).all(dim=1)  # the generator's answers to the 2D as it is
-    assert 0.4 < answered.float().mean() < 0.6
-    own = normalize_keypoints(torch.from_numpy(points), torch.ones(64, 17))
-    clean = reals[answered, :, :2]
-    assert (clean[:, None] - own[None]).abs().amax(dim=(2, 3)).amin(dim=1).max() < 1e-5
-    damaged = fakes[answered]
-    hidden = (damaged[..., 2] == 0).sum(dim=1)
-    assert hidden.min() >= 1 and hidden.max() <= 2 + 1  # mask_max joints, and maybe the spine
-    # The rest: real poses (m) and their corrupted copies.
-    real_rows = reals[~answered]
-    assert (real_rows[:, None] - torch.from_numpy(pool.poses_aligned / 1000)[None]).abs().amax(
-        dim=(2, 3)
-    ).amin(dim=1).max() < 1e-6
-    assert not (fakes[~answered] == real_rows).all(dim=(1, 2)).any()
-    critic_trainer.critic_step()  # takes the paired reals, once
-    assert critic_trainer.reals is None
-
-
-def test_graded_fakes_are_real_poses_with_rescaled_bones_or_corrupted() -> None:
-    rng = np.random.default_rng(0)
-    poses = (STANDING[None] + rng.normal(0, 20, (8, 17, 3))).astype(np.float32)
-    pool = data.TrainingPool(
-        poses - poses[:, :1], np.zeros((1, 17, 2), np.float32), np.ones((1, 17), np.float32)
-    )
-
-    def fakes(share: float) -> torch.Tensor:
-        config = TrainConfig(
-            batch_size=400, critic_fakes="graded", critic_bone_sigma=0.2, critic_corrupted_share=share
-        )
-        made = trainer.Trainer(config, TINY, pool, CPU, torch.Generator().manual_seed(0))
-        return made._critic_only_fakes(made)
-
-    real = torch.from_numpy(pool.poses_aligned / 1000)
-    parents, children = (list(ends) for ends in zip(*skeleton.BONES, strict=True))
-
-    def directions(pose: torch.Tensor) -> torch.Tensor:
-        return torch.nn.functional.normalize(pose[:, children] - pose[:, parents], dim=2)
-
-    def from_a_real_pose(fake: torch.Tensor) -> torch.Tensor:
-        """Whether each fake has the bone directions of one of the real poses."""
-        return (directions(fake)[:, None] - directions(real)[None]).abs().amax(dim=(2, 3)).amin(dim=1) < 1e-4
-
-    assert from_a_real_pose(fakes(0.0)).all()
-    assert 0.3 < from_a_real_pose(fakes(0.5)).float().mean() < 0.8  # a corrupted pose may keep them (stretch)

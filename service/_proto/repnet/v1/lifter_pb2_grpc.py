@@ -3,7 +3,7 @@
 import grpc
 import warnings
 
-from service._proto.repnet.v1 import lifter_pb2 as repnet_dot_v1_dot_lifter__pb2
+from repnet._proto.repnet.v1 import lifter_pb2 as repnet_dot_v1_dot_lifter__pb2
 
 GRPC_GENERATED_VERSION = '1.85.1'
 GRPC_VERSION = grpc.__version__

@@ -1,0 +1,208 @@
+"""bench.temporal_load's report: the roof, the loads, the cameras held and the people per frame, as Markdown
+tables and JSON."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from bench.roof import RoofRow
+from bench.stats import Result, fmt
+from bench.temporal_roof import per_pose_roof
+from bench.tracked import (
+    FPS,
+)
+
+# Targets of issue 21 ("Capacity and cost").
+CAMERAS_TARGET = 64
+P99_TARGET_MS = 25.0
+PEOPLE_RATIO_TARGET = 4.0
+HELD_FRACTION = 0.98  # of the offered frames, sent and answered within the window
+PEOPLE_KINDS = {"untracked": "1 pose, untracked", "pose": "1 person (pose)", "1": "1 person (people)"}
+
+
+@dataclass
+class Report:
+    """Everything one run measured; written as JSON and printed as markdown."""
+
+    when: str
+    command: str
+    machine: dict[str, Any]
+    models: dict[str, str]
+    contract: dict[str, Any]
+    service_flags: list[str]
+    roof: list[RoofRow]
+    saturated: list[Result] = field(default_factory=list)
+    cameras: list[Result] = field(default_factory=list)
+    most_cameras: int = 0
+    searched: list[int] = field(default_factory=list)
+    people: list[Result] = field(default_factory=list)
+    people_count: int = 16
+    server_rss_mb: dict[str, float] = field(default_factory=dict)
+    load_average: dict[str, float] = field(default_factory=dict)
+    roof_end: list[RoofRow] = field(default_factory=list)
+    p99_ms: float = P99_TARGET_MS
+    wall_s: float = 0.0
+
+    def roof_per_pose(self) -> dict[int, dict[str, float]]:
+        """Per batch size, the better of the two roof passes (see per_pose_roof)."""
+        best: dict[int, dict[str, float]] = {}
+        for rows in (self.roof, self.roof_end):
+            for batch, values in per_pose_roof(rows).items():
+                for key, value in values.items():
+                    best.setdefault(batch, {})[key] = max(value, best.get(batch, {}).get(key, 0.0))
+        return best
+
+    @property
+    def roof_best(self) -> dict[str, float]:
+        """The best frames/s over the batch sizes: single-frame, temporal, both per tracked pose."""
+        per = self.roof_per_pose().values()
+        return {k: max((v.get(k, 0.0) for v in per), default=0.0) for k in ("single", "temporal", "both")}
+
+    def people_ratio(self) -> dict[str, float]:
+        """A many-person frame against a 1-person (`pose`) frame: server CPU per frame, p50, p99."""
+        by = {r.extra.get("people"): r for r in self.people if r.name != PEOPLE_KINDS["untracked"]}
+        one = next((r for r in self.people if r.name == PEOPLE_KINDS["pose"]), None)
+        many = by.get(self.people_count)
+        if one is None or many is None or not one.latency_ms or not many.latency_ms:
+            return {}
+        cpu1, cpu_n = one.extra["server_cpu_ms_per_frame"], many.extra["server_cpu_ms_per_frame"]
+        return {
+            "server_cpu": cpu_n / cpu1 if cpu1 else float("inf"),
+            "p50": many.latency_ms["p50"] / one.latency_ms["p50"],
+            "p99": many.latency_ms["p99"] / one.latency_ms["p99"],
+        }
+
+    @property
+    def targets(self) -> list[str]:
+        """One line per target of issue 21 that this run measures: met or MISSED, with the figure."""
+        lines = []
+        if self.searched:
+            ok = self.most_cameras >= CAMERAS_TARGET
+            lines.append(
+                f"{'met' if ok else 'MISSED'}: causal temporal LiftStream holds {self.most_cameras} cameras "
+                f"at {FPS:g} fps with p99 <= {self.p99_ms:g} ms (target >= {CAMERAS_TARGET})"
+            )
+        if ratio := self.people_ratio():
+            worst = max(ratio["server_cpu"], ratio["p50"])
+            ok = worst < PEOPLE_RATIO_TARGET
+            lines.append(
+                f"{'met' if ok else 'MISSED'}: a {self.people_count}-person frame costs "
+                f"{ratio['server_cpu']:.2f}x a 1-person frame in server CPU, {ratio['p50']:.2f}x in p50 "
+                f"latency ({ratio['p99']:.2f}x p99) (target < {PEOPLE_RATIO_TARGET:g}x)"
+            )
+        return lines
+
+    def markdown(self) -> str:
+        """The whole report as markdown."""
+        load = self.load_average
+        parts = [
+            f"`{self.command}` on {self.machine['cpus']} CPUs ({self.machine['cpu']}), {self.when}, "
+            f"models {self.models.get('single')} + {self.models.get('causal')} (causal, "
+            f"K = {self.contract.get('slots_30fps')} slots at {FPS:g} fps), service flags "
+            f"`{' '.join(self.service_flags)}`; load average {load.get('start', 0):.2f} at the start, "
+            f"{load.get('end', 0):.2f} at the end; run took {self.wall_s:.0f} s.",
+            "Roof (raw onnxruntime, frames/s; the better of the passes before and after the loads):\n\n"
+            + roof_table(self.roof_per_pose()),
+        ]
+        best = self.roof_best
+        if self.saturated:
+            parts.append(
+                "Saturated streams (one person per stream, 256 frames in flight each):\n\n"
+                + loads_table(self.saturated, best)
+            )
+        if self.cameras:
+            parts.append(
+                f"Cameras (paced at {FPS:g} fps each; held: p99 <= {self.p99_ms:g} ms, no errors, "
+                f">= {HELD_FRACTION:.0%} of the offered frames answered; measured in the order "
+                f"{', '.join(map(str, self.searched))}):\n\n" + cameras_table(self.cameras)
+            )
+        if self.people:
+            parts.append(
+                "People per frame (one stream, one frame in flight):\n\n" + people_table(self.people)
+            )
+        parts.append("\n".join(f"- {line}" for line in self.targets))
+        rss = self.server_rss_mb
+        if rss:
+            parts.append(f"Server RSS {rss['start']:.1f} MB after start, {rss['end']:.1f} MB at the end.")
+        return "\n\n".join(parts)
+
+
+def roof_table(per: dict[int, dict[str, float]]) -> str:
+    """Roof frames/s per batch size."""
+    lines = [
+        "| batch | single-frame session.run | temporal session.run | both, per tracked pose |",
+        "|---:|---:|---:|---:|",
+    ]
+    for batch in sorted(per):
+        v = per[batch]
+        lines.append(
+            f"| {batch} | {fmt(v.get('single'), 0)} | {fmt(v.get('temporal'), 0)} | {fmt(v.get('both'), 0)} |"
+        )
+    return "\n".join(lines)
+
+
+def latency_cell(r: Result, key: str) -> str:
+    """A latency percentile of a result, ms."""
+    return fmt(r.latency_ms.get(key))
+
+
+def loads_table(results: list[Result], best: dict[str, float]) -> str:
+    """Throughput against the roofs."""
+    lines = [
+        "| load | frames/s | × temporal roof | × both roof | p50 ms | p99 ms | errors | server CPU "
+        "| client CPU | other CPU |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in results:
+        lines.append(
+            f"| {r.name} | {fmt(r.frames_per_s, 0)} | {fmt(r.frames_per_s / best['temporal'], 3)} "
+            f"| {fmt(r.frames_per_s / best['both'], 3)} | {latency_cell(r, 'p50')} "
+            f"| {latency_cell(r, 'p99')} | {r.errors} "
+            f"| {fmt(r.server_cpu)} | {fmt(r.client_cpu)} | {fmt(r.extra.get('other_cpu'))} |"
+        )
+    return "\n".join(lines)
+
+
+def cameras_table(results: list[Result]) -> str:
+    """One row per camera count: tracked and untracked side by side."""
+    by: dict[int, dict[bool, Result]] = {}
+    for r in results:
+        by.setdefault(r.concurrency, {})[bool(r.extra.get("tracked"))] = r
+    lines = [
+        "| cameras | offered frames/s | tracked frames/s | p50 ms | p99 ms | errors | server CPU "
+        "| client CPU | other CPU | held | untracked frames/s | p50 ms | p99 ms | server CPU |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|",
+    ]
+    for n in sorted(by):
+        t, u = by[n].get(True), by[n].get(False)
+        row = [str(n), fmt(n * FPS, 0)]
+        if t is not None:
+            row += [fmt(t.frames_per_s, 0), latency_cell(t, "p50"), latency_cell(t, "p99"), str(t.errors)]
+            row += [fmt(t.server_cpu), fmt(t.client_cpu), fmt(t.extra.get("other_cpu"))]
+            row.append("yes" if t.extra.get("held") else "**no**")
+        else:
+            row += ["—"] * 8
+        if u is not None:
+            row += [fmt(u.frames_per_s, 0), latency_cell(u, "p50"), latency_cell(u, "p99"), fmt(u.server_cpu)]
+        else:
+            row += ["—"] * 4
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def people_table(results: list[Result]) -> str:
+    """Per-frame cost of frames with 1 and many people."""
+    lines = [
+        "| frame | people | frames/s | people/s | p50 ms | p99 ms | server CPU ms per frame | errors |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in results:
+        people = int(r.extra.get("people", 1))
+        lines.append(
+            f"| {r.name} | {people} | {fmt(r.frames_per_s, 0)} | {fmt(r.frames_per_s * people, 0)} "
+            f"| {latency_cell(r, 'p50')} | {latency_cell(r, 'p99')} "
+            f"| {fmt(r.extra.get('server_cpu_ms_per_frame'))} "
+            f"| {r.errors} |"
+        )
+    return "\n".join(lines)

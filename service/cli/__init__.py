@@ -1,0 +1,1 @@
+"""The `repnet` command: serve, lift, plot, formats, adapt."""

@@ -1,0 +1,1 @@
+"""Clients of a running service: LiftClient (HTTP), StreamClient (gRPC LiftStream), their result."""

@@ -1,0 +1,1 @@
+"""Files: pose files in (detectors' layouts), JSON, NPZ, CSV and BVH out, plots."""

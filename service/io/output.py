@@ -1,0 +1,186 @@
+"""`repnet lift -o FILE`: the lifted poses written by the file's suffix (.json, .npz, .csv, .bvh)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from repnet.client.result import LiftResult
+from repnet.io.bvh import CAMERA_TO_BVH, solve_motion, write_bvh
+from repnet.io.poses import InputFileError, Poses
+
+DEFAULT_BVH_FPS = 30.0  # the frame time of a BVH whose poses give no frame rate
+
+
+@dataclass(frozen=True)
+class Lifted:
+    """What `repnet lift` writes: the JSON document, the results and the poses they are of."""
+
+    document: dict[str, Any]  # the .json output (model_id, format, temporal, fps, joints, poses, ...)
+    results: Sequence[LiftResult]
+    poses: Poses
+
+
+def check_output(path: Path) -> None:
+    """InputFileError unless `path`'s suffix names a writer (checked before lifting)."""
+    if path.suffix.lower() not in WRITERS:
+        raise InputFileError(
+            f"-o {path}: unknown output suffix {path.suffix or '(none)'!r}; expected one of "
+            f"{', '.join(WRITERS)}"
+        )
+
+
+def write_output(path: Path, lifted: Lifted) -> list[Path]:
+    """Write `lifted` as `path`'s suffix says; the files written (a .bvh: one per person)."""
+    check_output(path)
+    return WRITERS[path.suffix.lower()](path, lifted)
+
+
+def _write_json(path: Path, lifted: Lifted) -> list[Path]:
+    path.write_text(json.dumps(lifted.document, allow_nan=False))
+    return [path]
+
+
+def _column(values: list[Any]) -> np.ndarray:
+    """One reply field over all poses as an array: None becomes NaN (numbers) or "" (strings)."""
+    if all(isinstance(v, str) or v is None for v in values):
+        return np.array(["" if v is None else v for v in values], dtype=str)
+    if any(isinstance(v, tuple) for v in values):  # warnings: one joined string per pose
+        return np.array(["; ".join(v) for v in values], dtype=str)
+    shape = next((np.shape(v) for v in values if v is not None), ())
+    return np.array([np.full(shape, np.nan) if v is None else v for v in values])
+
+
+def _write_npz(path: Path, lifted: Lifted) -> list[Path]:
+    """Every reply field as an (N, ...) array under its own name, beside what `repnet lift` reads
+    back (keypoints (N, J, 2) with NaN for missing joints, confidence, format, fps) and frame,
+    person, joints, parents, model_id."""
+    doc, poses = lifted.document, lifted.poses
+    arrays: dict[str, Any] = {
+        name: _column([getattr(r, name) for r in lifted.results]) for name in LiftResult.pose_fields()
+    }
+    arrays.update(
+        keypoints=poses.points,
+        frame=poses.frame,
+        person=poses.person,
+        format=doc["format"],
+        joints=np.array(doc["joints"]),
+        parents=np.array(doc["parents"]),
+        model_id=doc["model_id"],
+    )
+    if poses.confidence is not None:
+        arrays["confidence"] = poses.confidence
+    if doc.get("fps") is not None:
+        arrays["fps"] = float(doc["fps"])
+    np.savez_compressed(path, **arrays)
+    return [path]
+
+
+CSV_HEADER = (
+    "frame",
+    "track_id",
+    "person",
+    "joint",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "x_camera_m",
+    "y_camera_m",
+    "z_camera_m",
+    "input_x_px",
+    "input_y_px",
+    "visible",
+    "imputed",
+)
+
+
+def _write_csv(path: Path, lifted: Lifted) -> list[Path]:
+    """One row per pose per joint: x, y, z the pose in the camera's orientation (pose_3d_camera, mm,
+    pelvis at the origin); *_camera_m the joint in camera coordinates (root_camera_m + the pose), empty
+    without intrinsics; the input point (empty where missing) and the joint's flags."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(CSV_HEADER)
+    joints = lifted.document["joints"]
+    for i, result in enumerate(lifted.results):
+        frame, person = int(lifted.poses.frame[i]), int(lifted.poses.person[i])
+        placed = (
+            None if result.root_camera_m is None else result.root_camera_m + result.pose_3d_camera / 1000.0
+        )
+        model_input = lifted.document["poses"][i]["input"]["keypoints"]
+        for j, name in enumerate(joints):
+            at = ("", "", "") if placed is None else tuple(f"{v:.5f}" for v in placed[j])
+            # the input is in the file's format: its points only where it has the model's joints
+            point = (
+                model_input[j] if len(model_input) == len(joints) and model_input[j] is not None else ("", "")
+            )
+            writer.writerow(
+                [
+                    frame,
+                    result.track_id or "",
+                    person,
+                    name,
+                    *(f"{v:.2f}" for v in result.pose_3d_camera[j]),
+                    *at,
+                    *point,
+                    int(result.visible[j]),
+                    int(result.imputed[j]),
+                ]
+            )
+    path.write_text(out.getvalue())
+    return [path]
+
+
+def people_of(lifted: Lifted) -> dict[str, list[int]]:
+    """The poses of each person in frame order: by track where the results have tracks, else by
+    the person's index in its frame."""
+    groups: dict[str, list[int]] = {}
+    for i, result in enumerate(lifted.results):
+        key = f"track-{result.track_id}" if result.track_id else f"person-{int(lifted.poses.person[i])}"
+        groups.setdefault(key, []).append(i)
+    return {k: sorted(v, key=lambda i: int(lifted.poses.frame[i])) for k, v in groups.items()}
+
+
+def person_positions(results: Sequence[LiftResult], frames: np.ndarray) -> np.ndarray:
+    """(T, 17, 3) one person's joints in metres, BVH axes, one row per frame from the first to the
+    last (a frame without a pose repeats the one before): pose_3d_camera, at root_camera_m when every
+    pose has one, else with the root at the origin."""
+    placed = all(r.root_camera_m is not None for r in results)
+    rows = [
+        r.pose_3d_camera / 1000.0 + (r.root_camera_m if placed and r.root_camera_m is not None else 0.0)
+        for r in results
+    ]
+    span = np.arange(int(frames.min()), int(frames.max()) + 1)
+    latest = np.searchsorted(frames, span, side="right") - 1  # the last pose at or before each frame
+    return np.asarray(np.stack(rows)[latest] @ CAMERA_TO_BVH.T, dtype=np.float64)
+
+
+def _write_bvh(path: Path, lifted: Lifted) -> list[Path]:
+    """One BVH per person (path itself for one person, else path.<track-id|person-i>.bvh)."""
+    fps = lifted.document.get("fps") or DEFAULT_BVH_FPS
+    groups = people_of(lifted)
+    written = []
+    for key, rows in groups.items():
+        results = [lifted.results[i] for i in rows]
+        frames = lifted.poses.frame[rows].astype(np.int64)
+        if len(np.unique(frames)) != len(frames):
+            raise InputFileError(f"{key}: several poses in one frame; give each person a track_id")
+        target = path if len(groups) == 1 else path.with_name(f"{path.stem}.{key}{path.suffix}")
+        target.write_text(write_bvh(solve_motion(person_positions(results, frames), 1.0 / float(fps))))
+        written.append(target)
+    return written
+
+
+WRITERS: dict[str, Callable[[Path, Lifted], list[Path]]] = {
+    ".json": _write_json,
+    ".npz": _write_npz,
+    ".csv": _write_csv,
+    ".bvh": _write_bvh,
+}

@@ -1,0 +1,312 @@
+"""The dynamic batcher that coalesces the requests of every transport into shared model runs (one
+worker thread per model), and where an adapter's CPU work runs (offload). The two kinds of model's
+batchers are runtime.batchers'."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
+
+from repnet.core.errors import ModelNotReady, Overloaded
+
+
+class Rows(Protocol):
+    """What a batcher splits and joins: N rows that slice."""
+
+    def __len__(self) -> int: ...
+
+    def slice(self, start: int, stop: int) -> Any:
+        """Rows start..stop-1."""
+
+
+class BatchMetrics(Protocol):
+    """What a batcher reports of its queue and runs (the server's Metrics; None reports nothing)."""
+
+    def batch_queued(self, model: str, depth: int) -> None:
+        """`depth` poses wait for a run of `model`."""
+
+    def batch_waited(self, model: str, transport: str, seconds: float) -> None:
+        """A request's chunk waited `seconds` in the queue before its run."""
+
+    def batch_ran(self, model: str, seconds: float, size: int) -> None:
+        """A run of `size` poses took `seconds`."""
+
+    def poses_lifted(self, model: str, transport: str, count: int) -> None:
+        """`count` poses of a `transport` request were lifted."""
+
+    def observe_plausibility(self, model: str, values: Iterable[float]) -> None:
+        """The plausibility of a run's answers."""
+
+
+In = TypeVar("In", bound=Rows)  # the input rows of a run
+Out = TypeVar("Out", bound=Rows)  # the output rows of a run
+T = TypeVar("T")
+
+
+@dataclass
+class _Chunk(Generic[In, Out]):
+    """At most max_batch rows of one request, waiting for a run."""
+
+    inputs: In
+    transport: str
+    enqueued: float  # time.monotonic() when queued
+    future: Future[Out]
+
+    def __len__(self) -> int:
+        return len(self.inputs)
+
+
+# Adapters prepare and answer requests of at most this many poses on their event loop (offload):
+# cheaper than the hop to a worker thread and back (docs/BENCHMARKS.md).
+INLINE_POSES = 8
+MAX_BATCH = 256  # most poses (or windows) in one model run by default (REPNET_MAX_BATCH)
+
+
+async def offload(count: int, work: Callable[..., T], *args: Any) -> T:
+    """work(*args), the CPU work of a request of `count` poses (input rules, reply building): on the
+    caller's event loop up to INLINE_POSES poses, else on a worker thread, so that the loop keeps
+    serving the other requests meanwhile."""
+    if count <= INLINE_POSES:
+        return work(*args)
+    return await asyncio.get_running_loop().run_in_executor(None, work, *args)
+
+
+def _wake(room: asyncio.Future[None]) -> None:
+    if not room.done():  # a waiter that timed out cancelled its future
+        room.set_result(None)
+
+
+class Batcher(Generic[In, Out]):
+    """One worker thread runs one model on batches of queued requests' rows; adapters get its answers.
+
+    An idle batcher runs a request at once; under load (work queued during the last run) a batch
+    starts when max_batch poses are queued or max_wait_s after the last run ended. Requests larger
+    than max_batch are split into chunks. The queue holds at most queue_size poses: a request that
+    does not fit is refused at once with Overloaded. The engine knows no reply and no wire format.
+
+    A batcher runs one model: a service with several models holds one per model (app.py builds
+    them, adapters pick one by the request), each batching its own runs. A subclass says how a
+    batch runs (_run) and how answers join (_join).
+    """
+
+    def __init__(
+        self, metrics: BatchMetrics | None, *, max_batch: int, max_wait_s: float, queue_size: int, name: str
+    ) -> None:
+        if max_batch < 1 or queue_size < 1 or max_wait_s < 0:
+            raise ValueError("max_batch and queue_size must be >= 1 and max_wait_s >= 0")
+        self.metrics = metrics
+        self.model = name  # the model it runs: its metrics' `model` label, its thread's name
+        self.max_batch = max_batch
+        self.max_wait_s = max_wait_s
+        self.queue_size = queue_size
+        self._queue: deque[_Chunk[In, Out]] = deque()
+        # Coroutines in submit_async waiting for room, woken on their own loops.
+        self._room_waiters: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []
+        self._queued = 0  # poses in _queue
+        self._closed = False
+        self._serving = True  # False once shutdown begins: readiness off, queued work still done
+        self._cond = threading.Condition()
+        self._worker = threading.Thread(target=self._work, name=f"repnet-{name}", daemon=True)
+        self._worker.start()
+
+    @property
+    def ready(self) -> bool:
+        """The model is loaded and the server is not shutting down (readiness, gRPC health)."""
+        return self._serving and not self._closed
+
+    def stop_serving(self) -> None:
+        """Report not ready from now on; requests already arriving are still served."""
+        self._serving = False
+
+    def _run(self, parts: list[In]) -> Out:
+        """One model run on the rows of several requests, in order (the worker thread)."""
+        raise NotImplementedError
+
+    def _join(self, parts: list[Out]) -> Out:
+        """The answers of consecutive rows as one."""
+        raise NotImplementedError
+
+    def _observe(self, answer: Out) -> None:
+        """Record what a run's answers say in the metrics (nothing by default)."""
+
+    def submit(self, inputs: In, transport: str, wait_s: float = 0.0) -> list[Future[Out]]:
+        """Queue `inputs` (all or nothing); one future per chunk of at most max_batch poses.
+
+        A full queue raises Overloaded at once, or after waiting up to `wait_s` for room (streams
+        wait: their own window already bounds what they hold, so a busy moment slows them down
+        instead of failing their frames).
+        """
+        chunks = self._chunks(inputs, transport)
+        with self._cond:
+            deadline = time.monotonic() + wait_s
+            while self._must_wait(len(inputs)):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._cond.wait(remaining)
+            return self._enqueue(chunks, len(inputs))
+
+    async def submit_async(self, inputs: In, transport: str, wait_s: float = 0.0) -> list[Future[Out]]:
+        """Batcher.submit for coroutines: waiting for room suspends the caller, not its event loop."""
+        loop = asyncio.get_running_loop()
+        chunks = self._chunks(inputs, transport)
+        deadline = time.monotonic() + wait_s
+        while True:
+            with self._cond:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or not self._must_wait(len(inputs)):
+                    return self._enqueue(chunks, len(inputs))
+                room: asyncio.Future[None] = loop.create_future()
+                self._room_waiters.append((loop, room))
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(room, remaining)
+
+    async def lift_async(self, inputs: In, transport: str, wait_s: float = 0.0) -> Out:
+        """Queue `inputs` (Overloaded when the queue stays full for wait_s) and await their answers
+        in input order, for adapters on an event loop. When the caller is cancelled (a gRPC call
+        cancelled or past its deadline), every chunk of it still queued is dropped."""
+        futures = await self.submit_async(inputs, transport, wait_s)
+        try:
+            return self._join([await asyncio.wrap_future(f) for f in futures])
+        except asyncio.CancelledError:
+            self.drop(futures)
+            raise
+
+    def drop(self, futures: list[Future[Out]]) -> int:
+        """Take the chunks of `futures` that are still queued out of the queue and cancel them (a
+        chunk in a run already finishes); the number of rows dropped."""
+        wanted = {id(f) for f in futures}
+        with self._cond:
+            dropped = [c for c in self._queue if id(c.future) in wanted]
+            if not dropped:
+                return 0
+            self._queue = deque(c for c in self._queue if id(c.future) not in wanted)
+            rows = sum(len(c) for c in dropped)
+            self._queued -= rows
+            self._set_depth()
+            self._room_freed()
+        for chunk in dropped:
+            chunk.future.cancel()
+        return rows
+
+    def join(self, parts: list[Out]) -> Out:
+        """The answers of a request's runs (its futures' results) as one."""
+        return self._join(parts)
+
+    def _chunks(self, inputs: In, transport: str) -> list[_Chunk[In, Out]]:
+        n, step = len(inputs), self.max_batch
+        return [
+            _Chunk(inputs.slice(a, min(a + step, n)), transport, 0.0, Future()) for a in range(0, n, step)
+        ]
+
+    def _must_wait(self, n: int) -> bool:
+        """n poses do not fit now but would once the queue drains (call with _cond held)."""
+        return self._queued + n > self.queue_size and n <= self.queue_size and not self._closed
+
+    def _enqueue(self, chunks: list[_Chunk[In, Out]], n: int) -> list[Future[Out]]:
+        """Queue the chunks of n poses, or raise why not (call with _cond held)."""
+        if self._closed:
+            raise ModelNotReady("the server is shutting down and accepts no new requests")
+        if self._queued + n > self.queue_size:
+            raise Overloaded(
+                f"the batch queue is full ({self._queued} of {self.queue_size} poses waiting, "
+                f"{n} more requested); retry later"
+            )
+        now = time.monotonic()
+        for chunk in chunks:
+            chunk.enqueued = now
+            self._queue.append(chunk)
+        self._queued += n
+        self._set_depth()
+        self._cond.notify_all()
+        return [c.future for c in chunks]
+
+    def _room_freed(self) -> None:
+        """Wake whoever waits for room in the queue, threads and coroutines (call with _cond held)."""
+        self._cond.notify_all()
+        for loop, room in self._room_waiters:
+            with contextlib.suppress(RuntimeError):  # that loop has closed: nobody waits any more
+                loop.call_soon_threadsafe(_wake, room)
+        self._room_waiters.clear()
+
+    def lift(self, inputs: In, transport: str) -> Out:
+        """Queue `inputs`, wait for their runs and return their answers in input order."""
+        futures = self.submit(inputs, transport)
+        return self._join([f.result() for f in futures])
+
+    def close(self, timeout: float | None = None) -> bool:
+        """Refuse new work, finish everything queued, stop the worker; False if it timed out."""
+        with self._cond:
+            self._closed = True
+            self._room_freed()  # waiting submitters learn that the server is shutting down
+        self._worker.join(timeout)
+        return not self._worker.is_alive()
+
+    def _set_depth(self) -> None:
+        if self.metrics is not None:
+            self.metrics.batch_queued(self.model, self._queued)
+
+    def _take_batch(self) -> list[_Chunk[In, Out]]:
+        """Block until a batch is due, then take it from the queue; [] once closed and empty.
+
+        An idle batcher runs the first request at once: waiting could only add latency to a lone
+        request. Work that queued up while the last run ran means load: then the batch gets up to
+        max_wait_s to fill, so that runs stay large when poses arrive faster than single runs end.
+        """
+        with self._cond:
+            idle = not self._queue
+            while not self._queue:
+                if self._closed:
+                    return []
+                self._cond.wait()
+            if not idle:
+                deadline = time.monotonic() + self.max_wait_s
+                while self._queued < self.max_batch and not self._closed:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    self._cond.wait(remaining)
+            batch = [self._queue.popleft()]
+            total = len(batch[0])
+            while self._queue and total + len(self._queue[0]) <= self.max_batch:
+                total += len(self._queue[0])
+                batch.append(self._queue.popleft())
+            self._queued -= total
+            self._set_depth()
+            self._room_freed()
+        return batch
+
+    def _work(self) -> None:
+        while batch := self._take_batch():
+            batch = [c for c in batch if c.future.set_running_or_notify_cancel()]
+            if batch:
+                self._run_batch(batch)
+
+    def _run_batch(self, batch: list[_Chunk[In, Out]]) -> None:
+        start = time.monotonic()
+        if self.metrics is not None:
+            for chunk in batch:
+                self.metrics.batch_waited(self.model, chunk.transport, start - chunk.enqueued)
+        try:
+            answer = self._run([c.inputs for c in batch])
+        except Exception as err:  # handed to every caller of the batch; each adapter logs it once
+            for chunk in batch:
+                chunk.future.set_exception(err)
+            return
+        if self.metrics is not None:
+            self.metrics.batch_ran(self.model, time.monotonic() - start, len(answer))
+            for chunk in batch:
+                self.metrics.poses_lifted(self.model, chunk.transport, len(chunk))
+            self._observe(answer)
+        offset = 0
+        for chunk in batch:  # rows the model failed on are marked in the answer (failed)
+            stop = offset + len(chunk)
+            chunk.future.set_result(answer.slice(offset, stop))
+            offset = stop

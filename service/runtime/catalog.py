@@ -1,0 +1,91 @@
+"""Catalog: the single-frame models one service serves, each behind its own LiftBatcher, the default,
+and the rule that picks one for a request (a field-level error naming the known ones)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from repnet.core.errors import InvalidKeypoints, Violation, clip
+from repnet.runtime.batchers import LiftBatcher
+
+MODEL_FIELD = "model"  # the request field that names a model, on every transport
+
+
+@dataclass(frozen=True)
+class Catalog:
+    """Engines by model id, the default first. Each model has its own batcher, so a batch never
+    holds two models' poses, and its own queue of at most queue_size poses: a flood on one model
+    fills that model's queue (503 / RESOURCE_EXHAUSTED for it) while the others keep theirs.
+
+    `temporal_base`: the model the loaded temporal models were trained on (their metadata's
+    base_model_sha256 is its file's), None without temporal models. Temporal lifting runs over that
+    model only; a request for temporal lifting with another gets a field-level error.
+    """
+
+    engines: dict[str, LiftBatcher]
+    temporal_base: str | None = None
+    sha256: dict[str, str] = field(default_factory=dict)  # each model file's, by id (lineage)
+
+    def __post_init__(self) -> None:
+        if not self.engines:
+            raise ValueError("a catalog holds at least one model")
+
+    @classmethod
+    def of(cls, engine: LiftBatcher | Catalog, temporal: bool = False) -> Catalog:
+        """`engine` as a catalog of its one model (a catalog as it is); `temporal`: the temporal
+        models run over it."""
+        if isinstance(engine, Catalog):
+            return engine
+        model = engine.lifter.info.model_id
+        return cls({model: engine}, model if temporal else None)
+
+    @property
+    def default(self) -> str:
+        """The id of the model a request that names none gets."""
+        return next(iter(self.engines))
+
+    @property
+    def default_engine(self) -> LiftBatcher:
+        """The default model's batcher."""
+        return self.engines[self.default]
+
+    def known(self) -> str:
+        """The model ids, for error messages: 'a (default), b'."""
+        return ", ".join(f"{m} (default)" if m == self.default else m for m in self.engines)
+
+    def violation(self, name: str | None, temporal: bool = False) -> Violation | None:
+        """Why `name` cannot serve a request (None: it can); empty or None names the default.
+        `temporal`: the request asks for temporal lifting, which runs over temporal_base only."""
+        model = name or self.default
+        if model not in self.engines:
+            reason = f"unknown model {clip(model, 100)!r}; this service serves: {self.known()}"
+            return Violation(MODEL_FIELD, reason, "unknown_model")
+        if temporal and self.temporal_base is not None and model != self.temporal_base:
+            reason = (
+                f"temporal lifting runs over {self.temporal_base!r}, the model its temporal models "
+                f"were trained on, not {model!r}: name {self.temporal_base!r} (or none), or lift "
+                "without temporal"
+            )
+            return Violation(MODEL_FIELD, reason, "model_not_temporal")
+        return None
+
+    def pick(self, name: str | None, temporal: bool = False) -> LiftBatcher:
+        """The engine of model `name` (empty or None: the default); InvalidKeypoints naming the
+        known models when there is none of that name (see violation)."""
+        if (found := self.violation(name, temporal)) is not None:
+            raise InvalidKeypoints([found])
+        return self.engines[name or self.default]
+
+    @property
+    def ready(self) -> bool:
+        """Every model is loaded and the server is not shutting down."""
+        return all(e.ready for e in self.engines.values())
+
+    def stop_serving(self) -> None:
+        """Report not ready from now on (every engine)."""
+        for engine in self.engines.values():
+            engine.stop_serving()
+
+    def close(self, timeout: float | None = None) -> bool:
+        """Close every engine (each finishes its queue); False if any timed out."""
+        return all([engine.close(timeout) for engine in self.engines.values()])

@@ -1,0 +1,173 @@
+"""From single-frame answers to temporal ones: the windows of tracked poses (a stream's tracks, a
+request's clips), the temporal model's run, and its answers held to the track's bone lengths."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from repnet.core import geometry
+from repnet.core.contract import Contract
+from repnet.core.errors import InvalidKeypoints, LiftError, Violation
+from repnet.core.inputs import ModelInput
+from repnet.core.skeleton import BONES, fix_bone_lengths
+from repnet.runtime.batchers import TemporalBatcher
+from repnet.runtime.lifter import Prediction
+from repnet.runtime.replies import TemporalRows
+from repnet.runtime.temporal import TemporalAnswer, Windows, WindowSource
+from repnet.runtime.tracks import Observation, TrackBudget, TrackTable, clip_windows, fps_violations
+
+
+@dataclass(frozen=True)
+class TemporalModels:
+    """The loaded temporal models (one engine per mode present) and the bounds on their tracks."""
+
+    engines: dict[str, TemporalBatcher]  # "causal", "offline"
+    budget: TrackBudget  # every stream's tracks together
+    per_stream: int  # most open tracks of one stream
+    idle_s: float  # a track without a frame this long is dropped
+    max_poses: int  # most poses of one temporal request
+
+    def table(self) -> TrackTable | None:
+        """A new stream's tracks (None without a causal model: its tracked poses are lifted alone)."""
+        causal = self.engines.get("causal")
+        if causal is None:
+            return None
+        return TrackTable(causal.lifter.contract, self.per_stream, self.idle_s, self.budget)
+
+
+def camera_poses(prediction: Prediction, rows: np.ndarray) -> np.ndarray:
+    """(n, J, 3) the single-frame pose_3d of `rows` in the camera's orientation, without the ray turn:
+    what the temporal model reads."""
+    rotation = geometry.camera_rotation(prediction.camera[rows])
+    return geometry.rotate_to_camera(prediction.pose_3d[rows], rotation)
+
+
+def seen_arrays(
+    inputs: ModelInput, prediction: Prediction, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The single-frame answers of `rows` as a track stores them: (n, J, 3) poses, (n, J, 2)
+    keypoints (0 where not visible) and (n, J) visibility, float32."""
+    poses = camera_poses(prediction, rows)
+    points = np.where(inputs.visible[rows][..., None], inputs.keypoints_2d[rows], 0.0).astype(np.float32)
+    return poses, points, inputs.visible[rows].astype(np.float32)
+
+
+def observations(inputs: ModelInput, prediction: Prediction, rows: np.ndarray) -> list[Observation]:
+    """The single-frame answers of `rows` as a track stores them, one Observation each."""
+    poses, points, visibility = seen_arrays(inputs, prediction, rows)
+    return [Observation(p, k, v) for p, k, v in zip(poses, points, visibility, strict=True)]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a temporal run needs: one window per answered row, the bone lengths to hold it to, and
+    the rows that could not be tracked with why."""
+
+    windows: WindowSource | None
+    rows: np.ndarray  # (n,) rows of the request's inputs the windows answer, in window order
+    bones: np.ndarray  # (n, B)
+    errors: dict[int, LiftError]  # row -> why it gets no answer (its track's limit, its frame order)
+
+    @classmethod
+    def of(
+        cls, parts: Sequence[tuple[int, Windows, np.ndarray]], errors: dict[int, LiftError], causal: bool
+    ) -> Plan:
+        """A plan from (row, its window (N = 1), its bone lengths) in order."""
+        if not parts:
+            return cls(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), errors)
+        windows = Windows.join([w for _, w, _ in parts], causal=causal)
+        rows = np.array([r for r, _, _ in parts], np.int64)
+        return cls(windows, rows, np.stack([b for _, _, b in parts]), errors)
+
+
+@dataclass(frozen=True)
+class TrackedRow:
+    """A valid pose of a stream's frame that has a track."""
+
+    row: int  # its row of the group's inputs
+    track_id: str
+    frame: int  # its frame number
+    fps: float
+    field: str  # what its errors are named: "pose", "people[2]"
+
+
+def stream_plan(
+    table: TrackTable, tracked: Sequence[TrackedRow], inputs: ModelInput, prediction: Prediction
+) -> Plan:
+    """Push each tracked pose into its track, in order, and take its causal window (a stream's
+    group: its frames after the earlier groups')."""
+    table.expire()
+    seen = observations(inputs, prediction, np.array([t.row for t in tracked], np.int64))
+    parts: list[tuple[int, Windows, np.ndarray]] = []
+    errors: dict[int, LiftError] = {}
+    for item, observation in zip(tracked, seen, strict=True):
+        try:
+            track = table.get(item.track_id, item.fps, item.field)
+        except InvalidKeypoints as err:
+            errors[item.row] = err
+            continue
+        try:
+            track.push(item.frame, observation)
+        except ValueError as err:
+            reason = f"{err} (track {item.track_id!r})"
+            errors[item.row] = InvalidKeypoints([Violation("frame_id", reason, "frame_order")])
+            continue
+        parts.append((item.row, track.window(table.contract), track.bone_reference()))
+    return Plan.of(parts, errors, table.contract.mode == "causal")
+
+
+def clip_plan(
+    rows: np.ndarray,
+    track_ids: Sequence[str],
+    frames: np.ndarray,
+    fps: float,
+    contract: Contract,
+    inputs: ModelInput,
+    prediction: Prediction,
+) -> Plan:
+    """The windows of a whole request's tracked poses (`rows` of its inputs, increasing, with their
+    track and frame): causal, each from its track's frames up to it (as a stream answers them);
+    offline, each from the frames around it in its track (bones: the mean of the segment). The
+    contract's mode says which (tracks.clip_windows: built only when a batch runs)."""
+    if not len(rows):
+        return Plan(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), {})
+    poses, points, visibility = seen_arrays(inputs, prediction, rows)
+    windows, bones = clip_windows(track_ids, frames, fps, contract, poses, points, visibility)
+    return Plan(windows, np.asarray(rows, np.int64), bones, {})
+
+
+def answer_rows(plan: Plan, answer: TemporalAnswer) -> TemporalRows:
+    """The temporal model's answers to the plan's windows, held to its bone lengths."""
+    return TemporalRows(plan.rows, fix_bone_lengths(answer.pose_3d_camera, plan.bones), answer.failed)
+
+
+async def run_plan(engine: TemporalBatcher, plan: Plan, transport: str, wait_s: float = 0.0) -> TemporalRows:
+    """The temporal model's answers to the plan's windows (queued on `engine`), held to its bone lengths."""
+    if plan.windows is None:
+        return TemporalRows.none()
+    return answer_rows(plan, await engine.lift_async(plan.windows, transport, wait_s))
+
+
+def clip_violations(
+    track_ids: Sequence[str | None], frames: Sequence[int | None], fps: float | None
+) -> list[Violation]:
+    """The rules of a clip of tracked poses (pose i: its track, None when untracked, and its frame
+    number): the frame rate is given and in range, each tracked pose has a frame number, and no frame
+    of a track comes twice. Fields are named within poses[i]."""
+    found = fps_violations(fps, "fps")
+    seen: dict[tuple[str, int], int] = {}
+    for i, (track_id, frame) in enumerate(zip(track_ids, frames, strict=True)):
+        if track_id is None:
+            continue
+        if frame is None:
+            reason = "a tracked pose needs its frame number with temporal causal or offline"
+            found.append(Violation("frame", reason, "frame_missing", pose=i).within(f"poses[{i}]"))
+            continue
+        first = seen.setdefault((track_id, frame), i)
+        if first != i:
+            reason = f"frame {frame} of this track is also poses[{first}]"
+            found.append(Violation("frame", reason, "frame_repeated", pose=i).within(f"poses[{i}]"))
+    return found

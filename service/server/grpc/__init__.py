@@ -1,0 +1,1 @@
+"""The gRPC adapter: the PoseLifter servicer (Lift, LiftStream), its wire input and its server."""

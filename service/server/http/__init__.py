@@ -1,0 +1,1 @@
+"""The HTTP adapter: FastAPI routes, the request schemas, middleware, errors and the web page."""

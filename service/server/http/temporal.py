@@ -1,0 +1,91 @@
+"""POST /lift with `temporal` causal or offline: a request's tracked poses lifted as clips."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from repnet.core.errors import InvalidKeypoints, Violation
+from repnet.core.inputs import Limits, ModelInput, PoseInput
+from repnet.core.keypoints import prepare_request
+from repnet.runtime.batcher import offload
+from repnet.runtime.batchers import LiftBatcher
+from repnet.runtime.lifter import ModelInfo, Prediction
+from repnet.runtime.plans import Plan, TemporalModels, clip_plan, clip_violations, run_plan
+from repnet.runtime.replies import TemporalRows, build_replies
+from repnet.server.http.schemas import LiftRequest
+from repnet.server.metrics import Metrics
+
+TRANSPORT = "http"
+
+
+def track_violations(request: LiftRequest, temporal: TemporalModels | None) -> list[Violation]:
+    """The rules of a temporal request: its model is loaded, fps is given, each tracked pose has a
+    frame number, and no frame of a track comes twice."""
+    engine = None if temporal is None else temporal.engines.get(request.temporal)
+    if engine is None:
+        reason = f"this service has no {request.temporal} temporal model (REPNET_TEMPORAL); send temporal off"
+        return [Violation("temporal", reason, "no_temporal_model")]
+    track_ids = [pose.track_id for pose in request.poses]
+    return clip_violations(track_ids, [pose.frame for pose in request.poses], request.fps)
+
+
+Read = Callable[[int], PoseInput]  # pose i of the request in its wire-independent form
+
+
+def prepare_temporal(
+    request: LiftRequest, limits: Limits, temporal: TemporalModels | None, read: Read
+) -> ModelInput:
+    """The model input of a temporal request (at most max_temporal_poses), all valid; else
+    InvalidKeypoints with the track rules' and the poses' violations."""
+    if found := track_violations(request, temporal):
+        raise InvalidKeypoints(found)
+    assert temporal is not None  # track_violations says when it is missing
+    wider = replace(limits, max_request_poses=temporal.max_poses)
+    return prepare_request(len(request.poses), read, request.confidence_threshold, wider)
+
+
+def plan_of(
+    request: LiftRequest, temporal: TemporalModels, inputs: ModelInput, prediction: Prediction
+) -> Plan:
+    """The temporal windows of the request's tracked poses."""
+    engine = temporal.engines[request.temporal]
+    tracked = [i for i, p in enumerate(request.poses) if p.track_id is not None]
+    rows = np.array(tracked, np.int64)
+    track_ids = [str(request.poses[i].track_id) for i in tracked]
+    frames = np.array([request.poses[i].frame for i in tracked], np.int64)
+    fps = float(request.fps or 0.0)  # given: track_violations checked it
+    return clip_plan(rows, track_ids, frames, fps, engine.lifter.contract, inputs, prediction)
+
+
+def temporal_body(
+    info: ModelInfo, inputs: ModelInput, prediction: Prediction, rows: TemporalRows, request: LiftRequest
+) -> dict[str, Any]:
+    """The 200 answer's body (ModelOutputError when a model failed on any pose), tracks echoed."""
+    track_ids = [p.track_id for p in request.poses]
+    poses = build_replies(inputs, prediction, rows, track_ids).check().to_json()
+    return {"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses}
+
+
+async def lift_temporal(
+    request: LiftRequest,
+    engine: LiftBatcher,
+    temporal: TemporalModels | None,
+    limits: Limits,
+    metrics: Metrics,
+    started: float | None,
+    read: Read,
+) -> dict[str, Any]:
+    """The body of the answer: every pose lifted alone, then each tracked pose again from its
+    track's window."""
+    count = len(request.poses)
+    with metrics.parsing(TRANSPORT, started):
+        inputs = await offload(count, prepare_temporal, request, limits, temporal, read)
+    assert temporal is not None  # prepare_temporal refuses the request without it
+    prediction = await engine.lift_async(inputs, TRANSPORT)
+    plan = await offload(count, plan_of, request, temporal, inputs, prediction)
+    rows = await run_plan(temporal.engines[request.temporal], plan, TRANSPORT)
+    return await offload(count, temporal_body, engine.lifter.info, inputs, prediction, rows, request)

@@ -1,0 +1,331 @@
+"""Streams: one stream's frames from read to answer, in order, within a bounded window (no wire format)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import deque
+from collections.abc import AsyncGenerator, AsyncIterator, Callable
+from dataclasses import dataclass
+from typing import TypeVar
+
+from repnet.core.errors import LiftError, ModelOutputError
+from repnet.core.inputs import Limits
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.batcher import offload
+from repnet.runtime.batchers import LiftBatcher, TemporalBatcher
+from repnet.runtime.catalog import Catalog
+from repnet.runtime.lifter import Prediction
+from repnet.server.frames import POSE_FIELD, Answer, Answers, FrameIn, Group, PersonIn
+
+__all__ = ["POSE_FIELD", "Answer", "Answers", "FrameIn", "Group", "PersonIn", "StreamIdle", "UnreadableFrame"]
+from repnet.runtime.plans import Plan, TemporalModels, TrackedRow, run_plan, stream_plan
+from repnet.runtime.replies import build_replies
+from repnet.runtime.tracks import TrackTable
+
+log = logging.getLogger(__name__)
+
+# A group that finds the batch queue full waits this long for room before its frames get an error:
+# the window already bounds what a stream holds, so a busy moment slows it down instead.
+QUEUE_WAIT_S = 5.0
+R = TypeVar("R")  # what a transport encodes a group's answers as
+
+
+class StreamIdle(Exception):
+    """Nothing was in progress and no frame came for the idle timeout: the stream is closed."""
+
+
+class UnreadableFrame(Exception):
+    """A frame could not be read; every frame before it has been answered, and the stream ends."""
+
+
+class StreamState:
+    """What one stream holds: frames read and not taken yet, then groups taken and not answered yet.
+
+    At most `window` poses are held from read to answer (the reader waits for room: backpressure):
+    a frame counts its people (at least 1), so the bound is in what a client sends, however many
+    people its frames carry. The last frame read may pass it, so a stream holds fewer than `window`
+    plus one frame's people (REPNET_MAX_REQUEST_POSES).
+    Frames are taken only while none of the stream's groups waits for a run, so the frames that
+    arrive during a run become the next groups (at most `max_group` poses each, a frame with more
+    people a group of its own; a frame for another model than the frame before starts a new group):
+    the cost per frame stays small, and one stream fills batches instead of waiting for each
+    frame's run. Counting poses, not frames, keeps every group within the batch queue, however many
+    people its frames carry.
+    """
+
+    def __init__(self, window: int, max_group: int) -> None:
+        if window < 1 or max_group < 1:
+            raise ValueError(f"window and max_group must be >= 1, got {window} and {max_group}")
+        self.window = window
+        self.max_group = max_group
+        self.inbox: list[FrameIn] = []  # read, not taken
+        self.groups: deque[Group] = deque()  # taken, not answered, in order
+        self.held = 0  # poses of the frames read and not answered
+
+    def has_room(self) -> bool:
+        """Another frame may be read."""
+        return self.held < self.window
+
+    def add(self, frame: FrameIn) -> None:
+        """Hold a frame just read; ValueError when the window is full (read only while has_room())."""
+        if not self.has_room():
+            raise ValueError(f"the window of {self.window} poses is full")
+        self.inbox.append(frame)
+        self.held += held_poses(frame)
+
+    def can_take(self) -> bool:
+        """Frames wait, and none of this stream's groups waits for a run."""
+        return bool(self.inbox) and (not self.groups or self.groups[-1].done())
+
+    def take(self) -> list[Group]:
+        """Every frame read so far, as the next groups of at most max_group poses (queued behind the
+        earlier ones)."""
+        frames, self.inbox = self.inbox, []
+        groups: list[Group] = []
+        taken: list[FrameIn] = []
+        poses = 0
+        for frame in frames:
+            count = len(frame.persons())
+            if taken and (poses + count > self.max_group or frame.model != taken[-1].model):
+                groups.append(Group(taken))
+                taken, poses = [], 0
+            taken.append(frame)
+            poses += count
+        if taken:
+            groups.append(Group(taken))
+        self.groups.extend(groups)
+        return groups
+
+    def answerable(self) -> Group | None:
+        """The oldest group, once its runs have finished: answers leave in the order frames came."""
+        return self.groups[0] if self.groups and self.groups[0].done() else None
+
+    def answered(self, group: Group) -> None:
+        """The oldest group's answers have been sent: its frames leave the window."""
+        if not self.groups or self.groups[0] is not group:
+            raise ValueError("groups are answered oldest first")
+        self.groups.popleft()
+        self.held -= sum(held_poses(frame) for frame in group.frames)
+
+
+def held_poses(frame: FrameIn) -> int:
+    """What a frame counts in a stream's window: its people, and 1 for a frame of none (an error)."""
+    return max(1, len(frame.persons()))
+
+
+async def _start(group: Group, models: Catalog, limits: Limits, transport: str) -> None:
+    """Prepare the group's poses (off the event loop when many) and queue the valid ones as one
+    request to the group's model."""
+    engine = models.engines.get(group.model) or models.default_engine  # frames name known models
+    poses = group.poses()
+    if not poses:
+        return
+    group.prepared = await offload(len(poses), prepare_poses, poses, limits)
+    if len(group.prepared.inputs):
+        try:
+            group.futures = await engine.submit_async(group.prepared.inputs, transport, wait_s=QUEUE_WAIT_S)
+        except LiftError as err:  # queue full for too long, or shutting down
+            group.failure = err
+
+
+@dataclass(frozen=True)
+class StreamTracks:
+    """A stream's tracks and the causal temporal model that answers them."""
+
+    table: TrackTable
+    engine: TemporalBatcher
+    transport: str
+
+
+async def _track(group: Group, prediction: Prediction, tracking: StreamTracks | None) -> Plan | None:
+    """The group's tracked poses pushed into their tracks, in frame order, and their causal windows
+    answered (off the event loop when many): the rows' TemporalRows and why some rows got none."""
+    if tracking is None or group.prepared is None:
+        return None
+    tracked = [
+        TrackedRow(row, person.track_id, frame.frame_id, frame.fps, person.field)
+        for frame, person, row in group.valid()
+        if person.track_id
+    ]
+    if not tracked:
+        return None
+    inputs = group.prepared.inputs
+    plan = await offload(len(tracked), stream_plan, tracking.table, tracked, inputs, prediction)
+    group.temporal = await run_plan(tracking.engine, plan, tracking.transport, QUEUE_WAIT_S)
+    return plan
+
+
+async def _finish(group: Group, encode: Callable[[Answers], R], tracking: StreamTracks | None = None) -> R:
+    """The encoded answers of a group whose runs have finished (off the event loop when many): a
+    failed run fails its frames, not the stream."""
+    prediction, errors = None, {}
+    if group.futures:
+        try:
+            prediction = Prediction.join([f.result() for f in group.futures])
+            plan = await _track(group, prediction, tracking)
+            errors = {} if plan is None else plan.errors
+        except LiftError as err:  # the temporal model's queue full for too long, or shutting down
+            group.failure = err
+        except Exception:  # one run's fault must not end the stream
+            log.exception("stream frames %d..: lifting failed", group.frames[0].frame_id)
+            group.failure = LiftError("internal error while lifting this frame")
+    return await offload(len(group.frames), _answer, group, prediction, errors, encode)
+
+
+def _answer(
+    group: Group, prediction: Prediction | None, errors: dict[int, LiftError], encode: Callable[[Answers], R]
+) -> R:
+    """Build the replies of a group's valid poses and encode its answers, in one go."""
+    replies = None
+    if prediction is not None and group.prepared is not None:
+        first = group.frames[0].frame_id
+        track_ids = [person.track_id or None for _, person, _ in group.valid()]
+        try:
+            replies = build_replies(group.prepared.inputs, prediction, group.temporal, track_ids)
+        except Exception:  # one group's fault must not end the stream
+            log.exception("stream frames %d..: building the replies failed", first)
+            group.failure = LiftError("internal error while lifting this frame")
+        else:
+            if replies.failed.any():  # counted as each frame is answered; one line, no traceback
+                log.error(
+                    "stream frames %d..: %s", first, ModelOutputError(replies.failed.nonzero()[0].tolist())
+                )
+    return encode(Answers(group.answers(replies, errors), replies))
+
+
+class _Reader:
+    """Reads a stream's frames into its StreamState while the window has room, and wakes the loop
+    that answers them: when a frame arrives, a run finishes or the frames end."""
+
+    def __init__(self, frames: AsyncIterator[FrameIn], state: StreamState) -> None:
+        self.state = state
+        self.wake = asyncio.Event()  # something may be actionable
+        self.ended = False  # no frame will come any more
+        self.unreadable: Exception | None = None  # why the frames ended, if they failed
+        self._room = asyncio.Event()  # a group was answered: the window may have room again
+        self._quiet_since: float | None = None  # time.monotonic() since nothing is in progress
+        self._loop = asyncio.get_running_loop()
+        self._task = asyncio.create_task(self._read(frames))
+
+    async def _read(self, frames: AsyncIterator[FrameIn]) -> None:
+        try:
+            async for frame in frames:
+                self.state.add(frame)
+                self.wake.set()
+                while not self.state.has_room():
+                    self._room.clear()
+                    await self._room.wait()
+        except Exception as err:  # what cannot be read ends the stream once the rest is answered
+            self.unreadable = err
+        finally:  # the client half-closed, cancelled or the call failed: nothing more to read
+            self.ended = True
+            self.wake.set()
+
+    def watch(self, group: Group) -> None:
+        """Wake the loop when the group's runs finish (on the engine's thread)."""
+        for future in group.futures:
+            future.add_done_callback(self._on_done)
+
+    def _on_done(self, _: object) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: the server has stopped
+            self._loop.call_soon_threadsafe(self.wake.set)
+
+    def answered(self, group: Group) -> None:
+        """The oldest group's answers were sent: its frames make room in the window."""
+        self.state.answered(group)
+        self._room.set()
+
+    async def next_event(self, idle_timeout_s: float, tick_s: float | None = None) -> None:
+        """Wait until something may be actionable, or at most `tick_s` (the caller's timers);
+        StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s` (ticks do
+        not count as frames)."""
+        if self.state.can_take() or self.state.answerable() is not None:
+            self._quiet_since = None
+            return
+        if self.state.held or self.ended:
+            self._quiet_since = None
+            if tick_s is None:
+                await self.wake.wait()
+            else:
+                await _wait(self.wake, tick_s)
+            return
+        now = time.monotonic()
+        if self._quiet_since is None:
+            self._quiet_since = now
+        remaining = self._quiet_since + idle_timeout_s - now
+        if remaining <= 0:
+            raise StreamIdle(f"no frame for {idle_timeout_s:g} s")
+        await _wait(self.wake, remaining if tick_s is None else min(remaining, tick_s))
+
+    def close(self) -> None:
+        """Stop reading."""
+        self._task.cancel()
+
+
+async def answer_stream(
+    frames: AsyncIterator[FrameIn],
+    engine: LiftBatcher | Catalog,
+    limits: Limits,
+    encode: Callable[[Answers], R],
+    *,
+    window: int,
+    idle_timeout_s: float,
+    transport: str,
+    temporal: TemporalModels | None = None,
+) -> AsyncGenerator[R, None]:
+    """Read `frames` and yield their answers group by group, in frame order (see StreamState), as
+    encode(answers) gives them: the transport's results, built off the event loop with the replies.
+
+    Raises StreamIdle when nothing is in progress and no frame comes for `idle_timeout_s`, and
+    UnreadableFrame (after answering the frames before it) when `frames` fails. With a causal
+    temporal model, tracked poses are answered from their track's frames so far; a track without
+    a frame for the tracks' idle_s is dropped (whether the stream sends other frames or none), and
+    the stream's tracks are freed when it ends.
+    """
+    models = Catalog.of(engine, temporal is not None)
+    reader = _Reader(frames, StreamState(window, models.default_engine.max_batch))
+    state = reader.state
+    table = None if temporal is None else temporal.table()
+    tracking = (
+        None
+        if table is None or temporal is None
+        else StreamTracks(table, temporal.engines["causal"], transport)
+    )
+    try:
+        while True:
+            reader.wake.clear()
+            if state.can_take():
+                for taken in state.take():
+                    await _start(taken, models, limits, transport)
+                    reader.watch(taken)
+            while (group := state.answerable()) is not None:
+                yield await _finish(group, encode, tracking)
+                reader.answered(group)
+            if reader.ended and not state.held:
+                if reader.unreadable is not None:
+                    raise UnreadableFrame(str(reader.unreadable)) from reader.unreadable
+                return
+            if table is not None:  # tracks without a frame for idle_s go, frames or not
+                table.expire()
+            await reader.next_event(idle_timeout_s, tick_s=_tick(table))
+    finally:
+        reader.close()
+        if table is not None:
+            table.close()
+
+
+def _tick(table: TrackTable | None) -> float | None:
+    """How often a stream must look at its tracks' idle times: half of idle_s while it holds any."""
+    return table.idle_s / 2 if table is not None and table.tracks else None
+
+
+async def _wait(event: asyncio.Event, timeout_s: float) -> bool:
+    """Wait for `event`; False if `timeout_s` passed first."""
+    try:
+        await asyncio.wait_for(event.wait(), timeout_s)
+    except asyncio.TimeoutError:
+        return False
+    return True

@@ -1,0 +1,107 @@
+"""The wheel: `repnet` alone at its top level; the plain install is the light one (the clients, the
+core, the file tools: no onnxruntime, no web framework), and each command whose extra is missing says
+which `pip install` brings it. (CI also installs the wheel into a fresh venv: .ci/run, step wheel.)"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import zipfile
+from email.parser import Parser
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+HEAVY = ("onnxruntime", "fastapi", "uvicorn", "starlette", "pydantic", "prometheus_client", "torch")
+# Imports of the heavy packages fail in the child, as in a light install.
+BLOCKER = f"""
+import importlib.abc, sys
+class Light(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in {HEAVY!r}:
+            raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+        return None
+sys.meta_path.insert(0, Light())
+"""
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("wheel")
+    build = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(out)]
+    subprocess.run([*build, str(ROOT)], check=True, capture_output=True, timeout=300)
+    (found,) = out.glob("repnet-*.whl")
+    return found
+
+
+def test_the_wheel_holds_repnet_alone(wheel: Path) -> None:
+    names = zipfile.ZipFile(wheel).namelist()
+    assert {n.split("/")[0] for n in names} == {"repnet", wheel.name.split("-py3")[0] + ".dist-info"}
+    for part in (
+        "repnet/core/",
+        "repnet/client/",
+        "repnet/server/static/page.js",
+        "repnet/train/",
+        "repnet/models/",
+    ):
+        assert any(n.startswith(part) for n in names), part
+
+
+def requirements(wheel: Path) -> dict[str, set[str]]:
+    """The wheel's requirements by extra ("" the plain install), as package names."""
+    with zipfile.ZipFile(wheel) as z:
+        meta = z.read(next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))).decode()
+    found: dict[str, set[str]] = {}
+    for line in Parser().parsestr(meta).get_all("Requires-Dist") or []:
+        name = re.match(r"[A-Za-z0-9_.\-]+", line)
+        extra = re.search(r"extra == ['\"](\w+)['\"]", line)
+        assert name is not None
+        found.setdefault(extra[1] if extra else "", set()).add(name[0].lower().replace("_", "-"))
+    return found
+
+
+def test_the_plain_install_pulls_no_runtime_and_no_server(wheel: Path) -> None:
+    needs = requirements(wheel)
+    assert needs[""] == {"numpy", "httpx", "grpcio", "protobuf"}
+    assert {"onnxruntime"} <= needs["local"] and {"fastapi", "uvicorn", "repnet"} <= needs["server"]
+    assert {"torch", "repnet"} <= needs["train"] and {"matplotlib", "tqdm"} <= needs["cli"]
+
+
+def light(code: str) -> subprocess.CompletedProcess[str]:
+    """`code` in a child whose imports of the heavy packages fail, as in a plain install."""
+    return subprocess.run(
+        [sys.executable, "-c", BLOCKER + code], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
+
+
+def test_the_clients_and_the_file_tools_import_without_the_heavy_packages(tmp_path: Path) -> None:
+    pose = tmp_path / "pose.json"
+    pose.write_text(json.dumps({"keypoints": [[500.0 + 10 * j, 400.0 + 20 * j] for j in range(17)]}))
+    run = light(
+        "import repnet, sys\n"
+        "print(repnet.LiftClient.__name__, repnet.StreamClient.__name__, repnet.LiftResult.__name__)\n"
+        "from repnet.io import pose_file, output, bvh\n"
+        "from repnet.cli.main import main\n"
+        f"sys.exit(main(['lift', {str(pose)!r}, '--url', 'http://127.0.0.1:9', '--timeout', '1']))\n"
+    )
+    assert run.stdout.split() == ["LiftClient", "StreamClient", "LiftResult"], run.stderr
+    assert run.returncode == 3 and "cannot reach" in run.stderr  # it read the file, then found no server
+    assert not any(name in run.stderr for name in HEAVY)
+
+
+@pytest.mark.parametrize(
+    ("argv", "extra"),
+    [(["serve", "--help"], "server"), (["lift", "POSE", "--local"], "local")],
+)
+def test_a_command_whose_extra_is_missing_says_which_install_brings_it(
+    tmp_path: Path, argv: list[str], extra: str
+) -> None:
+    pose = tmp_path / "pose.json"
+    pose.write_text(json.dumps({"keypoints": [[500.0 + 10 * j, 400.0 + 20 * j] for j in range(17)]}))
+    args = [str(pose) if a == "POSE" else a for a in argv]
+    run = light(f"import sys; from repnet.cli.main import main; sys.exit(main({args!r}))")
+    assert run.returncode == 2, run.stderr
+    assert f"[{extra}]" in run.stderr and "Traceback" not in run.stderr, run.stderr
