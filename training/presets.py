@@ -128,7 +128,7 @@ class Preset:
         )
 
 
-# repnet-h36m-v6, as run (docs/RESULTS.md, "Commands (as run)"): seven stretches of the synthetic
+# repnet-h36m-v6, as run (tests/training/v6_commands_as_run.sh): seven stretches of the synthetic
 # warm start with the bone prior, each on its own schedule, and v2's critic recipe.
 _V6 = TrainConfig(
     inputs="gt+sh",

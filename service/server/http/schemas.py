@@ -98,7 +98,7 @@ INTRINSICS_DOC = (
     "The camera's intrinsics, if known. `pose_3d_camera` is then turned along the ray from the camera "
     "to the person as well: the model sees each pose centred, as if it stood on the optical axis, "
     "and without the intrinsics its camera-frame orientation misses the off-axis angle (on Human3.6M "
-    "S9/S11 the bundled model's P-I is 58.9 mm with them and 72.8 mm without, docs/RESULTS.md)."
+    "S9/S11 the bundled model's P-I is 55.6 mm with them and 70.2 mm without, docs/RESULTS.md)."
 )
 
 HEIGHT_DOC = (
