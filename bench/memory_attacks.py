@@ -34,7 +34,7 @@ import httpx
 if __package__ in (None, ""):  # `python bench/memory_attacks.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench.server import ServiceProcess, cpu_seconds, rss_bytes
+from bench.server import ServiceProcess, cpu_seconds, process_tree, rss_bytes
 from bench.stats import machine, sample_poses, write_json
 from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 
@@ -44,12 +44,13 @@ POSES = sample_poses(64)
 
 
 def peak_rss_bytes(pid: int) -> int:
-    """The highest resident memory process `pid` has had (VmHWM, Linux /proc)."""
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    raise RuntimeError("no VmHWM in /proc/PID/status")
+    """The highest resident memory process `pid` and each of its workers have had, summed (VmHWM,
+    Linux /proc)."""
+    total = 0
+    for member in process_tree(pid):
+        with open(f"/proc/{member}/status") as f:
+            total += next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmHWM:"))
+    return total
 
 
 def temporal_body(frames: list[int], mode: str, fps: float = 240.0) -> bytes:

@@ -51,6 +51,16 @@ def prepare_request(
     InvalidKeypoints listing what is wrong: the layout of the poses (read(i) converts pose i from the
     wire, or raises InvalidKeypoints named within the pose), else the request's rules, else each
     pose's rules."""
+    poses = read_request(count, read, threshold, limits)
+    return prepare_poses(poses, limits, threshold).check()
+
+
+def read_request(
+    count: int, read: Callable[[int], PoseInput], threshold: float | None, limits: Limits
+) -> list[PoseInput]:
+    """The poses of a request of `count` poses as read from the wire, checked as a request (the rules
+    of each pose are prepare_poses'); else InvalidKeypoints: the layout of the poses (read(i) converts
+    pose i, or raises InvalidKeypoints named within the pose), else the request's rules."""
     poses: list[PoseInput] = []
     found: list[Violation] = []
     for i in range(count):
@@ -61,7 +71,7 @@ def prepare_request(
     if found:
         raise InvalidKeypoints(found)
     check_request(count, threshold, limits)
-    return prepare_poses(poses, limits, threshold).check()
+    return poses
 
 
 def _shape_violations(pose: PoseInput, i: int) -> list[Violation]:

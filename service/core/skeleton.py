@@ -90,19 +90,35 @@ def bone_matrix() -> np.ndarray:
     return c
 
 
+_PARENTS, _CHILDREN = (np.array(ends) for ends in zip(*BONES, strict=True))
+
+
+def _bone_paths() -> npt.NDArray[np.float64]:
+    """(J, B): 1 where bone b lies on the path from the root to joint j."""
+    paths = np.zeros((NUM_JOINTS, NUM_BONES))
+    for b, (parent, child) in enumerate(BONES):  # parents come before children
+        paths[child] = paths[parent]
+        paths[child, b] = 1.0
+    return paths
+
+
+BONE_PATHS = _bone_paths()
+
+
 def bone_lengths(poses: np.ndarray) -> np.ndarray:
     """(N, B) length of each bone (parent to joint) of (N, J, 3) poses."""
-    parents, children = np.array(BONES).T
-    return np.asarray(np.linalg.norm(poses[:, children] - poses[:, parents], axis=-1))
+    return np.asarray(np.linalg.norm(poses[:, _CHILDREN] - poses[:, _PARENTS], axis=-1))
 
 
 def fix_bone_lengths(poses: np.ndarray, lengths: np.ndarray) -> npt.NDArray[np.float32]:
     """(N, J, 3) poses with each bone scaled to (N, B) `lengths` along its own direction, from the
-    root outwards (a joint moves with its parent): one person's bones keep one length per track."""
-    out = poses.astype(np.float64).copy()
-    for b, (parent, child) in enumerate(BONES):
-        bone = poses[:, child].astype(np.float64) - poses[:, parent]
-        norm = np.linalg.norm(bone, axis=-1, keepdims=True)
-        out[:, child] = out[:, parent] + bone / np.maximum(norm, 1e-6) * lengths[:, b : b + 1]
-    fixed: npt.NDArray[np.float32] = out.astype(np.float32)
+    root outwards (a joint moves with its parent): one person's bones keep one length per track.
+    Each joint is the root plus the scaled bones on its path (BONE_PATHS), for all poses at once."""
+    poses = np.asarray(poses, np.float64)
+    bones = poses[:, _CHILDREN] - poses[:, _PARENTS]  # (N, B, 3)
+    norm = np.linalg.norm(bones, axis=-1, keepdims=True)
+    scaled = bones / np.maximum(norm, 1e-6) * np.asarray(lengths, np.float64)[..., None]
+    fixed: npt.NDArray[np.float32] = (poses[:, :1] + np.einsum("jb,nbd->njd", BONE_PATHS, scaled)).astype(
+        np.float32
+    )
     return fixed

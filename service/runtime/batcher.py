@@ -17,6 +17,12 @@ from typing import Any, Generic, Protocol, TypeVar
 from repnet.core.errors import ModelNotReady, Overloaded
 
 
+def batch_window(max_wait_s: float, busy: float) -> float:
+    """How long the oldest queued request may wait for others to join its batch, for a batcher that
+    ran `busy` of its recent time: 0 up to BUSY_TO_WAIT, then in proportion, max_wait_s when always busy."""
+    return max_wait_s * min(1.0, max(0.0, busy - BUSY_TO_WAIT) / (1.0 - BUSY_TO_WAIT))
+
+
 class Rows(Protocol):
     """What a batcher splits and joins: N rows that slice."""
 
@@ -67,6 +73,8 @@ class _Chunk(Generic[In, Out]):
 # cheaper than the hop to a worker thread and back (docs/BENCHMARKS.md).
 INLINE_POSES = 8
 MAX_BATCH = 256  # most poses (or windows) in one model run by default (REPNET_MAX_BATCH)
+BUSY_TO_WAIT = 0.25  # a batcher busier than this share of its time lets requests wait for others
+BUSY_SMOOTHING = 0.1  # the weight of the last run in the busy share (an average over ~10 runs)
 
 
 async def offload(count: int, work: Callable[..., T], *args: Any) -> T:
@@ -111,6 +119,7 @@ class Batcher(Generic[In, Out]):
         self._room_waiters: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []
         self._queued = 0  # poses in _queue
         self._closed = False
+        self._busy = 0.0  # the share of its time the worker spent running, smoothed over recent runs
         self._serving = True  # False once shutdown begins: readiness off, queued work still done
         self._cond = threading.Condition()
         self._worker = threading.Thread(target=self._work, name=f"repnet-{name}", daemon=True)
@@ -256,18 +265,21 @@ class Batcher(Generic[In, Out]):
     def _take_batch(self) -> list[_Chunk[In, Out]]:
         """Block until a batch is due, then take it from the queue; [] once closed and empty.
 
-        An idle batcher runs the first request at once: waiting could only add latency to a lone
-        request. Work that queued up while the last run ran means load: then the batch gets up to
-        max_wait_s to fill, so that runs stay large when poses arrive faster than single runs end.
+        The batching window follows the load: a batcher that was mostly idle (its recent runs took
+        under BUSY_TO_WAIT of its time) runs the first request at once, since waiting could only add
+        latency to a lone request; a busier one gives the oldest queued request up to max_wait_s
+        (scaled up with the share of time it ran, to the whole window when it ran all the time) to
+        be joined by others, so that runs grow as load grows (paced cameras send one frame at a
+        time). Work queued during the last run is taken at once once max_batch poses wait.
         """
         with self._cond:
-            idle = not self._queue
             while not self._queue:
                 if self._closed:
                     return []
                 self._cond.wait()
-            if not idle:
-                deadline = time.monotonic() + self.max_wait_s
+            window = batch_window(self.max_wait_s, self._busy)
+            if window > 0:
+                deadline = self._queue[0].enqueued + window
                 while self._queued < self.max_batch and not self._closed:
                     remaining = deadline - time.monotonic()
                     if remaining <= 0:
@@ -284,10 +296,16 @@ class Batcher(Generic[In, Out]):
         return batch
 
     def _work(self) -> None:
+        ended = time.monotonic()  # when the last run ended
         while batch := self._take_batch():
             batch = [c for c in batch if c.future.set_running_or_notify_cancel()]
             if batch:
+                started = time.monotonic()
                 self._run_batch(batch)
+                now = time.monotonic()
+                share = (now - started) / max(now - ended, 1e-9)  # of the time since the last run
+                self._busy += BUSY_SMOOTHING * (share - self._busy)
+                ended = now
 
     def _run_batch(self, batch: list[_Chunk[In, Out]]) -> None:
         start = time.monotonic()
@@ -301,12 +319,26 @@ class Batcher(Generic[In, Out]):
                 chunk.future.set_exception(err)
             return
         if self.metrics is not None:
-            self.metrics.batch_ran(self.model, time.monotonic() - start, len(answer))
-            for chunk in batch:
-                self.metrics.poses_lifted(self.model, chunk.transport, len(chunk))
+            lifted = self._lifted(answer, batch)
+            if sum(lifted):  # a run happened
+                self.metrics.batch_ran(self.model, time.monotonic() - start, sum(lifted))
+            for chunk, count in zip(batch, lifted, strict=True):
+                self.metrics.poses_lifted(self.model, chunk.transport, count)
             self._observe(answer)
-        offset = 0
-        for chunk in batch:  # rows the model failed on are marked in the answer (failed)
-            stop = offset + len(chunk)
-            chunk.future.set_result(answer.slice(offset, stop))
-            offset = stop
+        for chunk, result in zip(batch, self._results(answer, batch), strict=True):
+            if isinstance(result, Exception):  # this chunk's own failure (a job's finish raised)
+                chunk.future.set_exception(result)
+            else:
+                chunk.future.set_result(result)
+
+    def _lifted(self, answer: Out, batch: list[_Chunk[In, Out]]) -> list[int]:
+        """How many rows of each chunk the run lifted (all of them, unless a subclass knows better)."""
+        return [len(c) for c in batch]
+
+    def _results(self, answer: Out, batch: list[_Chunk[In, Out]]) -> list[Any]:
+        """Each chunk's part of a run's answer (rows the model failed on are marked in it: failed)."""
+        found, offset = [], 0
+        for chunk in batch:
+            found.append(answer.slice(offset, offset + len(chunk)))
+            offset += len(chunk)
+        return found

@@ -1,17 +1,23 @@
-"""The batchers of the two kinds of model: LiftBatcher runs a single-frame Lifter (ModelInput ->
-Prediction), TemporalBatcher a TemporalLifter (windows -> TemporalAnswer)."""
+"""The single-frame model's batcher, LiftBatcher: a Lifter's jobs (runtime.pipeline: poses in, each
+job's answer out). A temporal model's is runtime.temporal.TemporalBatcher."""
 
 from __future__ import annotations
 
-from repnet.core.inputs import ModelInput
-from repnet.runtime.batcher import Batcher, BatchMetrics
+from concurrent.futures import Future
+from typing import Any
+
+from repnet.core.inputs import Limits, ModelInput
+from repnet.runtime.batcher import Batcher, BatchMetrics, _Chunk
 from repnet.runtime.lifter import Lifter, Prediction
-from repnet.runtime.temporal import TemporalAnswer, TemporalLifter, Windows, WindowSource
+from repnet.runtime.pipeline import Batch, Job, prediction_only, run_jobs
 
 
-class LiftBatcher(Batcher[ModelInput, Prediction]):
-    """A single-frame model's batcher: ModelInputs in, Predictions out; its metrics are labelled
-    with the model's id (its runs hold only that model's poses)."""
+class LiftBatcher(Batcher[Any, Any]):
+    """A single-frame model's batcher: jobs in (runtime.pipeline), each answered whole by one pass
+    over its batch on this batcher's thread (the input rules, the model, a stream's tracks and
+    causal model, the replies, the job's own encoding); a ModelInput submitted alone is a job that
+    asks for its Prediction. Its metrics are labelled with the model's id (its runs hold only that
+    model's poses)."""
 
     def __init__(
         self,
@@ -21,42 +27,51 @@ class LiftBatcher(Batcher[ModelInput, Prediction]):
         max_batch: int,
         max_wait_s: float,
         queue_size: int,
+        limits: Limits | None = None,
     ) -> None:
         self.lifter = lifter
+        self.limits = Limits() if limits is None else limits
         model = lifter.info.model_id
         super().__init__(
             metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size, name=model
         )
 
-    def _run(self, parts: list[ModelInput]) -> Prediction:
-        return self.lifter.run(parts)
+    def _chunks(self, inputs: Job | ModelInput, transport: str) -> list[_Chunk[Job, Any]]:
+        # A job is lifted whole; prepared inputs are a job of their own that asks for the prediction.
+        job = inputs if isinstance(inputs, Job) else prediction_only(inputs)
+        return [_Chunk(job, transport, 0.0, Future())]
 
-    def _join(self, parts: list[Prediction]) -> Prediction:
-        return Prediction.join(parts)
+    def _run(self, parts: list[Job]) -> Batch:
+        return run_jobs(self.lifter, parts, self.limits, self.max_batch)
 
-    def _observe(self, answer: Prediction) -> None:
-        if self.metrics is not None and answer.plausibility is not None and not answer.failed.any():
-            self.metrics.observe_plausibility(self.model, answer.plausibility)
+    def _results(self, answer: Batch, batch: list[_Chunk[Job, Any]]) -> list[Any]:
+        return answer.answers
 
+    def _lifted(self, answer: Batch, batch: list[_Chunk[Job, Any]]) -> list[int]:
+        return answer.rows  # a job's poses that passed the input rules
 
-class TemporalBatcher(Batcher[WindowSource, TemporalAnswer]):
-    """A temporal model's batcher: windows in (of any length: padded; ClipWindows built batch by
-    batch on its thread, so a request's windows are never all built at once), TemporalAnswers out.
-    Its runs are not in the single-frame metrics (inference_seconds, batch size)."""
+    def _join(self, parts: list[Any]) -> Any:
+        return parts[0]
 
-    def __init__(self, lifter: TemporalLifter, *, max_batch: int, max_wait_s: float, queue_size: int) -> None:
-        self.lifter = lifter
-        super().__init__(
-            None,
-            max_batch=max_batch,
-            max_wait_s=max_wait_s,
-            queue_size=queue_size,
-            name=f"{lifter.mode}-batcher",
-        )
+    def _observe(self, answer: Batch) -> None:
+        found = answer.prediction
+        if self.metrics is not None and found.plausibility is not None and not found.failed.any():
+            self.metrics.observe_plausibility(self.model, found.plausibility)
 
-    def _run(self, parts: list[WindowSource]) -> TemporalAnswer:
-        built = [p.build() for p in parts]
-        return self.lifter.run(Windows.join(built, causal=self.lifter.mode == "causal"))
+    async def run_async(self, job: Job, transport: str, wait_s: float = 0.0) -> Any:
+        """Queue `job` (Overloaded when the queue stays full for wait_s) and await its answer."""
+        return await self.lift_async(job, transport, wait_s)
 
-    def _join(self, parts: list[TemporalAnswer]) -> TemporalAnswer:
-        return TemporalAnswer.join(parts)
+    def run(self, job: Job, transport: str) -> Any:
+        """Queue `job`, wait for its batch and return its answer."""
+        return super().lift(job, transport)
+
+    async def predict_async(self, inputs: ModelInput, transport: str, wait_s: float = 0.0) -> Prediction:
+        """The model's answers to prepared inputs (queued as a job of their own)."""
+        found: Prediction = await self.lift_async(prediction_only(inputs), transport, wait_s)
+        return found
+
+    def predict(self, inputs: ModelInput, transport: str) -> Prediction:
+        """predict_async for threads."""
+        found: Prediction = super().lift(prediction_only(inputs), transport)
+        return found

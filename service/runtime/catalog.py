@@ -3,6 +3,7 @@ and the rule that picks one for a request (a field-level error naming the known 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from repnet.core.errors import InvalidKeypoints, Violation, clip
@@ -25,6 +26,8 @@ class Catalog:
     engines: dict[str, LiftBatcher]
     temporal_base: str | None = None
     sha256: dict[str, str] = field(default_factory=dict)  # each model file's, by id (lineage)
+    # Whether the service's other workers serve too (server.workers; None: one process).
+    peers_ready: Callable[[], bool] | None = None
 
     def __post_init__(self) -> None:
         if not self.engines:
@@ -78,8 +81,9 @@ class Catalog:
 
     @property
     def ready(self) -> bool:
-        """Every model is loaded and the server is not shutting down."""
-        return all(e.ready for e in self.engines.values())
+        """Every model is loaded, the server is not shutting down, and every worker serves."""
+        mine = all(e.ready for e in self.engines.values())
+        return mine and (self.peers_ready is None or self.peers_ready())
 
     def stop_serving(self) -> None:
         """Report not ready from now on (every engine)."""

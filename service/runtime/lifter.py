@@ -16,10 +16,7 @@ import onnxruntime as ort
 from repnet.core import geometry
 from repnet.core.errors import InvalidKeypoints, ModelLoadError, Violation
 from repnet.core.geometry import BoolArray, FloatArray
-
-# onnxruntime >= 1.29 sends usage telemetry on Linux unless told not to: off before this package makes
-# any session, whatever started it (repnet serve, repnet lift --local, repnet adapt, a script).
-ort.disable_telemetry_events()
+from repnet.runtime.session import HasSessionOptions, open_session
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +41,7 @@ def non_finite_rows(*arrays: np.ndarray) -> BoolArray:
     n = arrays[0].shape[0]
     finite = np.ones(n, bool)
     for a in arrays:
-        finite &= np.isfinite(a.reshape(n, -1)).all(axis=1)
+        finite &= np.isfinite(a.reshape(n, int(np.prod(a.shape[1:])))).all(axis=1)  # N may be 0
     return ~finite
 
 
@@ -190,52 +187,6 @@ def _check_contract(session: ort.InferenceSession, info: ModelInfo, path: Path) 
         raise ModelLoadError(
             f"{path}: expected output {PLAUSIBILITY} of shape (N,), got {outputs[PLAUSIBILITY]}"
         )
-
-
-@dataclass(frozen=True)
-class SessionOptions:
-    """onnxruntime's options of a session; the defaults are the service's (Settings takes its own
-    from here, and passes itself: it has these three fields)."""
-
-    intra_op_threads: int = 0  # threads per run (0: one per core)
-    inter_op_threads: int = 1
-    intra_op_spinning: bool = False  # threads spin between runs
-
-
-class HasSessionOptions(Protocol):
-    """What open_session reads: SessionOptions, or the server's Settings."""
-
-    @property
-    def intra_op_threads(self) -> int:
-        """Threads per run."""
-
-    @property
-    def inter_op_threads(self) -> int:
-        """Inter-op threads."""
-
-    @property
-    def intra_op_spinning(self) -> bool:
-        """Spin between runs."""
-
-
-def open_session(path: Path, settings: HasSessionOptions | None = None) -> ort.InferenceSession:
-    """An onnxruntime session of the model at `path` with the options of `settings` (threads and
-    spinning; default SessionOptions()); ModelLoadError saying why the file cannot be one."""
-    settings = SessionOptions() if settings is None else settings
-    if path.is_dir():
-        raise ModelLoadError(f"model path is a directory, not an ONNX file: {path}")
-    if not path.is_file():
-        raise ModelLoadError(f"model file not found: {path}")
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = settings.intra_op_threads  # 0: one per core
-    options.inter_op_num_threads = settings.inter_op_threads
-    spinning = "1" if settings.intra_op_spinning else "0"
-    options.add_session_config_entry("session.intra_op.allow_spinning", spinning)
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    try:
-        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    except Exception as err:  # onnxruntime raises its own untyped errors for bad files
-        raise ModelLoadError(f"cannot load model {path}: {err}") from err
 
 
 class ModelInputLike(Protocol):

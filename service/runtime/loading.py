@@ -13,8 +13,9 @@ import numpy as np
 from repnet.core.errors import ModelLoadError
 from repnet.core.formats import MODEL_JOINTS
 from repnet.core.inputs import EXAMPLE_KEYPOINTS
-from repnet.runtime.lifter import HasSessionOptions, Lifter
+from repnet.runtime.lifter import Lifter
 from repnet.runtime.plans import camera_poses
+from repnet.runtime.session import HasSessionOptions
 from repnet.runtime.temporal import TemporalLifter
 
 log = logging.getLogger(__name__)

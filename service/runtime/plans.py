@@ -13,10 +13,9 @@ from repnet.core.contract import Contract
 from repnet.core.errors import InvalidKeypoints, LiftError, Violation
 from repnet.core.inputs import ModelInput
 from repnet.core.skeleton import BONES, fix_bone_lengths
-from repnet.runtime.batchers import TemporalBatcher
 from repnet.runtime.lifter import Prediction
 from repnet.runtime.replies import TemporalRows
-from repnet.runtime.temporal import TemporalAnswer, Windows, WindowSource
+from repnet.runtime.temporal import TemporalAnswer, TemporalBatcher, Windows, WindowSource
 from repnet.runtime.tracks import Observation, TrackBudget, TrackTable, clip_windows, fps_violations
 
 
@@ -38,26 +37,29 @@ class TemporalModels:
         return TrackTable(causal.lifter.contract, self.per_stream, self.idle_s, self.budget)
 
 
-def camera_poses(prediction: Prediction, rows: np.ndarray) -> np.ndarray:
+def camera_poses(prediction: Prediction, rows: np.ndarray, rotation: np.ndarray | None = None) -> np.ndarray:
     """(n, J, 3) the single-frame pose_3d of `rows` in the camera's orientation, without the ray turn:
     what the temporal model reads."""
-    rotation = geometry.camera_rotation(prediction.camera[rows])
+    rotation = geometry.camera_rotation(prediction.camera[rows]) if rotation is None else rotation[rows]
     return geometry.rotate_to_camera(prediction.pose_3d[rows], rotation)
 
 
 def seen_arrays(
-    inputs: ModelInput, prediction: Prediction, rows: np.ndarray
+    inputs: ModelInput, prediction: Prediction, rows: np.ndarray, rotation: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The single-frame answers of `rows` as a track stores them: (n, J, 3) poses, (n, J, 2)
-    keypoints (0 where not visible) and (n, J) visibility, float32."""
-    poses = camera_poses(prediction, rows)
+    keypoints (0 where not visible) and (n, J) visibility, float32 (`rotation`: every row's
+    camera_rotation, when the caller has it)."""
+    poses = camera_poses(prediction, rows, rotation)
     points = np.where(inputs.visible[rows][..., None], inputs.keypoints_2d[rows], 0.0).astype(np.float32)
     return poses, points, inputs.visible[rows].astype(np.float32)
 
 
-def observations(inputs: ModelInput, prediction: Prediction, rows: np.ndarray) -> list[Observation]:
+def observations(
+    inputs: ModelInput, prediction: Prediction, rows: np.ndarray, rotation: np.ndarray | None = None
+) -> list[Observation]:
     """The single-frame answers of `rows` as a track stores them, one Observation each."""
-    poses, points, visibility = seen_arrays(inputs, prediction, rows)
+    poses, points, visibility = seen_arrays(inputs, prediction, rows, rotation)
     return [Observation(p, k, v) for p, k, v in zip(poses, points, visibility, strict=True)]
 
 
@@ -95,12 +97,16 @@ class TrackedRow:
 
 
 def stream_plan(
-    table: TrackTable, tracked: Sequence[TrackedRow], inputs: ModelInput, prediction: Prediction
+    table: TrackTable,
+    tracked: Sequence[TrackedRow],
+    inputs: ModelInput,
+    prediction: Prediction,
+    rotation: np.ndarray | None = None,
 ) -> Plan:
     """Push each tracked pose into its track, in order, and take its causal window (a stream's
-    group: its frames after the earlier groups')."""
+    group: its frames after the earlier groups'; `rotation`: each row's camera_rotation, if known)."""
     table.expire()
-    seen = observations(inputs, prediction, np.array([t.row for t in tracked], np.int64))
+    seen = observations(inputs, prediction, np.array([t.row for t in tracked], np.int64), rotation)
     parts: list[tuple[int, Windows, np.ndarray]] = []
     errors: dict[int, LiftError] = {}
     for item, observation in zip(tracked, seen, strict=True):

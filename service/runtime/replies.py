@@ -35,6 +35,11 @@ class Replies:
     def __len__(self) -> int:
         return len(self.failed)
 
+    def slice(self, start: int, stop: int) -> Replies:
+        """The replies of poses start..stop-1 (views of the arrays)."""
+        columns = {k: None if v is None else v[start:stop] for k, v in self.columns.items()}
+        return Replies(columns, self.failed[start:stop])
+
     def check(self) -> Replies:
         """These replies when no pose failed; else ModelOutputError naming the poses that did."""
         if self.failed.any():
@@ -86,6 +91,7 @@ def build_replies(
     prediction: Prediction,
     temporal: TemporalRows | None = None,
     track_ids: list[str | None] | None = None,
+    rotation: FloatArray | None = None,
 ) -> Replies:
     """Every reply field of the poses `inputs` from their `prediction`: the camera geometry
     (computed here only), the input's joint flags and the warnings. A pose whose geometry is not
@@ -99,7 +105,7 @@ def build_replies(
     temporal = TemporalRows.none() if temporal is None else temporal
     failed = prediction.failed.copy()
     with np.errstate(over="ignore", invalid="ignore"):  # what is not finite fails its pose below
-        rotation = geometry.camera_rotation(camera)  # (N, 3, 3)
+        rotation = geometry.camera_rotation(camera) if rotation is None else rotation  # (N, 3, 3)
         if len(temporal.rows):  # pose_camera = pose_3d R^T, so pose_3d = pose_camera R
             pose_3d = pose_3d.copy()
             pose_3d[temporal.rows] = temporal.pose_camera @ rotation[temporal.rows]

@@ -15,7 +15,9 @@ from repnet.core.contract import MODES, Contract
 from repnet.core.errors import ModelLoadError
 from repnet.core.formats import MODEL_JOINTS
 from repnet.core.geometry import FloatArray
-from repnet.runtime.lifter import HasSessionOptions, non_finite_rows, open_session
+from repnet.runtime.batcher import Batcher
+from repnet.runtime.lifter import non_finite_rows
+from repnet.runtime.session import HasSessionOptions, open_session
 
 log = logging.getLogger(__name__)
 
@@ -223,3 +225,26 @@ class TemporalAnswer:
             return parts[0]
         poses = np.concatenate([p.pose_3d_camera for p in parts])
         return cls(poses, np.concatenate([p.failed for p in parts]))
+
+
+class TemporalBatcher(Batcher[WindowSource, TemporalAnswer]):
+    """A temporal model's batcher: windows in (of any length: padded; ClipWindows built batch by
+    batch on its thread, so a request's windows are never all built at once), TemporalAnswers out.
+    Its runs are not in the single-frame metrics (inference_seconds, batch size)."""
+
+    def __init__(self, lifter: TemporalLifter, *, max_batch: int, max_wait_s: float, queue_size: int) -> None:
+        self.lifter = lifter
+        super().__init__(
+            None,
+            max_batch=max_batch,
+            max_wait_s=max_wait_s,
+            queue_size=queue_size,
+            name=f"{lifter.mode}-batcher",
+        )
+
+    def _run(self, parts: list[WindowSource]) -> TemporalAnswer:
+        built = [p.build() for p in parts]
+        return self.lifter.run(Windows.join(built, causal=self.lifter.mode == "causal"))
+
+    def _join(self, parts: list[TemporalAnswer]) -> TemporalAnswer:
+        return TemporalAnswer.join(parts)

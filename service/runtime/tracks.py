@@ -15,6 +15,7 @@ single-frame answers' (temporal.fix_bone_lengths holds the temporal answer to th
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -129,7 +130,9 @@ class TrackLimitReached(InvalidKeypoints):
 
 class TrackTable:
     """The open tracks of one stream: at most `per_stream`, and together with every other stream's
-    at most what `budget` allows; a track not seen for `idle_s` is dropped."""
+    at most what `budget` allows; a track not seen for `idle_s` is dropped. Its stream's event loop
+    expires and closes it while the batcher's thread pushes frames into it: a lock keeps the two
+    apart, and a closed table opens no track (its budget is given back once)."""
 
     def __init__(self, contract: Contract, per_stream: int, idle_s: float, budget: TrackBudget) -> None:
         self.contract = contract
@@ -137,18 +140,27 @@ class TrackTable:
         self.idle_s = idle_s
         self.budget = budget
         self.tracks: dict[str, Track] = {}
+        self.closed = False
+        self._lock = threading.Lock()
 
     def expire(self, now: float | None = None) -> int:
         """Drop the tracks not seen for idle_s; returns how many."""
         now = time.monotonic() if now is None else now
-        stale = [key for key, track in self.tracks.items() if now - track.last_seen > self.idle_s]
-        for key in stale:
-            self._drop(key)
+        with self._lock:
+            stale = [key for key, track in self.tracks.items() if now - track.last_seen > self.idle_s]
+            for key in stale:
+                self._drop(key)
         return len(stale)
 
     def get(self, track_id: str, fps: float, field: str) -> Track:
         """The track `track_id` (a track whose frame rate changes starts again); a new one within the
         limits, else TrackLimitReached naming `field`."""
+        with self._lock:
+            return self._get(track_id, fps, field)
+
+    def _get(self, track_id: str, fps: float, field: str) -> Track:
+        if self.closed:
+            raise TrackLimitReached([Violation(field, "the stream has ended", "stream_closed")])
         track = self.tracks.get(track_id)
         if track is not None and track.fps == fps:
             return track
@@ -171,34 +183,39 @@ class TrackTable:
 
     def close(self) -> None:
         """Free every track (the stream ended)."""
-        for key in list(self.tracks):
-            self._drop(key)
+        with self._lock:
+            self.closed = True
+            for key in list(self.tracks):
+                self._drop(key)
 
 
 class TrackBudget:
     """The server's open tracks, over all streams, and the bytes they hold; `on_change(tracks,
-    bytes)` is told each change (the gauges). Used from the gRPC server's one event loop."""
+    bytes)` is told each change (the gauges). Streams of every model's batcher share it: a lock."""
 
     def __init__(self, limit: int, on_change: Callable[[int, int], None] | None = None) -> None:
         self.limit = limit
         self.open = 0
         self.bytes = 0
         self.on_change = on_change
+        self._lock = threading.Lock()
 
     def take(self, nbytes: int) -> bool:
         """Count one more track holding `nbytes`; False at the limit."""
-        if self.open >= self.limit:
-            return False
-        self.open += 1
-        self.bytes += nbytes
-        self._changed()
+        with self._lock:
+            if self.open >= self.limit:
+                return False
+            self.open += 1
+            self.bytes += nbytes
+            self._changed()
         return True
 
     def give(self, nbytes: int) -> None:
         """A track holding `nbytes` was freed."""
-        self.open -= 1
-        self.bytes -= nbytes
-        self._changed()
+        with self._lock:
+            self.open -= 1
+            self.bytes -= nbytes
+            self._changed()
 
     def _changed(self) -> None:
         if self.on_change is not None:

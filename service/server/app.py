@@ -8,6 +8,7 @@ import logging
 import signal
 import sys
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from types import FrameType
@@ -31,10 +32,11 @@ from repnet.server.http.api import create_app
 from repnet.server.http.server import HttpServer, http_config, raise_open_file_limit
 from repnet.server.metrics import Metrics
 from repnet.server.startup import load_dir_lifters, load_lifter, load_temporal
+from repnet.server.workers import Peers, reuse_port_socket, run_supervised, usable_cpus
 
 __all__ = ["Service", "build_service", "known_poses", "load_lifter", "load_temporal", "main"]
 
-log = logging.getLogger("service")
+log = logging.getLogger("repnet.server")
 
 
 def limits_of(settings: Settings) -> Limits:
@@ -59,6 +61,7 @@ class Service:
     grpc_server: GrpcServer
     http: uvicorn.Server
     temporal: TemporalModels | None = None
+    peers: Peers | None = None  # the other workers of a supervised service (server.workers)
     _stopping: threading.Event = field(default_factory=threading.Event)
     _grpc_stopped: threading.Event | None = None
     _delay: threading.Timer | None = None
@@ -75,6 +78,8 @@ class Service:
             return
         self._stopping.set()
         log.info("shutting down: draining in-flight requests (grace %.1f s)", self.settings.shutdown_grace_s)
+        if self.peers is not None:
+            self.peers.mark_ready(False)
         self.models.stop_serving()
         self.grpc_server.health.enter_graceful_shutdown()
         if self.settings.shutdown_delay_s > 0:
@@ -104,8 +109,12 @@ class Service:
             self.grpc_server.port,
         )
         status = 0
+        sockets = None
+        if self.peers is not None:  # a worker: the port is shared with the others (SO_REUSEPORT)
+            sockets = [reuse_port_socket(self.settings.host, self.settings.http_port)]
+            threading.Thread(target=self._announce, name="repnet-ready", daemon=True).start()
         try:
-            self.http.run()  # returns once should_exit is set and HTTP requests have drained
+            self.http.run(sockets=sockets)  # returns once should_exit is set and HTTP requests have drained
         except SystemExit as exit_:  # uvicorn exits when it cannot bind its port
             status = exit_.code if isinstance(exit_.code, int) and exit_.code else 1
         if not self._stopping.is_set():  # uvicorn stopped on its own
@@ -119,6 +128,19 @@ class Service:
             temporal.close(self.settings.shutdown_grace_s)
         log.info("stopped; requests answered: %s", answered_requests(self.metrics))
         return status
+
+    def _announce(self) -> None:
+        """A worker: ready once its HTTP server serves; gRPC health SERVING once every worker is."""
+        assert self.peers is not None
+        while not self.http.started and not self._stopping.is_set():
+            time.sleep(0.02)
+        if self._stopping.is_set():
+            return
+        self.peers.mark_ready(True)
+        while not self.peers.all_ready() and not self._stopping.is_set():
+            time.sleep(0.05)
+        if not self._stopping.is_set():
+            self.grpc_server.health.set(True)
 
 
 def answered_requests(metrics: Metrics) -> str:
@@ -170,9 +192,10 @@ def build_grpc_server(
     settings: Settings,
     temporal: TemporalModels | None = None,
     api_keys: ApiKeys | None = None,
+    reuse_port: bool = False,
 ) -> GrpcServer:
     """The gRPC server on `engine` (and the temporal models; bound to host:grpc_port, not started)
-    with the gRPC settings."""
+    with the gRPC settings (`reuse_port`: a worker's, sharing the port with the others)."""
     return create_server(
         engine,
         metrics,
@@ -186,6 +209,7 @@ def build_grpc_server(
         stream_idle_timeout_s=settings.stream_idle_timeout_s,
         max_message_bytes=settings.max_body_bytes,
         stream_window_poses=settings.stream_window_poses,
+        reuse_port=reuse_port,
     )
 
 
@@ -199,12 +223,14 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
     engines = {m.info.model_id: build_batcher(m, metrics, settings) for m in lifters}
     temporal = load_temporal(settings, lifter, metrics)
     sha256 = {m.info.model_id: file_sha256(m.path) for m in lifters}
-    models = Catalog(engines, None if temporal is None else lifter.info.model_id, sha256)
+    peers = Peers.from_env()  # a supervised worker's (server.workers)
+    ready = None if peers is None else peers.all_ready
+    models = Catalog(engines, None if temporal is None else lifter.info.model_id, sha256, ready)
     api_keys = None if settings.api_keys_file is None else ApiKeys.read(settings.api_keys_file)
     app = build_app(models, metrics, settings, temporal, api_keys)
-    grpc_server = build_grpc_server(models, metrics, settings, temporal, api_keys)
+    grpc_server = build_grpc_server(models, metrics, settings, temporal, api_keys, peers is not None)
     http = HttpServer(http_config(app, settings))
-    return Service(settings, models, metrics, app, grpc_server, http, temporal)
+    return Service(settings, models, metrics, app, grpc_server, http, temporal, peers)
 
 
 def parse_settings(argv: Sequence[str] | None) -> Settings:
@@ -233,14 +259,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValidationError as err:
         print(f"invalid settings:\n{err}", file=sys.stderr)
         return 2
+    peers = Peers.from_env()
+    worker = "" if peers is None else f"[worker {peers.index}] "
     logging.basicConfig(
-        level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+        level=settings.log_level.upper(), format=f"%(asctime)s %(levelname)s {worker}%(name)s: %(message)s"
     )
+    count = settings.workers or usable_cpus()
+    if peers is None and count > 1:  # the supervisor: the workers do the serving
+        ports = (settings.http_port, settings.grpc_port)
+        flags = list(sys.argv[1:] if argv is None else argv)
+        return run_supervised(flags, count, settings.host, ports, settings.shutdown_grace_s)
     raise_open_file_limit()
     try:
         service = build_service(settings)
     except (ModelLoadError, OSError, ValueError) as err:  # ValueError: an API keys file without keys
-        log.error("cannot start: %s", err)
+        if peers is None:
+            log.error("cannot start: %s", err)
+        else:  # the supervisor says it, once for the service
+            peers.failed(str(err))
         return 1
     return serve(service)
 

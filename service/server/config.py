@@ -10,8 +10,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from repnet.core.inputs import Limits
 from repnet.runtime.batcher import MAX_BATCH
-from repnet.runtime.lifter import SessionOptions
 from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_MODEL, BUNDLED_OFFLINE
+from repnet.runtime.session import SessionOptions
 
 
 class Settings(BaseSettings):
@@ -48,6 +48,12 @@ class Settings(BaseSettings):
         default=SessionOptions.intra_op_spinning,
         description="onnxruntime threads spin between runs (faster single runs on idle cores; off "
         "leaves the CPU to the server's own threads, +20 % stream throughput on 2 cores: docs/BENCHMARKS.md)",
+    )
+    workers: int = Field(
+        default=0,
+        ge=0,
+        description="server processes sharing the HTTP and gRPC ports, each with its own models, "
+        "batchers and streams (0: one per CPU this process may use, the container's CPU limit)",
     )
     grpc_workers: int = Field(
         default=32,
@@ -111,10 +117,11 @@ class Settings(BaseSettings):
     )
     max_batch: int = Field(default=MAX_BATCH, ge=1, description="most poses in one onnxruntime run")
     max_wait_ms: float = Field(
-        default=0.5,
+        default=4.0,
         ge=0,
-        description="under load, longest the batcher waits for more poses to join a batch (an idle "
-        "batcher runs a request at once)",
+        description="the batching window at full load: the longest a request waits for others to join "
+        "its batch. The window follows the load: a batcher busy under a quarter of its time runs a "
+        "request at once, a busier one lets it wait up to this, in proportion (0: never wait)",
     )
     queue_size: int = Field(default=8192, ge=1, description="most poses waiting for a run; beyond: 503")
     max_request_poses: int = Field(

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from repnet.core.errors import InvalidKeypoints, LiftError, ModelOutputError
 from repnet.core.inputs import PoseInput, Prepared
 from repnet.runtime.lifter import Prediction
+from repnet.runtime.pipeline import TrackedPose
 from repnet.runtime.replies import Replies, TemporalRows
 
 POSE_FIELD = "pose"  # what a single pose's violations are named within: pose.keypoints[4]
@@ -94,6 +95,15 @@ class Group:
     def poses(self) -> list[PoseInput]:
         """The poses to lift, frame by frame and person by person."""
         return [p.pose for f in self.frames for p in f.persons() if p.pose is not None]
+
+    def tracked(self) -> list[TrackedPose | None]:
+        """Per pose of poses(), its track (None: an untracked pose, lifted alone)."""
+        return [
+            TrackedPose(p.track_id, f.frame_id, f.fps, p.field) if p.track_id else None
+            for f in self.frames
+            for p in f.persons()
+            if p.pose is not None
+        ]
 
     def valid(self) -> list[tuple[FrameIn, PersonIn, int]]:
         """Every person whose pose passed the input rules, with its row of the valid poses."""

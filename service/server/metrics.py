@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, multiprocess
 
 from repnet.core.errors import InvalidKeypoints, ModelNotReady, ModelOutputError, Overloaded, Violation
 
@@ -92,19 +93,31 @@ class Metrics:
             "repnet_in_flight_requests",
             "Lift requests and stream frames being handled now.",
             ["transport"],
+            multiprocess_mode="livesum",
             registry=registry,
         )
-        self.open_streams = Gauge("repnet_open_streams", "LiftStream calls open now.", registry=registry)
+        self.open_streams = Gauge(
+            "repnet_open_streams",
+            "LiftStream calls open now.",
+            multiprocess_mode="livesum",
+            registry=registry,
+        )
         self.idle_streams_closed = Counter(
             "repnet_idle_streams_closed",
             "LiftStream calls closed by the server after stream_idle_timeout_s without a frame.",
             registry=registry,
         )
         self.open_tracks = Gauge(
-            "repnet_open_tracks", "Tracks of LiftStream calls open now.", registry=registry
+            "repnet_open_tracks",
+            "Tracks of LiftStream calls open now.",
+            multiprocess_mode="livesum",
+            registry=registry,
         )
         self.track_state_bytes = Gauge(
-            "repnet_track_state_bytes", "Bytes of frames the open tracks hold now.", registry=registry
+            "repnet_track_state_bytes",
+            "Bytes of frames the open tracks hold now.",
+            multiprocess_mode="livesum",
+            registry=registry,
         )
         self.model_output_errors = Counter(
             "repnet_model_output_errors",
@@ -153,6 +166,7 @@ class Metrics:
             "repnet_batch_queue_poses",
             "Poses waiting in a model's batch queue now.",
             ["model"],
+            multiprocess_mode="livesum",
             registry=registry,
         )
         self.lifted_poses = Counter(
@@ -166,8 +180,19 @@ class Metrics:
             "The loaded single-frame models (value 1 each), labelled by id and skeleton; default "
             "is true for the model a request that names none gets.",
             ["model_id", "skeleton", "default"],
+            multiprocess_mode="livemax",
             registry=registry,
         )
+
+    def scraped(self) -> CollectorRegistry:
+        """What GET /metrics reports: this registry; with workers (prometheus_client's multiprocess
+        folder set), every worker's metrics as one, read from the folder."""
+        folder = os.environ.get("PROMETHEUS_MULTIPROC_DIR")
+        if not folder:
+            return self.registry
+        registry = CollectorRegistry()
+        multiprocess.MultiProcessCollector(registry, folder)
+        return registry
 
     def set_model(self, model_id: str, skeleton: str) -> None:
         """Label repnet_model_info with the one loaded model (the default)."""

@@ -7,11 +7,11 @@ import logging
 
 from repnet.core.errors import ModelLoadError
 from repnet.runtime import loading
-from repnet.runtime.batchers import TemporalBatcher
-from repnet.runtime.lifter import Lifter, open_session
+from repnet.runtime.lifter import Lifter
 from repnet.runtime.loading import check_lifter, file_sha256
 from repnet.runtime.plans import TemporalModels
-from repnet.runtime.temporal import TemporalLifter
+from repnet.runtime.session import open_session
+from repnet.runtime.temporal import TemporalBatcher, TemporalLifter
 from repnet.runtime.tracks import TrackBudget
 from repnet.server.config import Settings
 from repnet.server.metrics import Metrics

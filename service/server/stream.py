@@ -8,22 +8,21 @@ import logging
 import time
 from collections import deque
 from collections.abc import AsyncGenerator, AsyncIterator, Callable
-from dataclasses import dataclass
+from functools import partial
 from typing import TypeVar
 
 from repnet.core.errors import LiftError, ModelOutputError
 from repnet.core.inputs import Limits
 from repnet.core.keypoints import prepare_poses
 from repnet.runtime.batcher import offload
-from repnet.runtime.batchers import LiftBatcher, TemporalBatcher
+from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
-from repnet.runtime.lifter import Prediction
+from repnet.runtime.pipeline import Job, Lifted, StreamTracks
+from repnet.runtime.plans import TemporalModels
+from repnet.runtime.tracks import TrackTable
 from repnet.server.frames import POSE_FIELD, Answer, Answers, FrameIn, Group, PersonIn
 
 __all__ = ["POSE_FIELD", "Answer", "Answers", "FrameIn", "Group", "PersonIn", "StreamIdle", "UnreadableFrame"]
-from repnet.runtime.plans import Plan, TemporalModels, TrackedRow, run_plan, stream_plan
-from repnet.runtime.replies import build_replies
-from repnet.runtime.tracks import TrackTable
 
 log = logging.getLogger(__name__)
 
@@ -116,84 +115,64 @@ def held_poses(frame: FrameIn) -> int:
     return max(1, len(frame.persons()))
 
 
-async def _start(group: Group, models: Catalog, limits: Limits, transport: str) -> None:
-    """Prepare the group's poses (off the event loop when many) and queue the valid ones as one
-    request to the group's model."""
+async def _start(
+    group: Group,
+    models: Catalog,
+    transport: str,
+    tracks: StreamTracks | None,
+    encode: Callable[[Answers], R],
+) -> None:
+    """Queue the group's poses as one job of the group's model: its batch runs the input rules, the
+    model, the stream's tracks and causal model, and encodes the group's answers."""
     engine = models.engines.get(group.model) or models.default_engine  # frames name known models
-    poses = group.poses()
+    poses, tracked = group.poses(), group.tracked() if tracks is not None else []
     if not poses:
         return
-    group.prepared = await offload(len(poses), prepare_poses, poses, limits)
-    if len(group.prepared.inputs):
+    job = Job(
+        finish=partial(_answer, group, encode),
+        poses=poses,
+        tracks=tracks if any(t is not None for t in tracked) else None,
+        tracked=tracked if tracks is not None else (),
+        track_ids=[t.track_id if t is not None else None for t in tracked] if tracked else None,
+    )
+    try:
+        group.futures = await engine.submit_async(job, transport, wait_s=QUEUE_WAIT_S)
+    except LiftError as err:  # queue full for too long, or shutting down
+        group.failure = err
+
+
+async def _finish(group: Group, encode: Callable[[Answers], R], limits: Limits) -> R:
+    """The encoded answers of a group whose job has finished (its batch encoded them); a failed job
+    fails its frames, not the stream (their poses' own rules still answered, off the event loop)."""
+    if group.futures and group.failure is None:
         try:
-            group.futures = await engine.submit_async(group.prepared.inputs, transport, wait_s=QUEUE_WAIT_S)
-        except LiftError as err:  # queue full for too long, or shutting down
-            group.failure = err
-
-
-@dataclass(frozen=True)
-class StreamTracks:
-    """A stream's tracks and the causal temporal model that answers them."""
-
-    table: TrackTable
-    engine: TemporalBatcher
-    transport: str
-
-
-async def _track(group: Group, prediction: Prediction, tracking: StreamTracks | None) -> Plan | None:
-    """The group's tracked poses pushed into their tracks, in frame order, and their causal windows
-    answered (off the event loop when many): the rows' TemporalRows and why some rows got none."""
-    if tracking is None or group.prepared is None:
-        return None
-    tracked = [
-        TrackedRow(row, person.track_id, frame.frame_id, frame.fps, person.field)
-        for frame, person, row in group.valid()
-        if person.track_id
-    ]
-    if not tracked:
-        return None
-    inputs = group.prepared.inputs
-    plan = await offload(len(tracked), stream_plan, tracking.table, tracked, inputs, prediction)
-    group.temporal = await run_plan(tracking.engine, plan, tracking.transport, QUEUE_WAIT_S)
-    return plan
-
-
-async def _finish(group: Group, encode: Callable[[Answers], R], tracking: StreamTracks | None = None) -> R:
-    """The encoded answers of a group whose runs have finished (off the event loop when many): a
-    failed run fails its frames, not the stream."""
-    prediction, errors = None, {}
-    if group.futures:
-        try:
-            prediction = Prediction.join([f.result() for f in group.futures])
-            plan = await _track(group, prediction, tracking)
-            errors = {} if plan is None else plan.errors
-        except LiftError as err:  # the temporal model's queue full for too long, or shutting down
+            answered: R = group.futures[0].result()
+            return answered
+        except LiftError as err:
             group.failure = err
         except Exception:  # one run's fault must not end the stream
             log.exception("stream frames %d..: lifting failed", group.frames[0].frame_id)
             group.failure = LiftError("internal error while lifting this frame")
-    return await offload(len(group.frames), _answer, group, prediction, errors, encode)
+    return await offload(len(group.frames), _refused, group, limits, encode)
 
 
-def _answer(
-    group: Group, prediction: Prediction | None, errors: dict[int, LiftError], encode: Callable[[Answers], R]
-) -> R:
-    """Build the replies of a group's valid poses and encode its answers, in one go."""
-    replies = None
-    if prediction is not None and group.prepared is not None:
+def _answer(group: Group, encode: Callable[[Answers], R], lifted: Lifted) -> R:
+    """A group's answers from what its job got (on the batcher's thread), encoded."""
+    group.prepared = lifted.prepared
+    replies = lifted.replies
+    if replies is not None and replies.failed.any():  # counted as each frame is answered; one line
         first = group.frames[0].frame_id
-        track_ids = [person.track_id or None for _, person, _ in group.valid()]
-        try:
-            replies = build_replies(group.prepared.inputs, prediction, group.temporal, track_ids)
-        except Exception:  # one group's fault must not end the stream
-            log.exception("stream frames %d..: building the replies failed", first)
-            group.failure = LiftError("internal error while lifting this frame")
-        else:
-            if replies.failed.any():  # counted as each frame is answered; one line, no traceback
-                log.error(
-                    "stream frames %d..: %s", first, ModelOutputError(replies.failed.nonzero()[0].tolist())
-                )
-    return encode(Answers(group.answers(replies, errors), replies))
+        log.error("stream frames %d..: %s", first, ModelOutputError(replies.failed.nonzero()[0].tolist()))
+    return encode(Answers(group.answers(replies, lifted.errors), replies))
+
+
+def _refused(group: Group, limits: Limits, encode: Callable[[Answers], R]) -> R:
+    """The answers of a group whose job did not run or failed: each pose's own violations, else
+    the group's failure."""
+    poses = group.poses()
+    if group.prepared is None and poses:
+        group.prepared = prepare_poses(poses, limits)
+    return encode(Answers(group.answers(None, {}), None))
 
 
 class _Reader:
@@ -289,20 +268,17 @@ async def answer_stream(
     reader = _Reader(frames, StreamState(window, models.default_engine.max_batch))
     state = reader.state
     table = None if temporal is None else temporal.table()
-    tracking = (
-        None
-        if table is None or temporal is None
-        else StreamTracks(table, temporal.engines["causal"], transport)
-    )
+    causal = None if temporal is None else temporal.engines.get("causal")
+    tracks = None if table is None or causal is None else StreamTracks(table, causal.lifter)
     try:
         while True:
             reader.wake.clear()
             if state.can_take():
                 for taken in state.take():
-                    await _start(taken, models, limits, transport)
+                    await _start(taken, models, transport, tracks, encode)
                     reader.watch(taken)
             while (group := state.answerable()) is not None:
-                yield await _finish(group, encode, tracking)
+                yield await _finish(group, encode, limits)
                 reader.answered(group)
             if reader.ended and not state.held:
                 if reader.unreadable is not None:

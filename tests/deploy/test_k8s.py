@@ -160,9 +160,16 @@ def test_graceful_termination_fits_in_the_grace_period() -> None:
     pod = one("Deployment")["spec"]["template"]["spec"]
     pre_stop = container()["lifecycle"]["preStop"]["exec"]["command"]
     assert pre_stop[0] == "sleep"
-    env = {e["name"]: e["value"] for e in container()["env"]}
-    drain = float(env.get("REPNET_SHUTDOWN_GRACE_S", default("shutdown_grace_s")))
+    env = {e["name"]: e.get("value") for e in container()["env"]}
+    drain = float(env.get("REPNET_SHUTDOWN_GRACE_S") or default("shutdown_grace_s"))
     assert float(pre_stop[1]) + drain < pod["terminationGracePeriodSeconds"]
+
+
+def test_workers_follow_the_cpu_limit_with_one_onnxruntime_thread_each() -> None:
+    env = {e["name"]: e for e in container()["env"]}
+    field = env["REPNET_WORKERS"]["valueFrom"]["resourceFieldRef"]
+    assert field["resource"] == "limits.cpu" and field["containerName"] == container()["name"]
+    assert env["REPNET_INTRA_OP_THREADS"]["value"] == "1"
 
 
 def test_env_names_are_real_settings() -> None:

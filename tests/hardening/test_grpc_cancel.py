@@ -73,10 +73,10 @@ class SlowLifter(Lifter):
 @pytest.fixture
 def slow_service(lifter: Lifter) -> Iterator[tuple[str, Metrics, SlowLifter]]:
     slow = SlowLifter(lifter)
-    # A queue that holds all 40 calls' poses: the calls end by their deadline, never by a full queue
-    # (on a fast machine every handler queues its poses well within the 250 ms).
+    # Room for all 40 calls (Lift calls in progress, queued poses): the calls end by their deadline,
+    # never by a limit (on a fast machine every handler starts and queues its poses within 250 ms).
     settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1, shutdown_grace_s=1,
-                        max_batch=256, queue_size=65536)  # fmt: skip
+                        max_batch=256, queue_size=65536, grpc_workers=64)  # fmt: skip
     with running(settings, slow) as service:
         yield f"127.0.0.1:{service.grpc_server.port}", service.metrics, slow
 

@@ -18,6 +18,7 @@ from prometheus_client import CollectorRegistry
 from repnet.core.errors import ModelNotReady, Overloaded
 from repnet.core.inputs import ModelInput, PoseInput
 from repnet.core.keypoints import prepare_poses
+from repnet.runtime.batcher import BUSY_TO_WAIT, batch_window
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter, Prediction
 from repnet.server.app import limits_of
@@ -248,18 +249,23 @@ def test_an_idle_batcher_runs_a_lone_request_without_waiting(
     assert time.monotonic() - start < 2.5
 
 
-def test_work_queued_during_a_run_waits_for_company(
+def test_the_batching_window_follows_the_load() -> None:
+    assert batch_window(0.004, 0.0) == 0.0 and batch_window(0.004, BUSY_TO_WAIT) == 0.0  # idle: at once
+    assert batch_window(0.004, 1.0) == pytest.approx(0.004)  # always busy: the whole window
+    middle = (1.0 + BUSY_TO_WAIT) / 2
+    assert batch_window(0.004, middle) == pytest.approx(0.002)
+
+
+def test_a_busy_batcher_lets_a_request_wait_for_company_and_an_idle_one_does_not(
     engine_factory: Callable[..., LiftBatcher], gated: GatedLifter
 ) -> None:
-    """Under load the batcher gives the next batch max_wait to fill: requests that arrive shortly
-    after the run that held them up ends still join the same batch."""
+    """Requests that arrive within the window of a busy batcher join one batch; an idle batcher runs
+    each at once."""
     engine = engine_factory(gated, max_batch=64, max_wait_s=1.0, queue_size=64)
-    gated.gate.clear()
-    first = engine.submit(model_input(variant(0)), "http")
-    wait_until(gated.entered.is_set, "the first run to start")
-    second = engine.submit(model_input(variant(1)), "http")  # queued while the first run runs
-    gated.gate.set()
-    first[0].result(timeout=10)
-    third = engine.submit(model_input(variant(2)), "http")  # after that run, within max_wait
-    assert len(second[0].result(timeout=10)) == 1 and len(third[0].result(timeout=10)) == 1
-    assert gated.batches == [1, 2]
+    engine.lift(model_input(variant(0)), "http")
+    engine.lift(model_input(variant(1)), "http")  # idle: two batches of one
+    engine._busy = 1.0  # as after runs that took all of its time
+    first = engine.submit(model_input(variant(2)), "http")
+    second = engine.submit(model_input(variant(3)), "http")  # within the window of the first
+    assert len(first[0].result(timeout=10)) == 1 and len(second[0].result(timeout=10)) == 1
+    assert gated.batches == [1, 1, 2]

@@ -23,14 +23,13 @@ from repnet.core.errors import (
     clip,
 )
 from repnet.core.formats import DEFAULT_FORMAT
-from repnet.core.inputs import Limits, ModelInput
-from repnet.core.keypoints import check_threshold, prepare_request
+from repnet.core.inputs import Limits, PoseInput
+from repnet.core.keypoints import check_threshold, read_request
 from repnet.runtime.batcher import offload
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
-from repnet.runtime.lifter import Prediction
+from repnet.runtime.pipeline import Job, Lifted
 from repnet.runtime.plans import TemporalModels
-from repnet.runtime.replies import build_replies
 from repnet.runtime.tracks import fps_violations
 from repnet.server.grpc.input import image_size_violations, intrinsics_violations, to_pose_input
 from repnet.server.metrics import OVERLOADED, Metrics, outcome_of
@@ -117,9 +116,12 @@ def frame_error(err: LiftError) -> lifter_pb2.FrameError:
     )
 
 
-def proto_replies(inputs: ModelInput, prediction: Prediction) -> list[lifter_pb2.PoseResult]:
-    """The PoseResults of a Lift; ModelOutputError when the model failed on any of its poses."""
-    return build_replies(inputs, prediction).check().to_proto()
+def proto_replies(lifted: Lifted) -> list[lifter_pb2.PoseResult]:
+    """The PoseResults of a Lift (on the batcher's thread); InvalidKeypoints naming every pose that
+    breaks a rule, ModelOutputError when the model failed on any of its poses."""
+    lifted.prepared.check()
+    assert lifted.replies is not None  # the job asks for them
+    return lifted.replies.check().to_proto()
 
 
 class PoseLifterServicer:
@@ -174,9 +176,9 @@ class PoseLifterServicer:
             with self.metrics.track(TRANSPORT, "Lift"):
                 with self.metrics.parsing(TRANSPORT):
                     engine = self.models.pick(request.model)
-                    inputs = await offload(count, self._prepare_request, request)
-                prediction = await engine.lift_async(inputs, TRANSPORT)
-                results = await offload(count, proto_replies, inputs, prediction)
+                    poses, threshold = await offload(count, self._read_request, request)
+                job = Job(finish=proto_replies, poses=poses, threshold=threshold)
+                results = await engine.run_async(job, TRANSPORT)
         except LiftError as err:
             if isinstance(err, ModelOutputError):  # counted by track(); one line, no traceback
                 log.error("Lift: %s", err)
@@ -188,7 +190,8 @@ class PoseLifterServicer:
             self._unary -= 1
         return lifter_pb2.LiftResponse(model_id=engine.model, joints=self.joints, poses=results)
 
-    def _prepare_request(self, request: lifter_pb2.LiftRequest) -> ModelInput:
+    def _read_request(self, request: lifter_pb2.LiftRequest) -> tuple[list[PoseInput], float | None]:
+        """A Lift's poses as read from the wire, and its threshold (read_request's rules)."""
         default = request.intrinsics if request.HasField("intrinsics") else None
         size = request.image_size if request.HasField("image_size") else None
         found = [] if default is None else intrinsics_violations(default, "intrinsics")
@@ -197,9 +200,10 @@ class PoseLifterServicer:
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
         poses, fmt = request.poses, request.format or DEFAULT_FORMAT
         height = request.person_height_m if request.HasField("person_height_m") else None
-        return prepare_request(
+        read = read_request(
             len(poses), lambda i: to_pose_input(poses[i], fmt, default, size, height), threshold, self.limits
         )
+        return read, threshold
 
     async def LiftStream(
         self, request_iterator: AsyncIterator[lifter_pb2.LiftFrame], context: Context

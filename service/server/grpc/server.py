@@ -64,6 +64,10 @@ class Health:
             await self.servicer.set(name, status)
         self.serving = serving
 
+    def set(self, serving: bool) -> None:
+        """Report SERVING or NOT_SERVING (from any thread)."""
+        self._call(self.set_status(serving))
+
     def enter_graceful_shutdown(self) -> None:
         """NOT_SERVING from now on, whatever is set later (what SIGTERM does first)."""
         self._call(self.servicer.enter_graceful_shutdown())
@@ -242,6 +246,7 @@ def create_server(
     max_message_bytes: int,
     stream_window_poses: int,
     temporal: TemporalModels | None = None,
+    reuse_port: bool = False,
 ) -> GrpcServer:
     """A gRPC server (not started) bound to `address`, with health (`.health`) and reflection.
 
@@ -252,8 +257,12 @@ def create_server(
 
     async def build(status: Health) -> tuple[grpc.aio.Server, int]:
         server = grpc.aio.server(
-            # so_reuseport 0: a second server on a taken port fails instead of sharing it.
-            options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.so_reuseport", 0)],
+            # so_reuseport 0: a second server on a taken port fails instead of sharing it; a worker's
+            # (reuse_port) shares it with the others (the supervisor holds the port: server.workers).
+            options=[
+                ("grpc.max_receive_message_length", max_message_bytes),
+                ("grpc.so_reuseport", 1 if reuse_port else 0),
+            ],
             interceptors=[] if api_keys is None else [ApiKeyInterceptor(api_keys, metrics)],
         )
         servicer = PoseLifterServicer(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -13,15 +14,15 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from repnet.core.errors import InvalidKeypoints, Violation
 from repnet.core.formats import FORMATS
-from repnet.core.inputs import Limits, ModelInput, PoseInput
-from repnet.core.keypoints import prepare_request
+from repnet.core.inputs import Limits, PoseInput
+from repnet.core.keypoints import read_request
 from repnet.core.version import VERSION
 from repnet.runtime.batcher import offload
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
-from repnet.runtime.lifter import ModelInfo, Prediction
+from repnet.runtime.lifter import ModelInfo
+from repnet.runtime.pipeline import Job, Lifted
 from repnet.runtime.plans import TemporalModels
-from repnet.runtime.replies import build_replies
 from repnet.server.auth import ApiKeys
 from repnet.server.http.api_docs import add_docs
 from repnet.server.http.errors import add_error_handlers
@@ -120,18 +121,19 @@ class LiftJSONResponse(JSONResponse):
         return pydantic_core.to_json(content, inf_nan_mode="null")
 
 
-def _prepare(request: LiftRequest, limits: Limits) -> ModelInput:
+def _read(request: LiftRequest, limits: Limits) -> list[PoseInput]:
     poses, threshold = request.poses, request.confidence_threshold
-    return prepare_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
+    return read_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
 
 
-def reply_of(
-    info: ModelInfo, inputs: ModelInput, prediction: Prediction, request: LiftRequest
-) -> LiftJSONResponse:
-    """The 200 answer to a request; ModelOutputError when the model failed on any of its poses."""
-    track_ids = [p.track_id for p in request.poses]
-    poses = build_replies(inputs, prediction, track_ids=track_ids).check().to_json()
-    return LiftJSONResponse({"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses})
+def _body(info: ModelInfo, lifted: Lifted) -> bytes:
+    """The 200 answer's JSON (on the batcher's thread); InvalidKeypoints naming every pose that
+    breaks a rule, ModelOutputError when the model failed on any pose."""
+    lifted.prepared.check()
+    assert lifted.replies is not None  # the job asks for them
+    poses = lifted.replies.check().to_json()
+    body = {"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses}
+    return pydantic_core.to_json(body, inf_nan_mode="null")
 
 
 def add_middleware(
@@ -195,9 +197,14 @@ def create_app(
             body = await lift_temporal(request, engine, temporal, limits, metrics, started, read)
             return LiftJSONResponse(body)
         with metrics.parsing("http", started):
-            inputs = await offload(count, _prepare, request, limits)
-        prediction = await engine.lift_async(inputs, "http")
-        return await offload(count, reply_of, engine.lifter.info, inputs, prediction, request)
+            poses = await offload(count, _read, request, limits)
+        job = Job(
+            finish=partial(_body, engine.lifter.info),
+            poses=poses,
+            threshold=request.confidence_threshold,
+            track_ids=[p.track_id for p in request.poses],
+        )
+        return Response(await engine.run_async(job, "http"), media_type="application/json")
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:
@@ -221,7 +228,7 @@ def create_app(
 
     @app.get("/metrics", summary="Prometheus metrics", response_class=Response)
     async def prometheus() -> Response:
-        return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
+        return Response(generate_latest(metrics.scraped()), media_type=CONTENT_TYPE_LATEST)
 
     add_docs(app)
     if ui:

@@ -85,7 +85,7 @@ async def lift_temporal(
     with metrics.parsing(TRANSPORT, started):
         inputs = await offload(count, prepare_temporal, request, limits, temporal, read)
     assert temporal is not None  # prepare_temporal refuses the request without it
-    prediction = await engine.lift_async(inputs, TRANSPORT)
+    prediction = await engine.predict_async(inputs, TRANSPORT)
     plan = await offload(count, plan_of, request, temporal, inputs, prediction)
     rows = await run_plan(temporal.engines[request.temporal], plan, TRANSPORT)
     return await offload(count, temporal_body, engine.lifter.info, inputs, prediction, rows, request)

@@ -1,0 +1,251 @@
+"""One pass over a batch of jobs: the input rules, the single-frame model, the streams' tracks and the
+causal temporal model, the replies, and each job's own answer (its `finish`), all over arrays of the
+batch's poses. A job is a group of poses lifted and answered together: a stream's frames, a
+request's poses. The batcher (runtime.batchers.LiftBatcher) runs it on its thread, one hand-off
+between the event loop and that thread per job."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from repnet.core import geometry
+from repnet.core.errors import LiftError
+from repnet.core.inputs import Limits, ModelInput, PoseInput, Prepared
+from repnet.core.keypoints import prepare_poses
+from repnet.runtime.lifter import Lifter, Prediction
+from repnet.runtime.plans import Plan, TrackedRow, answer_rows, stream_plan
+from repnet.runtime.replies import Replies, TemporalRows, build_replies
+from repnet.runtime.temporal import TemporalLifter, Windows
+from repnet.runtime.tracks import TrackTable
+
+
+@dataclass(frozen=True)
+class TrackedPose:
+    """What a tracked pose of a stream's frame says of its track."""
+
+    track_id: str
+    frame: int  # its frame number
+    fps: float
+    field: str  # what its errors are named: "pose", "people[2].pose"
+
+
+@dataclass(frozen=True)
+class StreamTracks:
+    """A stream's tracks and the causal model that answers them (used on the batcher's thread only,
+    one job of the stream at a time: server.stream takes a stream's next frames once its last job is
+    answered)."""
+
+    table: TrackTable
+    temporal: TemporalLifter
+
+
+@dataclass(frozen=True)
+class Lifted:
+    """What a job got: its poses after the input rules, the model's answers to the valid ones and
+    their replies (None when the job asked for the prediction alone), and per valid row why its
+    track refused it."""
+
+    prepared: Prepared
+    prediction: Prediction
+    replies: Replies | None
+    errors: dict[int, LiftError]
+
+
+@dataclass
+class Job:
+    """Poses lifted together, answered together by `finish` (called on the batcher's thread with
+    what the job got; what it returns is the job's answer, e.g. its encoded replies).
+
+    poses -- the poses as received (the input rules run in the batch); or, instead, inputs already
+      prepared (a temporal request's, whose rules ran on the loop);
+    threshold -- the request's confidence threshold for the poses without their own (None: default);
+    tracks, tracked -- the stream's tracks, and per pose its track (None: lifted alone);
+    replies -- build the replies (False: the prediction alone)."""
+
+    finish: Callable[[Lifted], Any]
+    poses: Sequence[PoseInput] = ()
+    inputs: ModelInput | None = None
+    threshold: float | None = None
+    tracks: StreamTracks | None = None
+    tracked: Sequence[TrackedPose | None] = ()
+    replies: bool = True
+    track_ids: Sequence[str | None] | None = field(default=None)  # per pose, echoed in the replies
+
+    def __len__(self) -> int:
+        return len(self.inputs) if self.inputs is not None else len(self.poses)
+
+    def slice(self, start: int, stop: int) -> Job:
+        """The job itself: a batcher never splits a job (its poses are answered together)."""
+        if (start, stop) != (0, len(self)):
+            raise ValueError("a job is lifted whole")
+        return self
+
+
+def prepare_jobs(jobs: Sequence[Job], limits: Limits) -> list[Prepared]:
+    """Each job's poses after the input rules, in one pass over every job's poses (violations named
+    by the pose's index in its own job)."""
+    raw = [j for j in jobs if j.inputs is None]
+    found: dict[int, Prepared] = {id(j): Prepared(j.inputs, ()) for j in jobs if j.inputs is not None}
+    if raw:
+        poses = [with_threshold(p, j.threshold) for j in raw for p in j.poses]
+        whole = prepare_poses(poses, limits)
+        start, row = 0, 0
+        for job in raw:
+            stop = start + len(job.poses)
+            violations = whole.violations[start:stop]
+            valid = sum(1 for v in violations if not v)
+            renumbered = tuple(tuple(replace(v, pose=(v.pose or 0) - start) for v in f) for f in violations)
+            found[id(job)] = Prepared(whole.inputs.slice(row, row + valid), renumbered)
+            start, row = stop, row + valid
+    return [found[id(j)] for j in jobs]
+
+
+def with_threshold(pose: PoseInput, threshold: float | None) -> PoseInput:
+    """The pose with the request's threshold where it has none of its own."""
+    if threshold is None or pose.confidence_threshold is not None:
+        return pose
+    return replace(pose, confidence_threshold=threshold)
+
+
+def join_inputs(parts: Sequence[ModelInput]) -> ModelInput:
+    """Consecutive ModelInputs as one."""
+    if len(parts) == 1:
+        return parts[0]
+    names = ModelInput.__dataclass_fields__
+    return ModelInput(**{n: np.concatenate([getattr(p, n) for p in parts]) for n in names})
+
+
+def lift_all(lifter: Lifter, inputs: ModelInput, max_batch: int) -> Prediction:
+    """The model's answers to every row, max_batch rows per run."""
+    n = len(inputs)
+    if n == 0:  # every pose of the batch broke a rule: nothing to run
+        plausibility = np.zeros(0, np.float32) if lifter.has_plausibility else None
+        joints = inputs.keypoints_2d.shape[1]
+        pose, camera = np.zeros((0, joints, 3), np.float32), np.zeros((0, 2, 3), np.float32)
+        return Prediction(pose, camera, np.zeros(0, bool), plausibility)
+    if n <= max_batch:
+        return lifter.run([inputs])
+    return Prediction.join(
+        [lifter.run([inputs.slice(a, min(a + max_batch, n))]) for a in range(0, n, max_batch)]
+    )
+
+
+def track_rows(job: Job, prepared: Prepared) -> list[TrackedRow]:
+    """The job's valid tracked poses, each with its row among the job's valid poses."""
+    rows: list[TrackedRow] = []
+    row = 0
+    for found, spec in zip(prepared.violations, job.tracked, strict=True):
+        if found:
+            continue
+        if spec is not None:
+            rows.append(TrackedRow(row, spec.track_id, spec.frame, spec.fps, spec.field))
+        row += 1
+    return rows
+
+
+def temporal_rows(
+    jobs: Sequence[Job],
+    prepared: Sequence[Prepared],
+    prediction: Prediction,
+    offsets: Sequence[int],
+    rotation: np.ndarray,
+) -> tuple[TemporalRows, list[dict[int, LiftError]]]:
+    """The streams' tracked poses pushed into their tracks, job by job, and answered by their causal
+    model in one run per model: TemporalRows in the batch's rows, and per job why a row has none."""
+    errors: list[dict[int, LiftError]] = [{} for _ in jobs]
+    plans: dict[int, list[tuple[int, Plan]]] = {}  # id(temporal lifter) -> (job index, its plan)
+    models: dict[int, TemporalLifter] = {}
+    for k, (job, ready) in enumerate(zip(jobs, prepared, strict=True)):
+        if job.tracks is None or not job.tracked:
+            continue
+        tracked = track_rows(job, ready)
+        if not tracked:
+            continue
+        rows = slice(offsets[k], offsets[k] + len(ready.inputs))
+        mine = prediction.slice(rows.start, rows.stop)
+        plan = stream_plan(job.tracks.table, tracked, ready.inputs, mine, rotation[rows])
+        errors[k] = plan.errors
+        if plan.windows is not None:
+            models[id(job.tracks.temporal)] = job.tracks.temporal
+            plans.setdefault(id(job.tracks.temporal), []).append((k, plan))
+    found = [TemporalRows.none()]
+    for key, members in plans.items():
+        temporal = models[key]
+        windows = Windows.join([p.windows.build() for _, p in members if p.windows is not None], causal=True)
+        answer = temporal.run(windows)
+        start = 0
+        for k, plan in members:
+            n = len(plan.rows)
+            rows = answer_rows(plan, answer.slice(start, start + n))
+            found.append(TemporalRows(rows.rows + offsets[k], rows.pose_camera, rows.failed))
+            start += n
+    return join_rows(found), errors
+
+
+def join_rows(parts: Sequence[TemporalRows]) -> TemporalRows:
+    """TemporalRows of disjoint rows as one."""
+    parts = [p for p in parts if len(p.rows)] or [TemporalRows.none()]
+    if len(parts) == 1:
+        return parts[0]
+    return TemporalRows(
+        np.concatenate([p.rows for p in parts]),
+        np.concatenate([p.pose_camera for p in parts]),
+        np.concatenate([p.failed for p in parts]),
+    )
+
+
+def valid_track_ids(jobs: Sequence[Job], prepared: Sequence[Prepared]) -> list[str | None]:
+    """Per valid row of the batch, its pose's track id as the reply echoes it."""
+    out: list[str | None] = []
+    for job, ready in zip(jobs, prepared, strict=True):
+        ids = job.track_ids
+        if ids is None and job.tracked:
+            ids = [None if t is None else t.track_id for t in job.tracked]
+        if job.inputs is not None:
+            out += list(ids) if ids is not None else [None] * len(ready.inputs)
+            continue
+        for found, track in zip(ready.violations, ids or [None] * len(job.poses), strict=True):
+            if not found:
+                out.append(track)
+    return out
+
+
+@dataclass(frozen=True)
+class Batch:
+    """What one pass answered: each job's answer in order, and the model's answers to every valid row."""
+
+    answers: list[Any]
+    prediction: Prediction
+    rows: list[int]  # per job, its poses that passed the input rules (the rows lifted)
+
+
+def run_jobs(lifter: Lifter, jobs: Sequence[Job], limits: Limits, max_batch: int) -> Batch:
+    """One pass over a batch of jobs: each job's answer (its finish of what it got), in order."""
+    prepared = prepare_jobs(jobs, limits)
+    inputs = join_inputs([p.inputs for p in prepared])
+    prediction = lift_all(lifter, inputs, max_batch)
+    offsets = np.concatenate([[0], np.cumsum([len(p.inputs) for p in prepared])]).tolist()
+    with np.errstate(over="ignore", invalid="ignore"):  # what is not finite fails its pose (replies)
+        rotation = geometry.camera_rotation(prediction.camera)  # once for the tracks and the replies
+    rows, errors = temporal_rows(jobs, prepared, prediction, offsets, rotation)
+    replies = None
+    if any(j.replies for j in jobs):
+        replies = build_replies(inputs, prediction, rows, valid_track_ids(jobs, prepared), rotation)
+    answers = []
+    for k, (job, ready) in enumerate(zip(jobs, prepared, strict=True)):
+        a, b = offsets[k], offsets[k + 1]
+        mine = replies.slice(a, b) if replies is not None and job.replies else None
+        try:
+            answers.append(job.finish(Lifted(ready, prediction.slice(a, b), mine, errors[k])))
+        except Exception as err:  # this job's own error (InvalidKeypoints, ModelOutputError, a bug)
+            answers.append(err)
+    return Batch(answers, prediction, [len(p.inputs) for p in prepared])
+
+
+def prediction_only(inputs: ModelInput) -> Job:
+    """A job that asks for the model's answers to prepared inputs, nothing more."""
+    return Job(finish=lambda lifted: lifted.prediction, inputs=inputs, replies=False)

@@ -1,0 +1,136 @@
+"""`repnet serve --workers 2`: two processes on the same ports under a supervisor; both serve, /metrics
+adds them up, readiness is the whole service's, a worker that dies is started again, and SIGTERM
+drains every worker (nothing accepted is lost) and exits 0."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import grpc
+import httpx
+import pytest
+
+from bench.server import free_port, process_tree
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.server.workers import Peers, usable_cpus
+from tests.conftest import POSE_2D
+
+ROOT = Path(__file__).resolve().parents[2]
+BODY = {"keypoints": POSE_2D.tolist()}
+
+
+class Supervised:
+    def __init__(self, tmp: Path) -> None:
+        self.http, self.grpc = free_port(), free_port()
+        self.log = tmp / "service.log"
+        env = {**os.environ, "ORT_DISABLE_TELEMETRY": "1"}
+        flags = ["--workers", "2", "--intra-op-threads", "1", "--host", "127.0.0.1"]
+        flags += ["--http-port", str(self.http), "--grpc-port", str(self.grpc), "--shutdown-grace-s", "5"]
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "repnet", "serve", *flags], cwd=ROOT, env=env,
+            stdout=self.log.open("wb"), stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        self.url = f"http://127.0.0.1:{self.http}"
+
+    def ready(self, timeout: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert self.process.poll() is None, self.log.read_text()[-3000:]
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        raise AssertionError("not ready: " + self.log.read_text()[-3000:])
+
+    def workers(self) -> list[int]:
+        return [pid for pid in process_tree(self.process.pid) if pid != self.process.pid]
+
+
+@pytest.fixture
+def service(tmp_path: Path) -> Iterator[Supervised]:
+    supervised = Supervised(tmp_path)
+    try:
+        supervised.ready()
+        yield supervised
+    finally:
+        if supervised.process.poll() is None:
+            supervised.process.kill()
+            supervised.process.wait()
+
+
+def lift_on_fresh_connections(url: str, count: int) -> list[int]:
+    statuses = []
+    for _ in range(count):  # a new connection each: the kernel spreads them over the workers
+        with httpx.Client(base_url=url, timeout=30) as client:
+            statuses.append(client.post("/lift", json=BODY).status_code)
+    return statuses
+
+
+def test_both_workers_serve_and_the_metrics_add_them_up_and_sigterm_drains_both(service: Supervised) -> None:
+    assert len(service.workers()) == 2
+    assert lift_on_fresh_connections(service.url, 40) == [200] * 40
+    with grpc.insecure_channel(f"127.0.0.1:{service.grpc}") as channel:
+        stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
+        reply = stub.Lift(
+            lifter_pb2.LiftRequest(poses=[lifter_pb2.Pose2D(keypoints=POSE_2D.ravel().tolist())])
+        )
+        assert len(reply.poses) == 1
+    metrics = httpx.get(f"{service.url}/metrics", timeout=10).text
+    assert 'repnet_requests_total{method="Lift",outcome="ok",transport="http"} 40.0' in metrics
+    assert 'repnet_requests_total{method="Lift",outcome="ok",transport="grpc"} 1.0' in metrics
+    workers = service.workers()
+    service.process.send_signal(signal.SIGTERM)
+    assert service.process.wait(30) == 0
+    assert not any(Path(f"/proc/{pid}").exists() for pid in workers)
+    log = service.log.read_text()
+    per_worker = [
+        int(n)
+        for n in re.findall(r"\[worker \d\] [\w.]+: stopped; requests answered: http Lift ok=(\d+)", log)
+    ]
+    assert len(per_worker) == 2 and sum(per_worker) == 40 and min(per_worker) > 0, log[-3000:]
+    total = re.findall(r"stopped; requests answered: (.*)", log)[-1]  # the supervisor's, last
+    assert "http Lift ok=40" in total and "grpc Lift ok=1" in total
+
+
+def test_a_worker_that_dies_is_started_again_and_readiness_waits_for_it(service: Supervised) -> None:
+    first, second = service.workers()
+    os.kill(first, signal.SIGKILL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # not ready while one is missing, ready once it is back
+        found = service.workers()
+        if len(found) == 2 and first not in found:
+            break
+        time.sleep(0.1)
+    assert second in service.workers() and first not in service.workers() and len(service.workers()) == 2
+    service.ready()
+    assert lift_on_fresh_connections(service.url, 10) == [200] * 10
+    assert "worker 0" in service.log.read_text() or "worker 1" in service.log.read_text()
+
+
+def test_readiness_is_the_whole_services(tmp_path: Path) -> None:
+    peers = [Peers(tmp_path, k, 2) for k in range(2)]
+    peers[0].mark_ready(True)
+    assert not peers[0].all_ready() and not peers[1].all_ready()
+    peers[1].mark_ready(True)
+    assert peers[0].all_ready() and peers[1].all_ready()
+    peers[1].mark_ready(False)  # shutting down, or gone
+    assert not peers[0].all_ready()
+
+
+def test_the_default_is_one_worker_per_usable_cpu(tmp_path: Path) -> None:
+    affinity = len(os.sched_getaffinity(0))
+    assert 1 <= usable_cpus() <= affinity
+    quota = tmp_path / "cpu.max"
+    quota.write_text("150000 100000\n")  # a container limited to 1.5 CPUs: 2 workers
+    assert usable_cpus(quota) == min(affinity, 2)
+    quota.write_text("max 100000\n")
+    assert usable_cpus(quota) == affinity
