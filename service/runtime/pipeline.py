@@ -165,9 +165,9 @@ def temporal_rows(
         tracked = track_rows(job, ready)
         if not tracked:
             continue
-        rows = slice(offsets[k], offsets[k] + len(ready.inputs))
-        mine = prediction.slice(rows.start, rows.stop)
-        plan = stream_plan(job.tracks.table, tracked, ready.inputs, mine, rotation[rows])
+        span = slice(offsets[k], offsets[k] + len(ready.inputs))
+        mine = prediction.slice(span.start, span.stop)
+        plan = stream_plan(job.tracks.table, tracked, ready.inputs, mine, rotation[span])
         errors[k] = plan.errors
         if plan.windows is not None:
             models[id(job.tracks.temporal)] = job.tracks.temporal
@@ -180,8 +180,8 @@ def temporal_rows(
         start = 0
         for k, plan in members:
             n = len(plan.rows)
-            rows = answer_rows(plan, answer.slice(start, start + n))
-            found.append(TemporalRows(rows.rows + offsets[k], rows.pose_camera, rows.failed))
+            held = answer_rows(plan, answer.slice(start, start + n))
+            found.append(TemporalRows(held.rows + offsets[k], held.pose_camera, held.failed))
             start += n
     return join_rows(found), errors
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import Any
 
 from repnet.core.errors import InvalidKeypoints, LiftError, ModelOutputError
 from repnet.core.inputs import PoseInput, Prepared
-from repnet.runtime.lifter import Prediction
 from repnet.runtime.pipeline import TrackedPose
 from repnet.runtime.replies import Replies, TemporalRows
 
@@ -79,7 +79,7 @@ class Group:
 
     frames: list[FrameIn]
     prepared: Prepared | None = None  # the input rules' outcome for the frames that have a pose
-    futures: list[Future[Prediction]] = field(default_factory=list)  # the runs of its valid poses
+    futures: list[Future[Any]] = field(default_factory=list)  # its job's run: the encoded answers
     failure: LiftError | None = None  # why its valid poses get no reply (queue full, a failed run)
     temporal: TemporalRows | None = None  # the temporal model's answers to its tracked poses
 

@@ -191,7 +191,7 @@ class Metrics:
         if not folder:
             return self.registry
         registry = CollectorRegistry()
-        multiprocess.MultiProcessCollector(registry, folder)
+        multiprocess.MultiProcessCollector(registry, folder)  # type: ignore[no-untyped-call]
         return registry
 
     def set_model(self, model_id: str, skeleton: str) -> None:

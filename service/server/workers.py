@@ -228,14 +228,14 @@ class Supervisor:
         Peers(self.folder, index, self.count).mark_ready(False)
         from prometheus_client import multiprocess
 
-        multiprocess.mark_process_dead(pid, str(self.folder))
+        multiprocess.mark_process_dead(pid, str(self.folder))  # type: ignore[no-untyped-call]
 
     def _report(self) -> None:
         """The requests every worker answered, as one line (each worker logs its own too)."""
         from prometheus_client import CollectorRegistry, multiprocess
 
         registry = CollectorRegistry()
-        multiprocess.MultiProcessCollector(registry, str(self.folder))
+        multiprocess.MultiProcessCollector(registry, str(self.folder))  # type: ignore[no-untyped-call]
         counts = [
             f"{s.labels['transport']} {s.labels['method']} {s.labels['outcome']}={s.value:.0f}"
             for family in registry.collect()
