@@ -20,6 +20,9 @@ from repnet._proto.repnet.v1 import lifter_pb2
 LIFT = "/repnet.v1.PoseLifter/Lift"
 LIFT_STREAM = "/repnet.v1.PoseLifter/LiftStream"
 OPTIONS = [("grpc.max_receive_message_length", 64 << 20), ("grpc.max_send_message_length", 64 << 20)]
+# A channel of its own connection: streams from different clients (cameras) come on different
+# connections, which the kernel spreads over the service's workers (SO_REUSEPORT).
+OWN_CONNECTION = [*OPTIONS, ("grpc.use_local_subchannel_pool", 1)]
 STREAM_WINDOW = 256  # frames one stream keeps in flight when saturating (the server's default window)
 
 
@@ -118,13 +121,17 @@ async def _one_stream(
 
 
 async def _streams(target: str, count: int, window: int, fps: float, warmup: float, duration: float) -> Tally:
-    async with grpc.aio.insecure_channel(target, options=OPTIONS) as channel:
-        open_stream: grpc.aio.StreamStreamMultiCallable[bytes, bytes] = channel.stream_stream(LIFT_STREAM)
+    """`count` streams, each on a connection of its own (as `count` clients would open them)."""
+    channels = [grpc.aio.insecure_channel(target, options=OWN_CONNECTION) for _ in range(count)]
+    try:
         tally = Tally(time.perf_counter() + warmup, time.perf_counter() + warmup + duration)
-        calls = [open_stream(timeout=warmup + duration + 60) for _ in range(count)]
+        calls = [c.stream_stream(LIFT_STREAM)(timeout=warmup + duration + 60) for c in channels]
         await asyncio.gather(
             *(_one_stream(c, stream_frames(seed=k), window, tally, fps) for k, c in enumerate(calls))
         )
+    finally:
+        for channel in channels:
+            await channel.close()
     return tally
 
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import grpc
 
-from bench.grpc_load import LIFT_STREAM, OPTIONS
+from bench.grpc_load import LIFT_STREAM, OWN_CONNECTION
 from bench.tracked import (
     Check,
     Crowd,
@@ -65,11 +65,11 @@ async def run_streams(
     """One LiftStream per source, paced at `fps` (0: flooding, `window` frames in flight), measured
     for `duration` seconds after `warmup`; paced streams' send times are spread evenly over one
     frame period (`spread`) or all at once."""
-    async with grpc.aio.insecure_channel(target, options=OPTIONS) as channel:
-        open_stream: grpc.aio.StreamStreamMultiCallable[bytes, bytes] = channel.stream_stream(LIFT_STREAM)
+    channels = [grpc.aio.insecure_channel(target, options=OWN_CONNECTION) for _ in sources]  # a camera each
+    try:
         start = time.perf_counter() + warmup
         tally = Load(start, start + duration)
-        calls = [open_stream(timeout=warmup + duration + 60) for _ in sources]
+        calls = [c.stream_stream(LIFT_STREAM)(timeout=warmup + duration + 60) for c in channels]
         step = 1 / (fps * len(sources)) if fps and spread else 0.0
         await asyncio.gather(
             watch(server_pid, tally),
@@ -78,6 +78,9 @@ async def run_streams(
                 for k, (call, s) in enumerate(zip(calls, sources, strict=True))
             ),
         )
+    finally:
+        for channel in channels:
+            await channel.close()
     return tally
 
 

@@ -265,19 +265,21 @@ class Batcher(Generic[In, Out]):
     def _take_batch(self) -> list[_Chunk[In, Out]]:
         """Block until a batch is due, then take it from the queue; [] once closed and empty.
 
-        The batching window follows the load: a batcher that was mostly idle (its recent runs took
-        under BUSY_TO_WAIT of its time) runs the first request at once, since waiting could only add
-        latency to a lone request; a busier one gives the oldest queued request up to max_wait_s
-        (scaled up with the share of time it ran, to the whole window when it ran all the time) to
-        be joined by others, so that runs grow as load grows (paced cameras send one frame at a
-        time). Work queued during the last run is taken at once once max_batch poses wait.
+        The batching window follows the load. A request that finds the batcher idle runs at once:
+        waiting could only add latency to a lone request (a client that waits for each answer
+        before it sends again never has company). When work queued up during the last run, others
+        are sending: then the oldest queued request may wait for more, up to max_wait_s scaled by
+        the share of its time the batcher ran lately (none under BUSY_TO_WAIT, the whole window
+        when it ran all the time), so that runs grow as load grows (paced cameras send one frame at
+        a time). A batch is taken at once when max_batch poses wait.
         """
         with self._cond:
+            loaded = bool(self._queue)  # work queued while the last run ran: others are sending too
             while not self._queue:
                 if self._closed:
                     return []
                 self._cond.wait()
-            window = batch_window(self.max_wait_s, self._busy)
+            window = batch_window(self.max_wait_s, self._busy) if loaded else 0.0
             if window > 0:
                 deadline = self._queue[0].enqueued + window
                 while self._queued < self.max_batch and not self._closed:

@@ -128,6 +128,7 @@ class Supervisor:
         self.ports = tuple(int(s.getsockname()[1]) for s in self.held)
         self.folder = Path(tempfile.mkdtemp(prefix="repnet-metrics-"))
         self.workers: dict[int, subprocess.Popen[bytes]] = {}
+        self.signalled: set[int] = set()  # pids sent SIGTERM: once each (a second signal aborts a drain)
         self.stopping = False
 
     def _start(self, index: int) -> None:
@@ -146,11 +147,12 @@ class Supervisor:
         signal.signal(signal.SIGINT, self._on_signal)
         log.info("starting %d workers on HTTP :%d and gRPC :%d", self.count, *self.ports)
         for index in range(self.count):
-            self._start(index)
+            if not self.stopping:
+                self._start(index)
         try:
             if not self._wait_started():
-                self._stop_all()
-                return 1
+                if not self.stopping:
+                    return 1
             status = self._watch()
         finally:
             self._stop_all()
@@ -161,7 +163,8 @@ class Supervisor:
         return status
 
     def _wait_started(self) -> bool:
-        """Wait until every worker is ready; False when one exits first or takes too long."""
+        """Wait until every worker is ready; False when one exits first, takes too long or a signal
+        came first (then the workers drain like a started service's)."""
         peers = Peers(self.folder, 0, self.count)
         deadline = time.monotonic() + START_TIMEOUT_S
         while not peers.all_ready():
@@ -195,12 +198,17 @@ class Supervisor:
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
         log.info("received %s: draining %d workers", signal.Signals(signum).name, self.count)
         self.stopping = True
+        self._signal_all()
+
+    def _signal_all(self) -> None:
         for process in self.workers.values():
-            if process.poll() is None:
+            if process.poll() is None and process.pid not in self.signalled:
+                self.signalled.add(process.pid)
                 process.send_signal(signal.SIGTERM)
 
     def _drain(self) -> int:
         """Wait for the workers to finish what they accepted; the worst exit status."""
+        self._signal_all()  # any started after the signal
         deadline = time.monotonic() + self.grace_s + 10.0
         status = 0
         for process in self.workers.values():
@@ -209,13 +217,13 @@ class Supervisor:
             except subprocess.TimeoutExpired:
                 process.kill()
                 code = process.wait()
+            if code == -signal.SIGTERM and process.pid in self.signalled:
+                code = 0  # stopped by our signal before it served: nothing accepted, nothing lost
             status = status or (code if code > 0 else 0 if code == 0 else 1)
         return status
 
     def _stop_all(self) -> None:
-        for process in self.workers.values():
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
+        self._signal_all()
         for process in self.workers.values():
             try:
                 process.wait(self.grace_s + 10.0)

@@ -116,6 +116,24 @@ def test_a_worker_that_dies_is_started_again_and_readiness_waits_for_it(service:
     assert "worker 0" in service.log.read_text() or "worker 1" in service.log.read_text()
 
 
+@pytest.mark.parametrize("after", ["starting 2 workers", "[worker 1] repnet.runtime.lifter: loaded model"])
+def test_sigterm_while_the_workers_start_stops_them_all_with_status_0(tmp_path: Path, after: str) -> None:
+    supervised = Supervised(tmp_path)
+    try:
+        deadline = time.monotonic() + 90
+        while after not in (log := supervised.log.read_text()):
+            assert supervised.process.poll() is None and time.monotonic() < deadline, log
+            time.sleep(0.01)
+        workers = supervised.workers()
+        supervised.process.send_signal(signal.SIGTERM)
+        assert supervised.process.wait(30) == 0, supervised.log.read_text()[-3000:]
+        assert not any(Path(f"/proc/{pid}").exists() for pid in workers)
+    finally:
+        if supervised.process.poll() is None:
+            supervised.process.kill()
+            supervised.process.wait()
+
+
 def test_readiness_is_the_whole_services(tmp_path: Path) -> None:
     peers = [Peers(tmp_path, k, 2) for k in range(2)]
     peers[0].mark_ready(True)

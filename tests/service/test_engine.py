@@ -259,13 +259,21 @@ def test_the_batching_window_follows_the_load() -> None:
 def test_a_busy_batcher_lets_a_request_wait_for_company_and_an_idle_one_does_not(
     engine_factory: Callable[..., LiftBatcher], gated: GatedLifter
 ) -> None:
-    """Requests that arrive within the window of a busy batcher join one batch; an idle batcher runs
-    each at once."""
+    """Requests that arrive within the window of a busy batcher under load join one batch; a request
+    that finds nothing queued runs at once."""
     engine = engine_factory(gated, max_batch=64, max_wait_s=1.0, queue_size=64)
     engine.lift(model_input(variant(0)), "http")
     engine.lift(model_input(variant(1)), "http")  # idle: two batches of one
     engine._busy = 1.0  # as after runs that took all of its time
-    first = engine.submit(model_input(variant(2)), "http")
-    second = engine.submit(model_input(variant(3)), "http")  # within the window of the first
+    gated.gate.clear()
+    gated.entered.clear()
+    running = engine.submit(model_input(variant(2)), "http")
+    wait_until(gated.entered.is_set, "the run to start")
+    first = engine.submit(model_input(variant(3)), "http")  # queued during a run: load
+    gated.gate.set()
+    running[0].result(timeout=10)
+    second = engine.submit(model_input(variant(4)), "http")  # after the run, within the window
     assert len(first[0].result(timeout=10)) == 1 and len(second[0].result(timeout=10)) == 1
-    assert gated.batches == [1, 1, 2]
+    assert gated.batches == [1, 1, 1, 2]
+    engine.lift(model_input(variant(5)), "http")  # alone again: at once, busy or not
+    assert gated.batches[-1] == 1
