@@ -45,6 +45,7 @@ LOADS: dict[str, Callable[[ServiceProcess, float], Result]] = {
     "stream-x8": lambda s, d: measure_stream(s.target, s.pid, 8, duration=d),
     # causal temporal LiftStream (bench.temporal_load): paced tracked cameras, saturated tracked
     # streams, 16-person frames in lock-step
+    "temporal-cameras-8": lambda s, d: measure_cameras(s, 8, True, _temporal_args(d)),
     "temporal-cameras-16": lambda s, d: measure_cameras(s, 16, True, _temporal_args(d)),
     "temporal-cameras-32": lambda s, d: measure_cameras(s, 32, True, _temporal_args(d)),
     "temporal-x8": lambda s, d: measure_saturated(s, 8, True, _temporal_args(d)),
@@ -111,6 +112,7 @@ def record(service: ServiceProcess, load: str, seconds: float, rate: int, raw: P
         str(raw),
         "--nonblocking",
         "--threads",
+        "--subprocesses",  # the workers (repnet serve --workers N), beside the supervisor
     ]
     result: list[Result] = []
     # The load starts first and runs 1 s longer than the recording, which starts once it is warm.

@@ -202,6 +202,12 @@ def run(args: argparse.Namespace) -> Report:
         report.models["single_id"] = str(ready.get("model_id"))
         measure_loads(service, args, report)
         report.server_rss_mb = {"start": rss_start / 2**20, "end": rss_bytes(service.pid) / 2**20}
+    if args.streams and args.one_worker:
+        with ServiceProcess(*flags, "--workers", "1") as one:
+            log.info("saturated: %d streams, tracked, one worker", args.streams)
+            result = measure_saturated(one, args.streams, True, args)
+            result.name += ", --workers 1"
+            report.one_worker.append(result)
     log.info("roof again, after the loads")
     report.roof_end, _ = temporal_roof(settings, args.batches, args.roof_duration)
     report.load_average = {"start": load_start, "end": load_average()}
@@ -265,6 +271,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="skip the untracked run beside each camera count",
     )
     parser.add_argument("--streams", type=int, default=8, help="saturated streams (0: skip)")
+    parser.add_argument(
+        "--no-one-worker",
+        dest="one_worker",
+        action="store_false",
+        help="skip the saturated tracked streams on a second service with --workers 1",
+    )
     parser.add_argument("--people", type=int, default=16, help="people of the many-person frame (0: skip)")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds measured per load")
     parser.add_argument("--people-duration", type=float, default=5.0, help="seconds per people load")

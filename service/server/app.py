@@ -4,6 +4,7 @@ server, and main()."""
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import signal
 import sys
@@ -32,7 +33,7 @@ from repnet.server.http.api import create_app
 from repnet.server.http.server import HttpServer, http_config, raise_open_file_limit
 from repnet.server.metrics import Metrics
 from repnet.server.startup import load_dir_lifters, load_lifter, load_temporal
-from repnet.server.workers import Peers, reuse_port_socket, run_supervised, usable_cpus
+from repnet.server.workers import Peers, follow_supervisor, reuse_port_socket, run_supervised, usable_cpus
 
 __all__ = ["Service", "build_service", "known_poses", "load_lifter", "load_temporal", "main"]
 
@@ -99,6 +100,12 @@ class Service:
 
     def run(self) -> int:
         """Serve until begin_shutdown, drain, then return the exit status."""
+        # What start-up made (modules, models' metadata, the proto classes) lives as long as the
+        # process: out of the collector's sight, so that a full collection while serving walks only
+        # what requests made (start-up's ~88,000 objects took 19-28 ms to walk on 2 cores: a stall of every
+        # stream at once).
+        gc.collect()
+        gc.freeze()
         self.grpc_server.start()
         log.info(
             "models %s: HTTP on %s:%d, gRPC on %s:%d",
@@ -260,6 +267,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"invalid settings:\n{err}", file=sys.stderr)
         return 2
     peers = Peers.from_env()
+    if peers is not None:
+        follow_supervisor()
     worker = "" if peers is None else f"[worker {peers.index}] "
     logging.basicConfig(
         level=settings.log_level.upper(), format=f"%(asctime)s %(levelname)s {worker}%(name)s: %(message)s"

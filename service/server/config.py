@@ -20,26 +20,26 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="REPNET_", extra="ignore", frozen=True)
 
-    model_path: Path = Field(
-        default=BUNDLED_MODEL, description="ONNX model file (the bundled model by default)"
-    )
+    model_path: Path = Field(default=BUNDLED_MODEL, description="ONNX model file: the default model")
     model_dir: Path | None = Field(
         default=None,
-        description="folder of more single-frame ONNX models (*.onnx) served beside model_path, which "
-        "stays the default; a request names one by its model_id (GET /v1/models). Each is checked at "
-        "start: one that fails stops the start",
+        description="folder of more single-frame ONNX models (`*.onnx`) served beside `model_path`, which "
+        "stays the default; a request names one by its `model_id` (`GET /v1/models`). Each is checked at "
+        "start: one that fails stops the start (see [Several models](#several-models))",
     )
     host: str = Field(
         default="127.0.0.1",
-        description="address both servers bind to (this machine only; the container image sets "
-        "0.0.0.0 so that the ports it publishes reach it)",
+        description="address both servers bind to: this machine only, so that `repnet serve` on a "
+        "workstation is not reachable from its network; the container image sets `0.0.0.0` so that the "
+        "ports it publishes reach it (see [Container](#container-and-deployment))",
     )
     http_port: int = Field(default=8000, ge=0, le=65535, description="HTTP port (0: any free port)")
     grpc_port: int = Field(default=50051, ge=0, le=65535, description="gRPC port (0: any free port)")
     intra_op_threads: int = Field(
         default=SessionOptions.intra_op_threads,
         ge=0,
-        description="onnxruntime threads per run (0: one per core)",
+        description="onnxruntime threads per run (0: one per core; with several workers, unless set: the "
+        "usable CPUs shared out between them)",
     )
     inter_op_threads: int = Field(
         default=SessionOptions.inter_op_threads, ge=0, description="onnxruntime inter-op threads"
@@ -47,34 +47,36 @@ class Settings(BaseSettings):
     intra_op_spinning: bool = Field(
         default=SessionOptions.intra_op_spinning,
         description="onnxruntime threads spin between runs (faster single runs on idle cores; off "
-        "leaves the CPU to the server's own threads, +20 % stream throughput on 2 cores: docs/BENCHMARKS.md)",
+        "leaves the CPU to the server's own threads, +20 % stream throughput on 2 cores: "
+        "[BENCHMARKS](BENCHMARKS.md))",
     )
     workers: int = Field(
         default=0,
         ge=0,
         description="server processes sharing the HTTP and gRPC ports, each with its own models, "
-        "batchers and streams (0: one per CPU this process may use, the container's CPU limit)",
+        "batchers and streams; the limits below are per worker (0: one per CPU this process may use: "
+        "its CPU affinity, and a container's CPU limit; see [Workers](#workers))",
     )
     grpc_workers: int = Field(
         default=32,
         ge=1,
-        description="most gRPC Lift calls in progress at once; beyond: RESOURCE_EXHAUSTED (streams "
+        description="most gRPC `Lift` calls in progress at once; beyond: `RESOURCE_EXHAUSTED` (streams "
         "have their own limit, health checks none)",
     )
     grpc_max_streams: int = Field(
-        default=64, ge=1, description="most LiftStream calls open at once; beyond: RESOURCE_EXHAUSTED"
+        default=64, ge=1, description="most `LiftStream` calls open at once; beyond: `RESOURCE_EXHAUSTED`"
     )
     stream_idle_timeout_s: float = Field(
         default=60.0,
         gt=0,
-        description="a LiftStream with nothing in progress that sends no frame for this long is "
-        "closed with DEADLINE_EXCEEDED",
+        description="a `LiftStream` with nothing in progress that sends no frame for this long is "
+        "closed with `DEADLINE_EXCEEDED`",
     )
     http_max_in_flight: int = Field(
         default=128,
         ge=1,
-        description="most POST /lift requests in progress at once; beyond: 503 with Retry-After at "
-        "once, before the body is read (health, readiness and metrics are never refused)",
+        description="most `POST /lift` requests in progress at once (a request counts once its body has "
+        "arrived); beyond: 503 with `Retry-After` at once (health, readiness and metrics are never refused)",
     )
     http_header_timeout_s: float = Field(
         default=10.0,
@@ -88,13 +90,13 @@ class Settings(BaseSettings):
     http_body_timeout_s: float = Field(
         default=10.0,
         gt=0,
-        description="time a request body has to arrive, plus 1 s per http_body_min_rate bytes "
+        description="time a request body has to arrive, plus 1 s per `http_body_min_rate` bytes "
         "received; beyond: 408, closed",
     )
     http_body_min_rate: int = Field(
         default=16 * 1024,
         ge=1,
-        description="bytes per second a body must average after http_body_timeout_s",
+        description="bytes per second a body must average after the first `http_body_timeout_s`",
     )
     http_max_connections: int = Field(
         default=1000,
@@ -103,17 +105,17 @@ class Settings(BaseSettings):
         "beyond, the connection idle longest is closed, or the new one when none is idle",
     )
     tls_cert: Path | None = Field(
-        default=None, description="PEM certificate chain: serve HTTPS and gRPC over TLS (with tls_key)"
+        default=None, description="PEM certificate chain: serve HTTPS and gRPC over TLS (with `tls_key`)"
     )
-    tls_key: Path | None = Field(default=None, description="PEM private key of tls_cert")
+    tls_key: Path | None = Field(default=None, description="PEM private key of `tls_cert`")
     tls_client_ca: Path | None = Field(
         default=None,
         description="PEM CA certificates: require a client certificate signed by one (mutual TLS)",
     )
     api_keys_file: Path | None = Field(
         default=None,
-        description="file of API keys, one per line: /lift, /v1/* and both gRPC methods then need "
-        "one (HTTP `Authorization: Bearer KEY`, gRPC `authorization` metadata)",
+        description="file of API keys, one per line (`#` comments): `/lift`, `/v1/*` and both gRPC methods "
+        "then need one (HTTP `Authorization: Bearer KEY`, gRPC `authorization` metadata)",
     )
     max_batch: int = Field(default=MAX_BATCH, ge=1, description="most poses in one onnxruntime run")
     max_wait_ms: float = Field(
@@ -123,7 +125,9 @@ class Settings(BaseSettings):
         "its batch. The window follows the load: a batcher busy under a quarter of its time runs a "
         "request at once, a busier one lets it wait up to this, in proportion (0: never wait)",
     )
-    queue_size: int = Field(default=8192, ge=1, description="most poses waiting for a run; beyond: 503")
+    queue_size: int = Field(
+        default=8192, ge=1, description="most poses waiting for a run; beyond: 503 / `RESOURCE_EXHAUSTED`"
+    )
     max_request_poses: int = Field(
         default=Limits.max_request_poses, ge=1, description="most poses in one request"
     )
@@ -146,7 +150,9 @@ class Settings(BaseSettings):
         default=1024,
         ge=1,
         description="poses of one stream in flight at once, read and not yet answered (a frame counts its "
-        "people); the stream is read no further until some are answered",
+        "people; the last frame read may pass it, so a stream holds fewer than this plus one frame of "
+        "`max_request_poses`); the stream is read no further until some are answered. Replaces "
+        "`REPNET_STREAM_WINDOW` (frames)",
     )
     temporal: bool = Field(
         default=True,
@@ -154,27 +160,33 @@ class Settings(BaseSettings):
         "every pose is lifted alone",
     )
     causal_model_path: Path = Field(
-        default=BUNDLED_CAUSAL, description="causal temporal model (streams, temporal: causal)"
+        default=BUNDLED_CAUSAL, description="causal temporal model (streams, `temporal: causal`)"
     )
-    offline_model_path: Path = Field(default=BUNDLED_OFFLINE, description="offline temporal model")
+    offline_model_path: Path = Field(
+        default=BUNDLED_OFFLINE, description="offline temporal model (`temporal: offline`)"
+    )
     max_temporal_poses: int = Field(
         default=Limits.max_temporal_poses,
         ge=1,
-        description="most poses in one request with temporal causal or offline (and at most queue_size)",
+        description="most poses in one request with `temporal` causal or offline (and at most `queue_size`)",
     )
-    stream_max_tracks: int = Field(default=64, ge=1, description="most open tracks of one LiftStream")
+    stream_max_tracks: int = Field(default=64, ge=1, description="most open tracks of one `LiftStream`")
     max_tracks: int = Field(default=4096, ge=1, description="most open tracks of all streams together")
     track_idle_s: float = Field(
         default=10.0, gt=0, description="a stream's track that gets no frame for this long is dropped"
     )
     shutdown_grace_s: float = Field(
-        default=10.0, ge=0, description="time to drain in-flight work at shutdown"
+        default=10.0, ge=0, description="time to drain in-flight work after SIGTERM"
     )
     shutdown_delay_s: float = Field(
-        default=0.0, ge=0, description="time between reporting not ready and refusing new requests"
+        default=0.0,
+        ge=0,
+        description="time between reporting not ready and refusing new requests (lets load balancers notice)",
     )
-    ui: bool = Field(default=True, description="serve the web page at GET / (false: the API alone)")
-    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    ui: bool = Field(default=True, description="serve the web page at `GET /` (false: the API alone)")
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        default="info", description="debug, info, warning or error"
+    )
 
     @model_validator(mode="after")
     def _check_tls(self) -> Settings:
@@ -192,3 +204,31 @@ class Settings(BaseSettings):
                 f"({self.max_request_poses}), or the largest request could never be queued"
             )
         return self
+
+
+def settings_table() -> str:
+    """The Markdown table of every setting, its variable, default and meaning (docs/API.md holds it:
+    `python -m repnet.server.config` prints it, and a test checks that the two agree)."""
+    shown = {
+        BUNDLED_MODEL: "bundled model",
+        BUNDLED_CAUSAL: "bundled causal",
+        BUNDLED_OFFLINE: "bundled offline",
+    }
+    lines = ["| variable | flag | default | meaning |", "| --- | --- | --- | --- |"]
+    for name, field in Settings.model_fields.items():
+        default = field.default
+        if isinstance(default, Path) and default in shown:
+            text = shown[default]
+        elif default is None:
+            text = "unset"
+        elif isinstance(default, bool):
+            text = str(default).lower()
+        else:
+            text = str(default)
+        flag = "--" + name.replace("_", "-")
+        lines.append(f"| `REPNET_{name.upper()}` | `{flag}` | `{text}` | {field.description} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(settings_table())

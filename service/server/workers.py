@@ -12,6 +12,7 @@ worker is (a marker file each, in the metrics folder).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import math
 import os
@@ -31,6 +32,8 @@ log = logging.getLogger("repnet.server")
 
 WORKER_ENV = "REPNET_WORKER"  # "i/n" in a worker: its index and the number of workers
 METRICS_ENV = "PROMETHEUS_MULTIPROC_DIR"  # prometheus_client's multiprocess folder
+SUPERVISOR_ENV = "REPNET_SUPERVISOR_PID"  # in a worker: the process that started it
+PR_SET_PDEATHSIG = 1  # Linux prctl(2): the signal a process gets when its parent dies
 RESTART_DELAY_S = 1.0  # before a worker that died is started again
 START_TIMEOUT_S = 120.0  # a worker not ready by then stops the start
 
@@ -90,6 +93,16 @@ class Peers:
         return path.read_text() if path.exists() else None
 
 
+def follow_supervisor() -> None:
+    """In a worker: SIGTERM (a drain) when the supervisor dies, however it died, even SIGKILL, so that
+    no worker outlives it holding the ports (Linux prctl; elsewhere, nothing)."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM))
+    supervisor = os.environ.get(SUPERVISOR_ENV, "")
+    if supervisor.isdigit() and os.getppid() != int(supervisor):  # it died before prctl
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def reuse_port_socket(host: str, port: int, backlog: int = 2048) -> socket.socket:
     """A TCP socket bound to host:port with SO_REUSEPORT (the workers share the port), listening."""
     family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
@@ -134,6 +147,7 @@ class Supervisor:
     def _start(self, index: int) -> None:
         http, grpc_port = self.ports
         env = {**os.environ, WORKER_ENV: f"{index}/{self.count}", METRICS_ENV: str(self.folder)}
+        env[SUPERVISOR_ENV] = str(os.getpid())
         # onnxruntime's threads: the CPUs shared out between the workers, unless set (flag or variable)
         env.setdefault("REPNET_INTRA_OP_THREADS", str(max(1, usable_cpus() // self.count)))
         command = [sys.executable, "-m", "repnet", "serve", *self.argv, "--workers", "1"]

@@ -44,26 +44,43 @@ def test_the_roof_per_tracked_pose_costs_one_run_of_each_model() -> None:
     assert per_pose_roof(rows) == {8: {"single": 800.0, "temporal": 2400.0, "both": 600.0}}
 
 
-def report(people: list[Result]) -> Report:
+def report(people: list[Result], **more: object) -> Report:
     roof = [RoofRow("session.run", 1, 100, 1.0, {}), RoofRow("temporal session.run", 1, 100, 1.0, {})]
     return Report(
         when="", command="python -m bench.temporal_load", machine={"cpus": 2, "cpu": "x"}, models={},
-        contract={}, service_flags=[], roof=roof, most_cameras=48, searched=[8, 16, 32, 48, 64],
-        people=people,
+        contract={}, service_flags=[], roof=roof, most_cameras=24, searched=[8, 16, 32, 24, 28],
+        people=people, **more,  # type: ignore[arg-type]
     )  # fmt: skip
 
 
-def test_the_report_gives_the_cameras_held_and_the_cost_of_many_people_against_its_targets() -> None:
+def camera(count: int, frames: int, server_cpu: float, tracked: bool) -> Result:
+    return Result(f"{count} cameras", count, frames, frames, 1.0, {"p50": 3.0, "p99": 9.0}, 0, server_cpu,
+                  0.1, {"tracked": tracked, "held": True})  # fmt: skip
+
+
+def test_the_report_gives_each_target_of_the_fast_path_met_or_missed_with_its_figure() -> None:
     one = result(PEOPLE_KINDS["pose"], 100, people=1, server_cpu_ms_per_frame=2.0)
     many = result("16 people (people)", 50, p99=30.0, people=16, server_cpu_ms_per_frame=5.0)
-    r = report([one, many])
+    cameras = [camera(8, 240, 0.72, True), camera(8, 240, 0.12, False), camera(16, 480, 1.0, True)]
+    saturated = [result("x8, tracked", 45, tracked=True), result("x8, untracked", 90, tracked=False)]
+    one_worker = [result("x8, tracked, --workers 1", 30, tracked=True)]
+    r = report([one, many], cameras=cameras, saturated=saturated, one_worker=one_worker)
     assert r.people_ratio() == {"server_cpu": 2.5, "p50": 3.0, "p99": 3.0}
-    cameras, people = r.targets
-    assert cameras.startswith("MISSED: causal temporal LiftStream holds 48 cameras")
-    assert people.startswith("met: a 16-person frame costs 2.50x a 1-person frame in server CPU, 3.00x")
+    assert r.workers_ratio() == 1.5
     assert r.roof_best == {"single": 100.0, "temporal": 100.0, "both": 50.0}
-    assert "| 1 | 100 | 100 | 50 |" in r.markdown()
-    assert report([one]).people_ratio() == {}
+    assert r.targets == [
+        "MISSED: causal temporal LiftStream holds 24 cameras at 30 fps with p99 <= 25 ms (target >= 32)",
+        "MISSED: server CPU per tracked frame at 8 paced cameras 3.00 ms (target <= 1 ms)",
+        "met: server CPU per untracked frame at 8 paced cameras 0.50 ms (target <= 0.6 ms)",
+        "met: saturated tracked streams 45 frames/s = 0.90 x both models' per-pose roof (target >= 0.8)",
+        "MISSED: saturated tracked streams, the service's workers / one worker = 1.50x (target >= 1.6x)",
+        "met: a 16-person frame costs 2.50x a 1-person frame in server CPU (3.00x in p50 latency, 3.00x p99) "
+        "(target <= 3x)",
+    ]
+    markdown = r.markdown()
+    assert "| 1 | 100 | 100 | 50 |" in markdown and "x8, tracked, --workers 1" in markdown
+    assert "| 8 | 240 | 240 | 3.00 | 9.00 | 0 | 0.72 | 3.00 |" in markdown  # CPU ms per frame beside
+    assert report([one]).people_ratio() == {} and report([one]).workers_ratio() is None
 
 
 def test_the_roof_windows_are_a_tracked_persons_causal_windows(lifter: Lifter) -> None:
@@ -91,14 +108,15 @@ def test_a_tiny_run_measures_every_part_and_writes_its_figures(
         "LiftStream x1, 256 in flight, tracked",
         "LiftStream x1, 256 in flight, untracked",
     ]
+    assert [r["name"] for r in found["one_worker"]] == ["LiftStream x1, 256 in flight, tracked, --workers 1"]
     assert found["searched"] == [1, 2] and found["most_cameras"] == 2
     assert [(r["concurrency"], r["extra"]["tracked"]) for r in found["cameras"]] == [
         (1, True), (1, False), (2, True), (2, False),
     ]  # fmt: skip
     assert [r["extra"]["people"] for r in found["people"]] == [1, 1, 1, 3]
-    for r in found["saturated"] + found["cameras"] + found["people"]:
+    for r in found["saturated"] + found["one_worker"] + found["cameras"] + found["people"]:
         assert r["errors"] == 0 and r["calls"] > 0 and r["server_cpu"] > 0, r
     assert {r["what"] for r in found["roof"]} == {"session.run", "temporal session.run"}
     assert found["contract"]["slots_30fps"] == 49 and found["roof_end"]
     printed = capsys.readouterr().out
-    assert "holds 2 cameras" in printed and "a 3-person frame costs" in printed
+    assert "holds 2 cameras" in printed and "a 3-person frame costs" in printed and "one worker =" in printed

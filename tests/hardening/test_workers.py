@@ -134,6 +134,20 @@ def test_sigterm_while_the_workers_start_stops_them_all_with_status_0(tmp_path: 
             supervised.process.wait()
 
 
+def test_no_worker_outlives_a_supervisor_killed_with_sigkill(service: Supervised) -> None:
+    workers = service.workers()
+    assert len(workers) == 2
+    service.process.kill()
+    service.process.wait()
+    deadline = time.monotonic() + 30
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [pid for pid in workers if Path(f"/proc/{pid}/cmdline").exists()]
+    assert alive == [], service.log.read_text()[-3000:]
+    with pytest.raises(httpx.TransportError):  # nothing holds the ports any more
+        httpx.get(f"{service.url}/healthz", timeout=2)
+
+
 def test_readiness_is_the_whole_services(tmp_path: Path) -> None:
     peers = [Peers(tmp_path, k, 2) for k in range(2)]
     peers[0].mark_ready(True)

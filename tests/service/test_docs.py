@@ -19,7 +19,7 @@ import pytest
 
 from repnet.core.formats import FORMATS, MODEL_JOINTS, from_model_joints
 from repnet.core.inputs import EXAMPLE_KEYPOINTS
-from repnet.server.config import Settings
+from repnet.server.config import Settings, settings_table
 from repnet.server.startup import load_dir_lifters, load_lifter
 from tests.conftest import LiveService
 from tests.service.page_examples import detector_pose
@@ -182,3 +182,10 @@ def test_relative_links_point_at_existing_files_and_headings(doc: Path) -> None:
             if anchor not in {slug(h) for h in headings}:
                 broken.append(target)
     assert not broken, broken
+
+
+def test_the_configuration_table_is_every_setting_with_its_default_as_generated() -> None:
+    text = (ROOT / "docs" / "API.md").read_text()
+    found = re.search(r"<!-- settings: .*? -->\n(.*?)\n<!-- end settings -->", text, re.S)
+    assert found is not None, "docs/API.md has no generated settings table"
+    assert found.group(1) == settings_table(), "run: python -m repnet.server.config, and paste it"
