@@ -15,8 +15,13 @@
    offered frames sent and answered within the window.
 4. People per frame: one stream in lock-step (one frame in flight) of 1-person frames (`pose`),
    1-person frames (`people`) and --people-person frames (`people`): per-frame latency and server
-   CPU, and their ratio (target: a 16-person frame < 4x a 1-person frame).
+   CPU, and their ratio (target: a 16-person frame <= 3x a 1-person frame).
+5. One worker: the saturated tracked streams again, on a second service with --workers 1 (the
+   service's workers against one: target >= 1.6x on 2 cores).
+6. The transport's floor: bench.echo (Python grpc.aio answering each frame with a fixed reply)
+   under the same clients: 8 streams of 256 in flight, one in lock-step, 8 paced cameras.
 
+The targets are issue 35's (bench.temporal_report); each line says met or MISSED.
 The service runs as `python -m repnet serve` in a child process with the same flags as the roof's
 session; the load generator is this process, on the same machine. Each load's CPU (server, this
 client, everything else on the machine) is measured over its window, with the load average.
@@ -38,6 +43,7 @@ import httpx
 if __package__ in (None, ""):  # `python bench/temporal_load.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.echo import measure_floor
 from bench.server import ServiceProcess, rss_bytes
 from bench.stats import Result, machine, write_json
 from bench.temporal_clients import camera, crowd_frames, run_id, run_streams
@@ -208,6 +214,9 @@ def run(args: argparse.Namespace) -> Report:
             result = measure_saturated(one, args.streams, True, args)
             result.name += ", --workers 1"
             report.one_worker.append(result)
+    if args.floor:
+        log.info("the transport's floor (bench.echo)")
+        report.floor = measure_floor(args.warmup, args.people_duration)
     log.info("roof again, after the loads")
     report.roof_end, _ = temporal_roof(settings, args.batches, args.roof_duration)
     report.load_average = {"start": load_start, "end": load_average()}
@@ -276,6 +285,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         dest="one_worker",
         action="store_false",
         help="skip the saturated tracked streams on a second service with --workers 1",
+    )
+    parser.add_argument(
+        "--no-floor", dest="floor", action="store_false", help="skip the transport's floor (bench.echo)"
     )
     parser.add_argument("--people", type=int, default=16, help="people of the many-person frame (0: skip)")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds measured per load")

@@ -38,6 +38,7 @@ class Report:
     roof: list[RoofRow]
     saturated: list[Result] = field(default_factory=list)
     one_worker: list[Result] = field(default_factory=list)  # the saturated tracked load on --workers 1
+    floor: list[Result] = field(default_factory=list)  # the transport's floor (bench.echo)
     cameras: list[Result] = field(default_factory=list)
     most_cameras: int = 0
     searched: list[int] = field(default_factory=list)
@@ -86,6 +87,10 @@ class Report:
             return None
         return many.frames_per_s / one.frames_per_s
 
+    def floor_of(self, load: str) -> Result | None:
+        """The echo floor's result of one of bench.echo.FLOOR_LOADS (by the start of its name)."""
+        return next((r for r in self.floor if r.name.startswith(f"(echo floor) {load}")), None)
+
     @property
     def targets(self) -> list[str]:
         """One line per target of issue 35 that this run measures: met or MISSED, with the figure."""
@@ -101,18 +106,22 @@ class Report:
             if r.concurrency == CPU_PER_FRAME_CAMERAS and (ms := cpu_ms_per_frame(r)) is not None:
                 tracked = bool(r.extra.get("tracked"))
                 target = CPU_PER_FRAME_TARGET_MS[tracked]
+                floor = self.floor_of(f"{CPU_PER_FRAME_CAMERAS} cameras")
+                beside = f"; the transport's floor {cpu_ms_per_frame(floor):.2f} ms" if floor else ""
                 lines.append(
                     f"{verdict[ms <= target]}: server CPU per {'tracked' if tracked else 'untracked'} frame "
-                    f"at {CPU_PER_FRAME_CAMERAS} paced cameras {ms:.2f} ms (target <= {target:g} ms)"
+                    f"at {CPU_PER_FRAME_CAMERAS} paced cameras {ms:.2f} ms (target <= {target:g} ms{beside})"
                 )
         best = self.roof_best["both"]
         for r in self.saturated:
             if r.extra.get("tracked") and best:
                 ratio = r.frames_per_s / best
+                floor = self.floor_of(f"{r.concurrency} streams")
+                beside = f"; the transport's floor {floor.frames_per_s:,.0f} messages/s" if floor else ""
                 lines.append(
                     f"{verdict[ratio >= SATURATED_ROOF_TARGET]}: saturated tracked streams "
                     f"{r.frames_per_s:,.0f} frames/s = {ratio:.2f} x both models' per-pose roof "
-                    f"(target >= {SATURATED_ROOF_TARGET:g})"
+                    f"(target >= {SATURATED_ROOF_TARGET:g}{beside})"
                 )
         if (workers := self.workers_ratio()) is not None:
             lines.append(
@@ -150,6 +159,11 @@ class Report:
                 f"Cameras (paced at {FPS:g} fps each; held: p99 <= {self.p99_ms:g} ms, no errors, "
                 f">= {HELD_FRACTION:.0%} of the offered frames answered; measured in the order "
                 f"{', '.join(map(str, self.searched))}):\n\n" + cameras_table(self.cameras)
+            )
+        if self.floor:
+            parts.append(
+                "The transport's floor (`bench.echo`: Python `grpc.aio` answering each frame with a fixed "
+                "721-byte reply, no parsing, no model; the same clients):\n\n" + floor_table(self.floor)
             )
         if self.people:
             parts.append(
@@ -203,6 +217,20 @@ def cpu_ms_per_frame(r: Result) -> float | None:
     if r.server_cpu is None or not r.frames_per_s:
         return None
     return 1000.0 * r.server_cpu / r.frames_per_s
+
+
+def floor_table(results: list[Result]) -> str:
+    """The echo server's loads: messages/s, latency and CPU per message."""
+    lines = [
+        "| load | messages/s | p50 ms | p99 ms | errors | server CPU | CPU ms per message |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in results:
+        lines.append(
+            f"| {r.name} | {fmt(r.frames_per_s, 0)} | {latency_cell(r, 'p50')} | {latency_cell(r, 'p99')} "
+            f"| {r.errors} | {fmt(r.server_cpu)} | {fmt(cpu_ms_per_frame(r), 3)} |"
+        )
+    return "\n".join(lines)
 
 
 def cameras_table(results: list[Result]) -> str:

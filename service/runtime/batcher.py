@@ -8,13 +8,12 @@ import asyncio
 import contextlib
 import threading
 import time
-from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Hashable, Iterable
 from concurrent.futures import Future
-from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
 from repnet.core.errors import ModelNotReady, Overloaded
+from repnet.runtime.fair_queue import Chunk, FairQueue
 
 
 def batch_window(max_wait_s: float, busy: float) -> float:
@@ -56,31 +55,18 @@ Out = TypeVar("Out", bound=Rows)  # the output rows of a run
 T = TypeVar("T")
 
 
-@dataclass
-class _Chunk(Generic[In, Out]):
-    """At most max_batch rows of one request, waiting for a run."""
-
-    inputs: In
-    transport: str
-    enqueued: float  # time.monotonic() when queued
-    future: Future[Out]
-
-    def __len__(self) -> int:
-        return len(self.inputs)
-
-
 # Adapters prepare and answer requests of at most this many poses on their event loop (offload):
 # cheaper than the hop to a worker thread and back (docs/BENCHMARKS.md).
 INLINE_POSES = 8
 MAX_BATCH = 256  # most poses (or windows) in one model run by default (REPNET_MAX_BATCH)
 BUSY_TO_WAIT = 0.25  # a batcher busier than this share of its time lets requests wait for others
 BUSY_SMOOTHING = 0.1  # the weight of the last run in the busy share (an average over ~10 runs)
+SOURCE_SHARE = 0.25  # most of the queue one source may hold (see Batcher.source_share)
 
 
 async def offload(count: int, work: Callable[..., T], *args: Any) -> T:
-    """work(*args), the CPU work of a request of `count` poses (input rules, reply building): on the
-    caller's event loop up to INLINE_POSES poses, else on a worker thread, so that the loop keeps
-    serving the other requests meanwhile."""
+    """work(*args), the CPU work of a request of `count` poses (input rules, replies): on the caller's
+    event loop up to INLINE_POSES poses, else on a worker thread (the loop serves others meanwhile)."""
     if count <= INLINE_POSES:
         return work(*args)
     return await asyncio.get_running_loop().run_in_executor(None, work, *args)
@@ -99,9 +85,8 @@ class Batcher(Generic[In, Out]):
     than max_batch are split into chunks. The queue holds at most queue_size poses: a request that
     does not fit is refused at once with Overloaded. The engine knows no reply and no wire format.
 
-    A batcher runs one model: a service with several models holds one per model (app.py builds
-    them, adapters pick one by the request), each batching its own runs. A subclass says how a
-    batch runs (_run) and how answers join (_join).
+    A batcher runs one model (a service holds one per model; adapters pick one by the request). A
+    subclass says how a batch runs (_run) and how answers join (_join).
     """
 
     def __init__(
@@ -114,10 +99,9 @@ class Batcher(Generic[In, Out]):
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
         self.queue_size = queue_size
-        self._queue: deque[_Chunk[In, Out]] = deque()
+        self._queue = FairQueue()
         # Coroutines in submit_async waiting for room, woken on their own loops.
         self._room_waiters: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []
-        self._queued = 0  # poses in _queue
         self._closed = False
         self._busy = 0.0  # the share of its time the worker spent running, smoothed over recent runs
         self._serving = True  # False once shutdown begins: readiness off, queued work still done
@@ -145,43 +129,52 @@ class Batcher(Generic[In, Out]):
     def _observe(self, answer: Out) -> None:
         """Record what a run's answers say in the metrics (nothing by default)."""
 
-    def submit(self, inputs: In, transport: str, wait_s: float = 0.0) -> list[Future[Out]]:
+    def submit(
+        self, inputs: In, transport: str, wait_s: float = 0.0, source: Hashable = None
+    ) -> list[Future[Out]]:
         """Queue `inputs` (all or nothing); one future per chunk of at most max_batch poses.
 
-        A full queue raises Overloaded at once, or after waiting up to `wait_s` for room (streams
-        wait: their own window already bounds what they hold, so a busy moment slows them down
-        instead of failing their frames).
+        `source`: who sent them (a connection; None: this request alone), for the fair share of the
+        queue (FairQueue; one source holds at most source_share). A full queue (or share) raises
+        Overloaded at once, or after waiting up to `wait_s` for room (streams wait: their window
+        bounds what they hold, so a busy moment slows them down instead of failing their frames).
         """
-        chunks = self._chunks(inputs, transport)
+        source = object() if source is None else source
+        chunks = self._chunks(inputs, transport, source)
         with self._cond:
             deadline = time.monotonic() + wait_s
-            while self._must_wait(len(inputs)):
+            while self._must_wait(len(inputs), source):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break
                 self._cond.wait(remaining)
-            return self._enqueue(chunks, len(inputs))
+            return self._enqueue(chunks, len(inputs), source)
 
-    async def submit_async(self, inputs: In, transport: str, wait_s: float = 0.0) -> list[Future[Out]]:
+    async def submit_async(
+        self, inputs: In, transport: str, wait_s: float = 0.0, source: Hashable = None
+    ) -> list[Future[Out]]:
         """Batcher.submit for coroutines: waiting for room suspends the caller, not its event loop."""
         loop = asyncio.get_running_loop()
-        chunks = self._chunks(inputs, transport)
+        source = object() if source is None else source
+        chunks = self._chunks(inputs, transport, source)
         deadline = time.monotonic() + wait_s
         while True:
             with self._cond:
                 remaining = deadline - time.monotonic()
-                if remaining <= 0 or not self._must_wait(len(inputs)):
-                    return self._enqueue(chunks, len(inputs))
+                if remaining <= 0 or not self._must_wait(len(inputs), source):
+                    return self._enqueue(chunks, len(inputs), source)
                 room: asyncio.Future[None] = loop.create_future()
                 self._room_waiters.append((loop, room))
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(room, remaining)
 
-    async def lift_async(self, inputs: In, transport: str, wait_s: float = 0.0) -> Out:
+    async def lift_async(
+        self, inputs: In, transport: str, wait_s: float = 0.0, source: Hashable = None
+    ) -> Out:
         """Queue `inputs` (Overloaded when the queue stays full for wait_s) and await their answers
         in input order, for adapters on an event loop. When the caller is cancelled (a gRPC call
         cancelled or past its deadline), every chunk of it still queued is dropped."""
-        futures = await self.submit_async(inputs, transport, wait_s)
+        futures = await self.submit_async(inputs, transport, wait_s, source)
         try:
             return self._join([await asyncio.wrap_future(f) for f in futures])
         except asyncio.CancelledError:
@@ -193,46 +186,64 @@ class Batcher(Generic[In, Out]):
         chunk in a run already finishes); the number of rows dropped."""
         wanted = {id(f) for f in futures}
         with self._cond:
-            dropped = [c for c in self._queue if id(c.future) in wanted]
+            dropped = self._queue.remove(wanted)
             if not dropped:
                 return 0
-            self._queue = deque(c for c in self._queue if id(c.future) not in wanted)
-            rows = sum(len(c) for c in dropped)
-            self._queued -= rows
             self._set_depth()
             self._room_freed()
         for chunk in dropped:
             chunk.future.cancel()
-        return rows
+        return sum(len(c) for c in dropped)
 
     def join(self, parts: list[Out]) -> Out:
         """The answers of a request's runs (its futures' results) as one."""
         return self._join(parts)
 
-    def _chunks(self, inputs: In, transport: str) -> list[_Chunk[In, Out]]:
+    def _chunks(self, inputs: In, transport: str, source: Hashable) -> list[Chunk[In, Out]]:
         n, step = len(inputs), self.max_batch
-        return [
-            _Chunk(inputs.slice(a, min(a + step, n)), transport, 0.0, Future()) for a in range(0, n, step)
-        ]
+        chunks: list[Chunk[In, Out]] = []
+        for a in range(0, n, step):
+            part = inputs.slice(a, min(a + step, n))
+            chunks.append(Chunk(part, transport, 0.0, Future(), source, self._cost(part)))
+        return chunks
 
-    def _must_wait(self, n: int) -> bool:
+    def _cost(self, inputs: In) -> float:
+        """What a chunk takes of a run's capacity of max_batch: its rows (a subclass may weigh them)."""
+        return float(len(inputs))
+
+    @property
+    def source_share(self) -> int:
+        """Most poses one source may have queued: SOURCE_SHARE of the queue, at least one run's
+        (beyond that, one request of any size when it has nothing else queued)."""
+        return max(self.max_batch, int(self.queue_size * SOURCE_SHARE))
+
+    def _over_share(self, n: int, source: Hashable) -> bool:
+        held = self._queue.queued_by(source)
+        return held > 0 and held + n > self.source_share
+
+    def _must_wait(self, n: int, source: Hashable) -> bool:
         """n poses do not fit now but would once the queue drains (call with _cond held)."""
-        return self._queued + n > self.queue_size and n <= self.queue_size and not self._closed
+        full = self._queue.rows + n > self.queue_size or self._over_share(n, source)
+        return full and n <= self.queue_size and not self._closed
 
-    def _enqueue(self, chunks: list[_Chunk[In, Out]], n: int) -> list[Future[Out]]:
+    def _enqueue(self, chunks: list[Chunk[In, Out]], n: int, source: Hashable) -> list[Future[Out]]:
         """Queue the chunks of n poses, or raise why not (call with _cond held)."""
         if self._closed:
             raise ModelNotReady("the server is shutting down and accepts no new requests")
-        if self._queued + n > self.queue_size:
+        if self._queue.rows + n > self.queue_size:
             raise Overloaded(
-                f"the batch queue is full ({self._queued} of {self.queue_size} poses waiting, "
+                f"the batch queue is full ({self._queue.rows} of {self.queue_size} poses waiting, "
                 f"{n} more requested); retry later"
+            )
+        if self._over_share(n, source):
+            raise Overloaded(
+                f"this client's share of the batch queue is full ({self._queue.queued_by(source)} of "
+                f"{self.source_share} poses waiting, {n} more requested); retry later"
             )
         now = time.monotonic()
         for chunk in chunks:
             chunk.enqueued = now
-            self._queue.append(chunk)
-        self._queued += n
+            self._queue.push(chunk)
         self._set_depth()
         self._cond.notify_all()
         return [c.future for c in chunks]
@@ -247,8 +258,7 @@ class Batcher(Generic[In, Out]):
 
     def lift(self, inputs: In, transport: str) -> Out:
         """Queue `inputs`, wait for their runs and return their answers in input order."""
-        futures = self.submit(inputs, transport)
-        return self._join([f.result() for f in futures])
+        return self._join([f.result() for f in self.submit(inputs, transport)])
 
     def close(self, timeout: float | None = None) -> bool:
         """Refuse new work, finish everything queued, stop the worker; False if it timed out."""
@@ -260,18 +270,17 @@ class Batcher(Generic[In, Out]):
 
     def _set_depth(self) -> None:
         if self.metrics is not None:
-            self.metrics.batch_queued(self.model, self._queued)
+            self.metrics.batch_queued(self.model, self._queue.rows)
 
-    def _take_batch(self) -> list[_Chunk[In, Out]]:
+    def _take_batch(self) -> list[Chunk[In, Out]]:
         """Block until a batch is due, then take it from the queue; [] once closed and empty.
 
-        The batching window follows the load. A request that finds the batcher idle runs at once:
-        waiting could only add latency to a lone request (a client that waits for each answer
-        before it sends again never has company). When work queued up during the last run, others
-        are sending: then the oldest queued request may wait for more, up to max_wait_s scaled by
-        the share of its time the batcher ran lately (none under BUSY_TO_WAIT, the whole window
-        when it ran all the time), so that runs grow as load grows (paced cameras send one frame at
-        a time). A batch is taken at once when max_batch poses wait.
+        The batching window follows the load. A request that finds the batcher idle runs at once
+        (a client that waits for each answer never has company). When work queued during the last
+        run, the oldest queued request may wait for more, up to batch_window(max_wait_s, the share
+        of its time the batcher ran lately), so that runs grow with the load (paced cameras send one
+        frame at a time). A batch is taken at once when max_batch of cost waits; FairQueue.take_run
+        picks it.
         """
         with self._cond:
             loaded = bool(self._queue)  # work queued while the last run ran: others are sending too
@@ -281,18 +290,13 @@ class Batcher(Generic[In, Out]):
                 self._cond.wait()
             window = batch_window(self.max_wait_s, self._busy) if loaded else 0.0
             if window > 0:
-                deadline = self._queue[0].enqueued + window
-                while self._queued < self.max_batch and not self._closed:
+                deadline = self._queue.first().enqueued + window
+                while self._queue.cost < self.max_batch and not self._closed:
                     remaining = deadline - time.monotonic()
                     if remaining <= 0:
                         break
                     self._cond.wait(remaining)
-            batch = [self._queue.popleft()]
-            total = len(batch[0])
-            while self._queue and total + len(self._queue[0]) <= self.max_batch:
-                total += len(self._queue[0])
-                batch.append(self._queue.popleft())
-            self._queued -= total
+            batch = self._queue.take_run(self.max_batch)
             self._set_depth()
             self._room_freed()
         return batch
@@ -309,7 +313,7 @@ class Batcher(Generic[In, Out]):
                 self._busy += BUSY_SMOOTHING * (share - self._busy)
                 ended = now
 
-    def _run_batch(self, batch: list[_Chunk[In, Out]]) -> None:
+    def _run_batch(self, batch: list[Chunk[In, Out]]) -> None:
         start = time.monotonic()
         if self.metrics is not None:
             for chunk in batch:
@@ -333,11 +337,11 @@ class Batcher(Generic[In, Out]):
             else:
                 chunk.future.set_result(result)
 
-    def _lifted(self, answer: Out, batch: list[_Chunk[In, Out]]) -> list[int]:
+    def _lifted(self, answer: Out, batch: list[Chunk[In, Out]]) -> list[int]:
         """How many rows of each chunk the run lifted (all of them, unless a subclass knows better)."""
         return [len(c) for c in batch]
 
-    def _results(self, answer: Out, batch: list[_Chunk[In, Out]]) -> list[Any]:
+    def _results(self, answer: Out, batch: list[Chunk[In, Out]]) -> list[Any]:
         """Each chunk's part of a run's answer (rows the model failed on are marked in it: failed)."""
         found, offset = [], 0
         for chunk in batch:

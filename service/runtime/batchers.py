@@ -3,13 +3,15 @@ job's answer out). A temporal model's is runtime.temporal.TemporalBatcher."""
 
 from __future__ import annotations
 
+from collections.abc import Hashable
 from concurrent.futures import Future
 from typing import Any
 
 from repnet.core.inputs import Limits, ModelInput
-from repnet.runtime.batcher import Batcher, BatchMetrics, _Chunk
+from repnet.runtime.batcher import Batcher, BatchMetrics
+from repnet.runtime.fair_queue import Chunk
 from repnet.runtime.lifter import Lifter, Prediction
-from repnet.runtime.pipeline import Batch, Job, prediction_only, run_jobs
+from repnet.runtime.pipeline import Batch, Job, job_cost, prediction_only, run_jobs
 
 
 class LiftBatcher(Batcher[Any, Any]):
@@ -36,18 +38,18 @@ class LiftBatcher(Batcher[Any, Any]):
             metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size, name=model
         )
 
-    def _chunks(self, inputs: Job | ModelInput, transport: str) -> list[_Chunk[Job, Any]]:
+    def _chunks(self, inputs: Job | ModelInput, transport: str, source: Hashable) -> list[Chunk[Job, Any]]:
         # A job is lifted whole; prepared inputs are a job of their own that asks for the prediction.
         job = inputs if isinstance(inputs, Job) else prediction_only(inputs)
-        return [_Chunk(job, transport, 0.0, Future())]
+        return [Chunk(job, transport, 0.0, Future(), source, job_cost(job))]
 
     def _run(self, parts: list[Job]) -> Batch:
         return run_jobs(self.lifter, parts, self.limits, self.max_batch)
 
-    def _results(self, answer: Batch, batch: list[_Chunk[Job, Any]]) -> list[Any]:
+    def _results(self, answer: Batch, batch: list[Chunk[Job, Any]]) -> list[Any]:
         return answer.answers
 
-    def _lifted(self, answer: Batch, batch: list[_Chunk[Job, Any]]) -> list[int]:
+    def _lifted(self, answer: Batch, batch: list[Chunk[Job, Any]]) -> list[int]:
         return answer.rows  # a job's poses that passed the input rules
 
     def _join(self, parts: list[Any]) -> Any:
@@ -58,17 +60,19 @@ class LiftBatcher(Batcher[Any, Any]):
         if self.metrics is not None and found.plausibility is not None and not found.failed.any():
             self.metrics.observe_plausibility(self.model, found.plausibility)
 
-    async def run_async(self, job: Job, transport: str, wait_s: float = 0.0) -> Any:
-        """Queue `job` (Overloaded when the queue stays full for wait_s) and await its answer."""
-        return await self.lift_async(job, transport, wait_s)
+    async def run_async(self, job: Job, transport: str, wait_s: float = 0.0, source: Hashable = None) -> Any:
+        """Queue `job` for `source` (Overloaded when the queue stays full for wait_s) and await its answer."""
+        return await self.lift_async(job, transport, wait_s, source)
 
     def run(self, job: Job, transport: str) -> Any:
         """Queue `job`, wait for its batch and return its answer."""
         return super().lift(job, transport)
 
-    async def predict_async(self, inputs: ModelInput, transport: str, wait_s: float = 0.0) -> Prediction:
+    async def predict_async(
+        self, inputs: ModelInput, transport: str, wait_s: float = 0.0, source: Hashable = None
+    ) -> Prediction:
         """The model's answers to prepared inputs (queued as a job of their own)."""
-        found: Prediction = await self.lift_async(prediction_only(inputs), transport, wait_s)
+        found: Prediction = await self.lift_async(prediction_only(inputs), transport, wait_s, source)
         return found
 
     def predict(self, inputs: ModelInput, transport: str) -> Prediction:

@@ -246,6 +246,21 @@ def run_jobs(lifter: Lifter, jobs: Sequence[Job], limits: Limits, max_batch: int
     return Batch(answers, prediction, [len(p.inputs) for p in prepared])
 
 
+# A tracked pose takes this many untracked poses' share of a run. Both models' per-pose roof against
+# the single-frame model's alone is 1/6 at batch 64 (docs/BENCHMARKS.md), and a run holds at most
+# max_batch of cost: 256 poses, or 32 tracked ones, a run of ~15 ms on one core, so that a request
+# that comes during a run waits for that short run, not a long one (bench.fairness: a camera's p99
+# under a flood of tracked crowds 216 ms with 64 tracked poses a run, 87-106 ms with 32; saturated
+# tracked streams lose 6 %). REPNET_MAX_BATCH 512 gives 64 a run.
+TRACKED_COST = 8.0
+
+
+def job_cost(job: Job) -> float:
+    """What a job takes of a run's capacity (max_batch): its poses, a tracked one TRACKED_COST."""
+    tracked = sum(t is not None for t in job.tracked) if job.tracks is not None else 0
+    return float(len(job)) + (TRACKED_COST - 1.0) * tracked
+
+
 def prediction_only(inputs: ModelInput) -> Job:
     """A job that asks for the model's answers to prepared inputs, nothing more."""
     return Job(finish=lambda lifted: lifted.prediction, inputs=inputs, replies=False)

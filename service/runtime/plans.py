@@ -3,7 +3,7 @@ request's clips), the temporal model's run, and its answers held to the track's 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -150,11 +150,14 @@ def answer_rows(plan: Plan, answer: TemporalAnswer) -> TemporalRows:
     return TemporalRows(plan.rows, fix_bone_lengths(answer.pose_3d_camera, plan.bones), answer.failed)
 
 
-async def run_plan(engine: TemporalBatcher, plan: Plan, transport: str, wait_s: float = 0.0) -> TemporalRows:
-    """The temporal model's answers to the plan's windows (queued on `engine`), held to its bone lengths."""
+async def run_plan(
+    engine: TemporalBatcher, plan: Plan, transport: str, wait_s: float = 0.0, source: Hashable = None
+) -> TemporalRows:
+    """The temporal model's answers to the plan's windows (queued on `engine` for `source`), held to
+    its bone lengths."""
     if plan.windows is None:
         return TemporalRows.none()
-    return answer_rows(plan, await engine.lift_async(plan.windows, transport, wait_s))
+    return answer_rows(plan, await engine.lift_async(plan.windows, transport, wait_s, source))
 
 
 def clip_violations(

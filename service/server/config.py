@@ -126,7 +126,12 @@ class Settings(BaseSettings):
         "request at once, a busier one lets it wait up to this, in proportion (0: never wait)",
     )
     queue_size: int = Field(
-        default=8192, ge=1, description="most poses waiting for a run; beyond: 503 / `RESOURCE_EXHAUSTED`"
+        default=8192,
+        ge=1,
+        description="most poses waiting for a run; beyond: 503 / `RESOURCE_EXHAUSTED`. One client (an HTTP "
+        "or gRPC connection) holds at most a quarter of it (at least `max_batch`); beyond, its request is "
+        "refused the same way and its stream waits, while the others' requests still fit (see "
+        "[Fair share](#fair-share-between-clients))",
     )
     max_request_poses: int = Field(
         default=Limits.max_request_poses, ge=1, description="most poses in one request"

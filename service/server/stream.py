@@ -7,7 +7,7 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import AsyncGenerator, AsyncIterator, Callable
+from collections.abc import AsyncGenerator, AsyncIterator, Callable, Hashable
 from functools import partial
 from typing import TypeVar
 
@@ -17,7 +17,7 @@ from repnet.core.keypoints import prepare_poses
 from repnet.runtime.batcher import offload
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
-from repnet.runtime.pipeline import Job, Lifted, StreamTracks
+from repnet.runtime.pipeline import TRACKED_COST, Job, Lifted, StreamTracks
 from repnet.runtime.plans import TemporalModels
 from repnet.runtime.tracks import TrackTable
 from repnet.server.frames import POSE_FIELD, Answer, Answers, FrameIn, Group, PersonIn
@@ -48,8 +48,9 @@ class StreamState:
     people its frames carry. The last frame read may pass it, so a stream holds fewer than `window`
     plus one frame's people (REPNET_MAX_REQUEST_POSES).
     Frames are taken only while none of the stream's groups waits for a run, so the frames that
-    arrive during a run become the next groups (at most `max_group` poses each, a frame with more
-    people a group of its own; a frame for another model than the frame before starts a new group):
+    arrive during a run become the next groups (at most `max_group` of cost each, a tracked person
+    counting TRACKED_COST as in runtime.pipeline.job_cost; a frame with more a group of its own; a
+    frame for another model than the frame before starts a new group):
     the cost per frame stays small, and one stream fills batches instead of waiting for each
     frame's run. Counting poses, not frames, keeps every group within the batch queue, however many
     people its frames carry.
@@ -85,9 +86,9 @@ class StreamState:
         frames, self.inbox = self.inbox, []
         groups: list[Group] = []
         taken: list[FrameIn] = []
-        poses = 0
+        poses = 0.0  # their cost
         for frame in frames:
-            count = len(frame.persons())
+            count = frame_cost(frame)
             if taken and (poses + count > self.max_group or frame.model != taken[-1].model):
                 groups.append(Group(taken))
                 taken, poses = [], 0
@@ -110,6 +111,13 @@ class StreamState:
         self.held -= sum(held_poses(frame) for frame in group.frames)
 
 
+def frame_cost(frame: FrameIn) -> float:
+    """A frame's share of a run (runtime.pipeline.job_cost): its people, a tracked one TRACKED_COST."""
+    people = frame.persons()
+    tracked = sum(1 for p in people if p.track_id)
+    return len(people) + (TRACKED_COST - 1.0) * tracked
+
+
 def held_poses(frame: FrameIn) -> int:
     """What a frame counts in a stream's window: its people, and 1 for a frame of none (an error)."""
     return max(1, len(frame.persons()))
@@ -121,6 +129,7 @@ async def _start(
     transport: str,
     tracks: StreamTracks | None,
     encode: Callable[[Answers], R],
+    source: Hashable,
 ) -> None:
     """Queue the group's poses as one job of the group's model: its batch runs the input rules, the
     model, the stream's tracks and causal model, and encodes the group's answers."""
@@ -136,7 +145,7 @@ async def _start(
         track_ids=[t.track_id if t is not None else None for t in tracked] if tracked else None,
     )
     try:
-        group.futures = await engine.submit_async(job, transport, wait_s=QUEUE_WAIT_S)
+        group.futures = await engine.submit_async(job, transport, wait_s=QUEUE_WAIT_S, source=source)
     except LiftError as err:  # queue full for too long, or shutting down
         group.failure = err
 
@@ -254,6 +263,7 @@ async def answer_stream(
     idle_timeout_s: float,
     transport: str,
     temporal: TemporalModels | None = None,
+    source: Hashable = None,
 ) -> AsyncGenerator[R, None]:
     """Read `frames` and yield their answers group by group, in frame order (see StreamState), as
     encode(answers) gives them: the transport's results, built off the event loop with the replies.
@@ -262,8 +272,10 @@ async def answer_stream(
     UnreadableFrame (after answering the frames before it) when `frames` fails. With a causal
     temporal model, tracked poses are answered from their track's frames so far; a track without
     a frame for the tracks' idle_s is dropped (whether the stream sends other frames or none), and
-    the stream's tracks are freed when it ends.
+    the stream's tracks are freed when it ends. `source`: who sends the stream (its connection), for
+    the batch queue's fair share (None: the stream itself).
     """
+    source = object() if source is None else source
     models = Catalog.of(engine, temporal is not None)
     reader = _Reader(frames, StreamState(window, models.default_engine.max_batch))
     state = reader.state
@@ -275,7 +287,7 @@ async def answer_stream(
             reader.wake.clear()
             if state.can_take():
                 for taken in state.take():
-                    await _start(taken, models, transport, tracks, encode)
+                    await _start(taken, models, transport, tracks, encode, source)
                     reader.watch(taken)
             while (group := state.answerable()) is not None:
                 yield await _finish(group, encode, limits)

@@ -64,21 +64,27 @@ def test_the_report_gives_each_target_of_the_fast_path_met_or_missed_with_its_fi
     cameras = [camera(8, 240, 0.72, True), camera(8, 240, 0.12, False), camera(16, 480, 1.0, True)]
     saturated = [result("x8, tracked", 45, tracked=True), result("x8, untracked", 90, tracked=False)]
     one_worker = [result("x8, tracked, --workers 1", 30, tracked=True)]
-    r = report([one, many], cameras=cameras, saturated=saturated, one_worker=one_worker)
+    floor = [camera(8, 240, 0.04, True), result("(echo floor) 1 streams, 256 in flight", 100)]
+    floor[0].name = "(echo floor) 8 cameras at 30 fps"
+    r = report([one, many], cameras=cameras, saturated=saturated, one_worker=one_worker, floor=floor)
     assert r.people_ratio() == {"server_cpu": 2.5, "p50": 3.0, "p99": 3.0}
     assert r.workers_ratio() == 1.5
     assert r.roof_best == {"single": 100.0, "temporal": 100.0, "both": 50.0}
     assert r.targets == [
         "MISSED: causal temporal LiftStream holds 24 cameras at 30 fps with p99 <= 25 ms (target >= 32)",
-        "MISSED: server CPU per tracked frame at 8 paced cameras 3.00 ms (target <= 1 ms)",
-        "met: server CPU per untracked frame at 8 paced cameras 0.50 ms (target <= 0.6 ms)",
-        "met: saturated tracked streams 45 frames/s = 0.90 x both models' per-pose roof (target >= 0.8)",
+        "MISSED: server CPU per tracked frame at 8 paced cameras 3.00 ms (target <= 1 ms; the transport's "
+        "floor 0.17 ms)",
+        "met: server CPU per untracked frame at 8 paced cameras 0.50 ms (target <= 0.6 ms; the transport's "
+        "floor 0.17 ms)",
+        "met: saturated tracked streams 45 frames/s = 0.90 x both models' per-pose roof (target >= 0.8; "
+        "the transport's floor 100 messages/s)",
         "MISSED: saturated tracked streams, the service's workers / one worker = 1.50x (target >= 1.6x)",
         "met: a 16-person frame costs 2.50x a 1-person frame in server CPU (3.00x in p50 latency, 3.00x p99) "
         "(target <= 3x)",
     ]
     markdown = r.markdown()
     assert "| 1 | 100 | 100 | 50 |" in markdown and "x8, tracked, --workers 1" in markdown
+    assert "| (echo floor) 8 cameras at 30 fps | 240 | 3.00 | 9.00 | 0 | 0.04 | 0.167 |" in markdown
     assert "| 8 | 240 | 240 | 3.00 | 9.00 | 0 | 0.72 | 3.00 |" in markdown  # CPU ms per frame beside
     assert report([one]).people_ratio() == {} and report([one]).workers_ratio() is None
 
@@ -109,12 +115,16 @@ def test_a_tiny_run_measures_every_part_and_writes_its_figures(
         "LiftStream x1, 256 in flight, untracked",
     ]
     assert [r["name"] for r in found["one_worker"]] == ["LiftStream x1, 256 in flight, tracked, --workers 1"]
+    assert [r["name"] for r in found["floor"]] == [
+        "(echo floor) 8 streams, 256 in flight", "(echo floor) 1 stream, 1 frame in flight",
+        "(echo floor) 8 cameras at 30 fps",
+    ]  # fmt: skip
     assert found["searched"] == [1, 2] and found["most_cameras"] == 2
     assert [(r["concurrency"], r["extra"]["tracked"]) for r in found["cameras"]] == [
         (1, True), (1, False), (2, True), (2, False),
     ]  # fmt: skip
     assert [r["extra"]["people"] for r in found["people"]] == [1, 1, 1, 3]
-    for r in found["saturated"] + found["one_worker"] + found["cameras"] + found["people"]:
+    for r in found["saturated"] + found["one_worker"] + found["floor"] + found["cameras"] + found["people"]:
         assert r["errors"] == 0 and r["calls"] > 0 and r["server_cpu"] > 0, r
     assert {r["what"] for r in found["roof"]} == {"session.run", "temporal session.run"}
     assert found["contract"]["slots_30fps"] == 49 and found["roof_end"]

@@ -42,13 +42,13 @@ def test_a_cancelled_lift_takes_every_queued_chunk_out_of_the_queue(
     async def cancel_a_lift() -> None:
         task = asyncio.create_task(engine.lift_async(model_input(40), "grpc"))  # 5 chunks of 8
         await asyncio.sleep(0.05)
-        assert engine._queued == 40
+        assert engine._queue.rows == 40
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
 
     asyncio.run(cancel_a_lift())
-    assert engine._queued == 0 and not engine._queue  # all five chunks, not only the first
+    assert engine._queue.rows == 0 and not engine._queue  # all five chunks, not only the first
     gated.gate.set()
     blocker[0].result(timeout=10)
     engine.lift(model_input(2), "grpc")  # the engine goes on
@@ -75,8 +75,9 @@ def slow_service(lifter: Lifter) -> Iterator[tuple[str, Metrics, SlowLifter]]:
     slow = SlowLifter(lifter)
     # Room for all 40 calls (Lift calls in progress, queued poses): the calls end by their deadline,
     # never by a limit (on a fast machine every handler starts and queues its poses within 250 ms).
+    # The calls share one channel, one client of the fair queue: its share (a quarter) holds them all.
     settings = Settings(host="127.0.0.1", http_port=0, grpc_port=0, intra_op_threads=1, shutdown_grace_s=1,
-                        max_batch=256, queue_size=65536, grpc_workers=64)  # fmt: skip
+                        max_batch=256, queue_size=4 * 65536, grpc_workers=64)  # fmt: skip
     with running(settings, slow) as service:
         yield f"127.0.0.1:{service.grpc_server.port}", service.metrics, slow
 

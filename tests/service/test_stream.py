@@ -16,6 +16,7 @@ from repnet.core.inputs import Limits, PoseInput
 from repnet.core.keypoints import prepare_poses
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
+from repnet.runtime.pipeline import TRACKED_COST
 from repnet.runtime.replies import build_replies
 from repnet.server.stream import (
     Answer,
@@ -28,6 +29,7 @@ from repnet.server.stream import (
     UnreadableFrame,
     _Reader,
     answer_stream,
+    frame_cost,
 )
 from tests.conftest import POSE_2D, GatedLifter
 
@@ -71,7 +73,7 @@ def test_the_window_bounds_what_a_stream_holds_from_read_to_answer() -> None:
 def test_the_window_counts_the_poses_of_frames_of_many_people() -> None:
     """A frame of 3 people takes 3 of the window's poses; the window may be passed by the last frame
     read only, and answering a group gives back what its frames took."""
-    state = StreamState(window=4, max_group=8)
+    state = StreamState(window=4, max_group=6 * TRACKED_COST)  # 2 frames of 3 tracked people
     state.add(crowd(0, 3))
     assert state.held == 3 and state.has_room()
     state.add(crowd(1, 3))  # read while there was room: 6 held, no more reads
@@ -194,13 +196,25 @@ def crowd(i: int, people: int) -> FrameIn:
 
 
 def test_groups_count_poses_so_that_frames_of_many_people_fit_the_queue() -> None:
-    state = StreamState(window=16, max_group=4)
+    state = StreamState(window=32, max_group=4 * TRACKED_COST)  # 4 tracked people, 16 untracked
     frames = [crowd(0, 3), crowd(1, 2), crowd(2, 5), frame(3), frame(4), frame(5, error=ModelNotReady("x"))]
     for f in frames:
         state.add(f)
-    groups = state.take()  # a frame of more people than max_group is a group of its own
+    groups = state.take()  # a frame of more than max_group's cost is a group of its own
     assert [[f.frame_id for f in g.frames] for g in groups] == [[0], [1], [2], [3, 4, 5]]
     assert [len(g.poses()) for g in groups] == [3, 2, 5, 2]
+
+
+def test_a_tracked_person_counts_as_tracked_cost_poses_in_a_group() -> None:
+    """A run holds at most max_batch of cost, so that one run of tracked poses stays short."""
+    state = StreamState(window=64, max_group=2 * TRACKED_COST)
+    for i in range(4):
+        state.add(crowd(i, 1))  # one tracked person: cost TRACKED_COST
+    for i in range(4, 12):
+        state.add(frame(i))  # one untracked pose: cost 1
+    groups = state.take()
+    assert [[f.frame_id for f in g.frames] for g in groups] == [[0, 1], [2, 3], [4, 5, 6, 7, 8, 9, 10, 11]]
+    assert frame_cost(crowd(0, 3)) == 3 * TRACKED_COST and frame_cost(frame(0)) == 1
 
 
 def test_a_stream_of_many_people_per_frame_is_answered_within_the_queue(

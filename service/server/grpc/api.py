@@ -178,7 +178,7 @@ class PoseLifterServicer:
                     engine = self.models.pick(request.model)
                     poses, threshold = await offload(count, self._read_request, request)
                 job = Job(finish=proto_replies, poses=poses, threshold=threshold)
-                results = await engine.run_async(job, TRANSPORT)
+                results = await engine.run_async(job, TRANSPORT, source=context.peer())
         except LiftError as err:
             if isinstance(err, ModelOutputError):  # counted by track(); one line, no traceback
                 log.error("Lift: %s", err)
@@ -235,6 +235,7 @@ class PoseLifterServicer:
             idle_timeout_s=self.stream_idle_timeout_s,
             transport=TRANSPORT,
             temporal=self.temporal,
+            source=context.peer(),  # the batch queue is shared fairly between connections
         )
         try:
             async for results in answers:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Hashable
 from functools import partial
 from typing import Any
 
@@ -59,6 +60,12 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     422: {"model": ErrorResponse, "description": "A field breaks an input rule; `detail` names it."},
     503: {"model": ErrorResponse, "description": "Queue full or shutting down; retry later."},
 }
+
+
+def peer_of(http: Request) -> Hashable:
+    """Who sent a request, for the batch queue's fair share: its connection (address and port)."""
+    client = http.client
+    return ("http", client.host, client.port) if client is not None else None
 
 
 def _layout_violations(
@@ -189,12 +196,13 @@ def create_app(
         count = len(request.poses)
         started = getattr(http.state, STARTED_KEY, None)  # since the body arrived
         engine = models.pick(request.model, temporal=request.temporal != "off")
+        source = peer_of(http)  # the batch queue is shared fairly between connections
         if request.temporal != "off":
 
             def read(i: int) -> PoseInput:
                 return to_pose_input(request.poses[i], request, i)
 
-            body = await lift_temporal(request, engine, temporal, limits, metrics, started, read)
+            body = await lift_temporal(request, engine, temporal, limits, metrics, started, read, source)
             return LiftJSONResponse(body)
         with metrics.parsing("http", started):
             poses = await offload(count, _read, request, limits)
@@ -204,7 +212,7 @@ def create_app(
             threshold=request.confidence_threshold,
             track_ids=[p.track_id for p in request.poses],
         )
-        return Response(await engine.run_async(job, "http"), media_type="application/json")
+        return Response(await engine.run_async(job, "http", source=source), media_type="application/json")
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import replace
 from typing import Any
 
@@ -78,6 +78,7 @@ async def lift_temporal(
     metrics: Metrics,
     started: float | None,
     read: Read,
+    source: Hashable = None,
 ) -> dict[str, Any]:
     """The body of the answer: every pose lifted alone, then each tracked pose again from its
     track's window."""
@@ -85,7 +86,7 @@ async def lift_temporal(
     with metrics.parsing(TRANSPORT, started):
         inputs = await offload(count, prepare_temporal, request, limits, temporal, read)
     assert temporal is not None  # prepare_temporal refuses the request without it
-    prediction = await engine.predict_async(inputs, TRANSPORT)
+    prediction = await engine.predict_async(inputs, TRANSPORT, source=source)
     plan = await offload(count, plan_of, request, temporal, inputs, prediction)
-    rows = await run_plan(temporal.engines[request.temporal], plan, TRANSPORT)
+    rows = await run_plan(temporal.engines[request.temporal], plan, TRANSPORT, source=source)
     return await offload(count, temporal_body, engine.lifter.info, inputs, prediction, rows, request)
