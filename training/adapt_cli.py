@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE
 from repnet.runtime.loading import BUNDLED_MODEL
 from repnet.train import checkpoint, lineage
 from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
@@ -112,6 +113,12 @@ def run(
         torch.set_num_threads(args.threads)
     if args.output.suffix != ".onnx":
         say(f"-o {args.output}: the adapted model is an .onnx file")
+        return 2
+    if not args.output.parent.is_dir():
+        say(f"-o {args.output}: the folder {args.output.parent} does not exist")
+        return 2
+    if args.model_id is None and MODEL_ID.fullmatch(args.output.stem) is None:
+        say(f"-o {args.output}: its name is the model id, which must be {MODEL_ID_RULE}; give --model-id")
         return 2
     held = split_holdout(list(counts), args.holdout_fraction)
     train = (points[~held], visible[~held])

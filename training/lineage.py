@@ -107,14 +107,18 @@ def path_free_path(value: str, root: Path | None) -> str:
     return path.name or value
 
 
-# A path in a command line: a word (or the value of --flag=) that starts with / or ~.
+# A path in a command line: a word (or the value of --flag=) that starts with / or ~, bare or
+# quoted as a shell quotes it (shlex.join quotes a path with a space: '/tmp/my models/a.onnx').
 _PATH_WORD = re.compile(r"(?:(?<=\s)|(?<==)|^)[~/][^\s;'\"]*")
+_QUOTED_PATH_WORD = re.compile(r"""(?:(?<=\s)|(?<==)|^)(['"])([~/][^'"]*)\1""")
 
 
 def path_free(command: str, root: Path | None) -> str:
-    """A command line with every absolute path made path_free_path, the rest kept as written:
-    what a lineage records, so no model tells where it was trained."""
-    return _PATH_WORD.sub(lambda match: path_free_path(match[0], root), command)
+    """A command line with every absolute path made path_free_path (quoted ones too, quoted again
+    if they need it), the rest kept as written: what a lineage records, so no model tells where it
+    was trained."""
+    unquoted = _QUOTED_PATH_WORD.sub(lambda match: shlex.quote(path_free_path(match[2], root)), command)
+    return _PATH_WORD.sub(lambda match: path_free_path(match[0], root), unquoted)
 
 
 def command_line(argv: list[str], root: Path | None, module: str = "repnet.train.train") -> str:

@@ -17,7 +17,7 @@ import numpy as np
 from repnet.core.errors import echo
 from repnet.core.format_hints import alias_of, hint_for
 from repnet.core.formats import DEFAULT_FORMAT, FORMATS
-from repnet.core.inputs import Limits, PoseInput
+from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE, Limits, PoseInput
 from repnet.core.keypoints import prepare_poses
 from repnet.io.pose_file import Progress, read_input
 from repnet.io.poses import InputFileError, Poses
@@ -116,7 +116,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
     adapt.add_argument("input", nargs="+", help="files, folders or globs `repnet lift` reads")
     adapt.add_argument("-o", "--output", type=Path, required=True, help="the adapted model (.onnx)")
     adapt.add_argument("--model", help="the model to adapt (an .onnx file; default: the bundled one)")
-    adapt.add_argument("--model-id", help="the adapted model's id (default: the output's name)")
+    adapt.add_argument(
+        "--model-id",
+        type=model_id_flag,
+        help=f"the adapted model's id (default: the output's name): {MODEL_ID_RULE}",
+    )
     adapt.add_argument(
         "--format", type=fmt, metavar="FORMAT", help="keypoint format (default: file's, h36m17)"
     )
@@ -127,7 +131,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
         metavar=("W", "H"),
         help="width and height in px of normalised [0, 1] inputs (MediaPipe rows)",
     )
-    adapt.add_argument("--confidence-threshold", type=float, help="joints below it count as missing")
+    adapt.add_argument(
+        "--confidence-threshold", type=threshold_flag, help="joints below it count as missing, in [0, 1]"
+    )
     adapt.add_argument(
         "--minutes",
         type=_positive(float),
@@ -176,8 +182,8 @@ def _positive(kind: type) -> Any:
             value = kind(text)
         except ValueError:
             value = None
-        if value is None or value <= 0:
-            raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}")
+        if value is None or not math.isfinite(value) or value <= 0:  # nan and inf are no limit
+            raise argparse.ArgumentTypeError(f"expected a finite number above 0, got {text!r}")
         return value
 
     return parse
@@ -196,6 +202,24 @@ def _between(low: float, high: float, what: str) -> Any:
         return value
 
     return parse
+
+
+def model_id_flag(text: str) -> str:
+    """--model-id: an id the service serves (core.inputs.MODEL_ID)."""
+    if MODEL_ID.fullmatch(text) is None:
+        raise argparse.ArgumentTypeError(f"expected {MODEL_ID_RULE}, got {text!r}")
+    return text
+
+
+def threshold_flag(text: str) -> float:
+    """--confidence-threshold: a number in [0, 1], as the service's rule (core.keypoints.check_threshold)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 <= value <= 1.0:  # nan fails both
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return value
 
 
 _non_negative = _between(0.0, math.inf, "a number >= 0")

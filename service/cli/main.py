@@ -13,7 +13,7 @@ from typing import Any, TextIO, TypeVar
 
 from repnet.cli import adapt
 from repnet.cli.adapt import add_parser as add_adapt_parser
-from repnet.cli.adapt import resolve_format
+from repnet.cli.adapt import resolve_format, threshold_flag
 from repnet.cli.flags import format_flag, fps_flag, intrinsics_flag, size_flag
 from repnet.cli.lift import (
     RemoteBackend,
@@ -70,7 +70,7 @@ def _progress(items: Sequence[T], unit: str) -> Iterable[T]:
 
 def run_lift(args: argparse.Namespace) -> int:
     if args.output is not None:
-        check_output(args.output)
+        check_output(args.output, args.overwrite)
     size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
     poses = read_input(args.input, lambda files: _progress(files, "file"), size)
     fmt = resolve_format(poses, args.format, args.input)
@@ -183,7 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="the model: a model_id the service serves (GET /v1/models; default: "
         "its default model), or with --local an ONNX file (default: the bundled one)",
     )
-    lift.add_argument("--confidence-threshold", type=float, help="joints below it count as missing")
+    lift.add_argument(
+        "--confidence-threshold", type=threshold_flag, help="joints below it count as missing, in [0, 1]"
+    )
     lift.add_argument(
         "--intrinsics",
         type=intrinsics_flag,
@@ -234,6 +236,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"output file by its suffix ({', '.join(WRITERS)}; default: JSON on stdout): .npz "
         "arrays named as the reply's fields, .csv a row per pose per joint, .bvh a skeleton "
         "animation per person (file.track-ID.bvh when several)",
+    )
+    lift.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing output file (default: refuse before lifting)",
     )
     plot = sub.add_parser("plot", help="draw a lift output: 2D input with reprojection, 3D from two sides")
     plot.add_argument("input", type=Path, help="output .json of `repnet lift`")

@@ -4,6 +4,7 @@ on."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -16,6 +17,10 @@ from repnet.core.formats import (
 from repnet.core.geometry import BoolArray, FloatArray
 
 # Below this spread (px) the visible joints count as one point: the input cannot be normalised.
+# A model id (a model file's metadata model_id, else its file name's stem): what a request's `model`
+# names and what logs, metrics and /v1/models show, so letters, digits, `.`, `_` and `-` only.
+MODEL_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+MODEL_ID_RULE = "1-64 letters, digits, '.', '_' or '-', starting with a letter or digit"
 MIN_SPREAD_PX = 1e-3
 
 

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import csv
+import glob
+import hashlib
 import io
 import json
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,18 +31,43 @@ class Lifted:
     poses: Poses
 
 
-def check_output(path: Path) -> None:
-    """InputFileError unless `path`'s suffix names a writer (checked before lifting)."""
+def check_output(path: Path, overwrite: bool = False) -> None:
+    """InputFileError unless `path`'s suffix names a writer, its folder exists and, unless
+    `overwrite`, no file it would write exists (a .bvh: the per-person files beside it too): checked
+    before lifting, so a long lift is not lost to a typo, nor an earlier output to a rerun."""
     if path.suffix.lower() not in WRITERS:
         raise InputFileError(
             f"-o {path}: unknown output suffix {path.suffix or '(none)'!r}; expected one of "
             f"{', '.join(WRITERS)}"
         )
+    if not path.parent.is_dir():
+        raise InputFileError(f"-o {path}: the folder {path.parent} does not exist")
+    if path.is_dir():
+        raise InputFileError(f"-o {path}: a folder, not a file")
+    if overwrite:
+        return
+    found = [path] if path.exists() else []
+    if path.suffix.lower() == ".bvh":
+        found += sorted(path.parent.glob(f"{glob.escape(path.stem)}.track-*{path.suffix}"))
+        found += sorted(path.parent.glob(f"{glob.escape(path.stem)}.person-*{path.suffix}"))
+    if found:
+        raise InputFileError(f"-o {path}: {found[0]} exists; --overwrite replaces it")
+
+
+def file_key(key: str) -> str:
+    """A person's key (track-<id> or person-<i>) as a file name part: characters other than letters,
+    digits, '.', '_' and '-' become '_' (a track id is the input's: '../x' or a NUL must not reach a
+    path), with a short hash of the key when anything was replaced, so two ids stay two files."""
+    safe = re.sub(r"[^A-Za-z0-9._-]", "_", key)
+    if safe == key:
+        return key
+    return f"{safe}-{hashlib.sha256(key.encode()).hexdigest()[:8]}"
 
 
 def write_output(path: Path, lifted: Lifted) -> list[Path]:
-    """Write `lifted` as `path`'s suffix says; the files written (a .bvh: one per person)."""
-    check_output(path)
+    """Write `lifted` as `path`'s suffix says, replacing what is there (the caller's check_output said
+    whether it may); the files written (a .bvh: one per person)."""
+    check_output(path, overwrite=True)
     return WRITERS[path.suffix.lower()](path, lifted)
 
 
@@ -172,7 +200,7 @@ def _write_bvh(path: Path, lifted: Lifted) -> list[Path]:
         frames = lifted.poses.frame[rows].astype(np.int64)
         if len(np.unique(frames)) != len(frames):
             raise InputFileError(f"{key}: several poses in one frame; give each person a track_id")
-        target = path if len(groups) == 1 else path.with_name(f"{path.stem}.{key}{path.suffix}")
+        target = path if len(groups) == 1 else path.with_name(f"{path.stem}.{file_key(key)}{path.suffix}")
         target.write_text(write_bvh(solve_motion(person_positions(results, frames), 1.0 / float(fps))))
         written.append(target)
     return written

@@ -16,6 +16,7 @@ import onnxruntime as ort
 from repnet.core import geometry
 from repnet.core.errors import InvalidKeypoints, ModelLoadError, Violation
 from repnet.core.geometry import BoolArray, FloatArray
+from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE
 from repnet.runtime.session import HasSessionOptions, open_session
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,17 @@ STAND_IN_CAMERA = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=np.float32)
 # axis, and its reprojection misses the input by at most this fraction of the input's spread.
 PERSON_EXTENT_MM = (300.0, 5000.0)
 MAX_REPROJECTION_SPREAD = 0.25
+
+
+def model_id_of(metadata: dict[str, str], path: Path) -> str:
+    """A model file's id: its metadata model_id, else its file name's stem; ModelLoadError naming the
+    file when that id breaks MODEL_ID_RULE."""
+    given = metadata.get("model_id")
+    model_id = given or path.stem
+    if MODEL_ID.fullmatch(model_id) is None:
+        where = "its metadata model_id" if given else "its file name (it has no metadata model_id)"
+        raise ModelLoadError(f"{path}: the model id {model_id!r} from {where} is not {MODEL_ID_RULE}")
+    return model_id
 
 
 def non_finite_rows(*arrays: np.ndarray) -> BoolArray:
@@ -155,7 +167,7 @@ def _read_info(session: ort.InferenceSession, path: Path) -> ModelInfo:
     except (KeyError, ValueError, TypeError) as err:
         raise ModelLoadError(f"{path}: metadata 'joint_names' must be a JSON list of names ({err})") from err
     return ModelInfo(
-        model_id=meta.get("model_id") or path.stem,
+        model_id=model_id_of(meta, path),
         skeleton=meta.get("skeleton", ""),
         joint_names=joint_names,
         parents=parents,

@@ -4,7 +4,6 @@ a person standing still), and files read safely (regular files of bounded size, 
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from pathlib import Path
 
@@ -15,7 +14,7 @@ from repnet.core.formats import MODEL_JOINTS
 from repnet.core.inputs import EXAMPLE_KEYPOINTS
 from repnet.runtime.lifter import Lifter
 from repnet.runtime.plans import camera_poses
-from repnet.runtime.session import HasSessionOptions
+from repnet.runtime.session import HasSessionOptions, model_sha256
 from repnet.runtime.temporal import TemporalLifter
 
 log = logging.getLogger(__name__)
@@ -39,8 +38,9 @@ def check_lifter(lifter: Lifter) -> Lifter:
 
 
 def file_sha256(path: Path) -> str:
-    """The sha256 of the file at `path` (what temporal models and lineage name a model by)."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """The sha256 of the model file at `path` (what temporal models and lineage name a model by):
+    a regular file of bounded size, read in chunks (session.model_sha256)."""
+    return model_sha256(path)
 
 
 def load_temporal_lifters(

@@ -1,12 +1,14 @@
 """An onnxruntime session of a model file: its options (threads, spinning), the file read safely (a regular
-file of bounded size), the graph outputs the service never reads cut at load."""
+file of bounded size, hashed in chunks), the graph outputs the service never reads cut at load."""
 
 from __future__ import annotations
 
+import hashlib
+import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import BinaryIO, Protocol
 
 import onnxruntime as ort
 
@@ -52,21 +54,41 @@ UNREAD_OUTPUTS = ("critic",)
 MAX_MODEL_BYTES = 512 * 1024 * 1024  # a model file larger than this is refused at load
 
 
-def read_model(path: Path) -> bytes:
-    """The bytes of the model file at `path`: a regular file (not a folder, FIFO or device) of at most
-    MAX_MODEL_BYTES; ModelLoadError saying why not."""
+def open_model_file(path: Path) -> BinaryIO:
+    """The model file at `path`, open for reading: a regular file (not a folder, FIFO or device; a
+    link is followed) of at most MAX_MODEL_BYTES; ModelLoadError saying why not. Opened without
+    blocking and checked open, so a FIFO cannot hang the start nor a file swapped after a check pass."""
     if path.is_dir():
         raise ModelLoadError(f"model path is a directory, not an ONNX file: {path}")
     try:
-        info = path.stat()
-    except OSError:
-        raise ModelLoadError(f"model file not found: {path}") from None
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as err:
+        if isinstance(err, FileNotFoundError):
+            raise ModelLoadError(f"model file not found: {path}") from None
+        raise ModelLoadError(f"cannot read model file {path}: {err.strerror}") from None
+    info = os.fstat(fd)
     if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
         raise ModelLoadError(f"{path}: not a regular file (a model is an .onnx file)")
     if info.st_size > MAX_MODEL_BYTES:
+        os.close(fd)
         raise ModelLoadError(f"{path}: {info.st_size} bytes, more than a model may have ({MAX_MODEL_BYTES})")
-    with path.open("rb") as f:
+    return os.fdopen(fd, "rb")
+
+
+def read_model(path: Path) -> bytes:
+    """The bytes of the model file at `path` (open_model_file's checks)."""
+    with open_model_file(path) as f:
         return f.read(MAX_MODEL_BYTES + 1)
+
+
+def model_sha256(path: Path) -> str:
+    """The sha256 of the model file at `path` (open_model_file's checks), read in chunks of 1 MiB."""
+    digest = hashlib.sha256()
+    with open_model_file(path) as f:
+        while block := f.read(1 << 20):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def without_unread_outputs(data: bytes) -> bytes:

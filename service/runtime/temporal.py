@@ -16,7 +16,7 @@ from repnet.core.errors import ModelLoadError
 from repnet.core.formats import MODEL_JOINTS
 from repnet.core.geometry import FloatArray
 from repnet.runtime.batcher import Batcher
-from repnet.runtime.lifter import non_finite_rows
+from repnet.runtime.lifter import model_id_of, non_finite_rows
 from repnet.runtime.session import HasSessionOptions, open_session
 
 log = logging.getLogger(__name__)
@@ -157,7 +157,7 @@ class TemporalLifter:
             )
         self.metadata = dict(session.get_modelmeta().custom_metadata_map)
         self.contract = read_contract(self.metadata, path)
-        self.model_id = self.metadata.get("model_id") or path.stem
+        self.model_id = model_id_of(self.metadata, path)
         self.base_model_sha256 = self.metadata.get("base_model_sha256", "")
 
     @classmethod

@@ -23,9 +23,9 @@ class Settings(BaseSettings):
     model_path: Path = Field(default=BUNDLED_MODEL, description="ONNX model file: the default model")
     model_dir: Path | None = Field(
         default=None,
-        description="folder of more single-frame ONNX models (`*.onnx`) served beside `model_path`, which "
-        "stays the default; a request names one by its `model_id` (`GET /v1/models`). Each is checked at "
-        "start: one that fails stops the start (see [Several models](#several-models))",
+        description="folder of more single-frame ONNX models (`*.onnx`, any case) served beside "
+        "`model_path`, which stays the default; a request names one by its `model_id` (`GET /v1/models`). "
+        "Each is checked at start: one that fails stops the start (see [Several models](#several-models))",
     )
     host: str = Field(
         default="127.0.0.1",

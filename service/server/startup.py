@@ -4,6 +4,7 @@ temporal models (trained on the default one's answers) behind their batchers."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 from repnet.core.errors import ModelLoadError
 from repnet.runtime import loading
@@ -25,7 +26,7 @@ def load_lifter(settings: Settings) -> Lifter:
 
 
 def load_dir_lifters(settings: Settings, default: Lifter) -> list[Lifter]:
-    """The single-frame models of settings.model_dir (*.onnx, by file name), each checked as the
+    """The single-frame models of settings.model_dir (model_files), each checked as the
     default is, beside `default`. A file that fails to load or its check stops the start
     (ModelLoadError, one line naming the file): a service that quietly serves fewer models than
     its operator put there would answer `unknown model` to the clients that name the missing one.
@@ -39,12 +40,12 @@ def load_dir_lifters(settings: Settings, default: Lifter) -> list[Lifter]:
         raise ModelLoadError(f"REPNET_MODEL_DIR {directory} is not a directory")
     loaded = {default.info.model_id: (default.path, file_sha256(default.path))}
     found = []
-    for path in sorted(directory.glob("*.onnx")):
-        digest = file_sha256(path)
-        if same := [m for m, (_, d) in loaded.items() if d == digest]:
-            log.info("%s: the same file as model %s, served once", path, same[0])
-            continue
+    for path in model_files(directory):
         try:
+            digest = file_sha256(path)
+            if same := [m for m, (_, d) in loaded.items() if d == digest]:
+                log.info("%s: the same file as model %s, served once", path, same[0])
+                continue
             session = open_session(path, settings)
             if session.get_modelmeta().custom_metadata_map.get("kind") == "temporal":
                 log.info("%s: a temporal model, not served by name (REPNET_CAUSAL_MODEL_PATH, ...)", path)
@@ -61,6 +62,14 @@ def load_dir_lifters(settings: Settings, default: Lifter) -> list[Lifter]:
         loaded[lifter.info.model_id] = (path, digest)
         found.append(lifter)
     return found
+
+
+def model_files(directory: Path) -> list[Path]:
+    """The model files of a model folder: its entries named *.onnx in any case (`UPPER.ONNX` too), by
+    name. Hidden files (a leading dot) are left out; what each entry is (a regular file of bounded
+    size) is checked when it is read (runtime.session.open_model_file)."""
+    found = [p for p in directory.iterdir() if p.suffix.lower() == ".onnx" and not p.name.startswith(".")]
+    return sorted(found)
 
 
 def load_temporal_lifters(settings: Settings, lifter: Lifter) -> dict[str, TemporalLifter]:

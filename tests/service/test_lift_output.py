@@ -137,6 +137,35 @@ def test_an_unknown_suffix_is_refused_before_lifting(
     assert "unknown output suffix '.txt'" in err and ".json, .npz, .csv, .bvh" in err and not out.exists()
 
 
+def test_a_missing_folder_or_an_existing_output_is_refused_before_lifting(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    clip = _clip(tmp_path, frames=3)
+    missing = tmp_path / "no such folder" / "out.json"
+    assert main(["lift", str(clip), "--local", "-o", str(missing)]) == EXIT_USAGE
+    assert "does not exist" in capsys.readouterr().err
+    out = tmp_path / "out.json"
+    out.write_text("an earlier lift")
+    assert main(["lift", str(clip), "--local", "-o", str(out)]) == EXIT_USAGE
+    assert "--overwrite" in capsys.readouterr().err and out.read_text() == "an earlier lift"
+    assert main(["lift", str(clip), "--local", "-o", str(out), "--overwrite"]) == EXIT_OK
+    assert json.loads(out.read_text())["poses"]
+    (tmp_path / "anim.track-a.bvh").write_text("kept")  # a per-person file an earlier .bvh lift wrote
+    assert main(["lift", str(clip), "--local", "-o", str(tmp_path / "anim.bvh")]) == EXIT_USAGE
+    assert "anim.track-a.bvh exists" in capsys.readouterr().err
+
+
+def test_hostile_track_ids_make_safe_distinct_file_names(tmp_path: Path) -> None:
+    tracks = ("../up", "a\x00b", "a/b", "a_b", "x" * 128)
+    clip = _clip(tmp_path, tracks=tracks, frames=3)
+    (tmp_path / "out").mkdir()
+    assert main(["lift", str(clip), "--local", "-o", str(tmp_path / "out" / "m.bvh")]) == EXIT_OK
+    written = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert len(written) == len(tracks) and all(name.startswith("m.track-") for name in written), written
+    assert "m.track-a_b.bvh" in written  # a safe id is kept as it is; "a/b" gets a hash beside it
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.json", "out"]  # nothing escaped
+
+
 def test_readme_export_snippet_runs_as_written(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Each `repnet` line of docs/API.md's export block, run in a folder holding a tracked clip.json."""
     import shlex

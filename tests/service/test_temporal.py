@@ -248,6 +248,7 @@ def test_stream_track_rules_give_frame_and_person_errors(temporal: Temporal) -> 
     people = results[6].people
     assert [p.WhichOneof("result") for p in people] == ["pose", "pose", "error"]
     assert people[2].error.violations[0].code == "too_many_tracks"
+    assert people[2].error.code == grpc.StatusCode.RESOURCE_EXHAUSTED.value[0]  # a quota, not bad input
 
 
 def test_a_streams_tracks_are_freed_when_it_ends(temporal: Temporal) -> None:

@@ -160,6 +160,31 @@ def test_bad_flags_are_named(
     assert exit_info.value.code == 2 and "--holdout-fraction" in capsys.readouterr().err
     assert adapt(poses_file, parent, tmp_path / "a.json") == 2
     assert ".onnx" in capsys.readouterr().err
+    flags = [("--minutes", "nan"), ("--minutes", "inf"), ("--confidence-threshold", "-1"),
+             ("--confidence-threshold", "2"), ("--confidence-threshold", "nan"), ("--model-id", "a b"),
+             ("--model-id", "<x>")]  # fmt: skip
+    for flag, value in flags:
+        with pytest.raises(SystemExit) as exit_info:
+            adapt(poses_file, parent, tmp_path / "a.onnx", flag, value)
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and flag in err and repr(value) in err, (flag, value, err)
+    assert adapt(poses_file, parent, tmp_path / "missing" / "a.onnx") == 2  # before any training
+    assert "does not exist" in capsys.readouterr().err
+    assert adapt(poses_file, parent, tmp_path / "my model.onnx") == 2  # its name is no model id
+    assert "--model-id" in capsys.readouterr().err
+
+
+def test_the_lineage_names_no_path_of_the_machine_quoted_or_not(
+    poses_file: Path, parent: Path, tmp_path: Path
+) -> None:
+    folder = tmp_path / "my models"  # a space: the command line quotes it
+    folder.mkdir()
+    out = folder / "mine.onnx"
+    flags = ["--steps", "1", "--run-dir", str(tmp_path / "a run"), "--force", "--model-id", "mine"]
+    assert adapt(poses_file, parent, out, *flags) == 0
+    meta = read_metadata(out)
+    assert str(tmp_path) not in meta["lineage"] and "/tmp" not in meta["lineage"], meta["lineage"]
+    assert "mine.onnx" in json.loads(meta["lineage"])["command"]
 
 
 def test_holdout_is_the_tail_of_each_input() -> None:

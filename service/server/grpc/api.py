@@ -30,7 +30,7 @@ from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
 from repnet.runtime.pipeline import Job, Lifted
 from repnet.runtime.plans import TemporalModels
-from repnet.runtime.tracks import fps_violations
+from repnet.runtime.tracks import TrackLimitReached, fps_violations
 from repnet.server.grpc.input import image_size_violations, intrinsics_violations, to_pose_input
 from repnet.server.metrics import OVERLOADED, Metrics, outcome_of
 from repnet.server.stream import (
@@ -61,7 +61,10 @@ def status_message(err: Exception) -> str:
 
 
 def status_of(err: LiftError) -> grpc.StatusCode:
-    """The status code a core error is answered with."""
+    """The status code a core error is answered with (a track refused for a limit on open tracks:
+    RESOURCE_EXHAUSTED, as a quota is, though it names its field as a bad input does)."""
+    if isinstance(err, TrackLimitReached):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED
     if isinstance(err, InvalidKeypoints):
         return grpc.StatusCode.INVALID_ARGUMENT
     if isinstance(err, Overloaded):
