@@ -99,7 +99,7 @@ def echo_bound(service: ServiceProcess) -> str:
 def body_limit(service: ServiceProcess) -> str:
     """A 6 MiB body written whole before reading: its 413 arrives."""
     body = b"[" + b"0," * (3 * 1024 * 1024) + b"0]"
-    head = b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: %d\r\n\r\n" % len(body)
+    head = b"POST /lift HTTP/1.1\r\nhost: 127.0.0.1\r\ncontent-length: %d\r\n\r\n" % len(body)
     answer = _raw(service, head + body)
     assert answer.startswith(b"HTTP/1.1 413 "), answer[:100]
     return "6 MiB body written whole before reading: 413"
@@ -107,8 +107,10 @@ def body_limit(service: ServiceProcess) -> str:
 
 def pipelining(service: ServiceProcess) -> str:
     """Three requests in one write: three answers, in order."""
-    one = b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n"
-    answer = _raw(service, one + one + b"GET /readyz HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n")
+    one = b"GET /healthz HTTP/1.1\r\nhost: 127.0.0.1\r\n\r\n"
+    answer = _raw(
+        service, one + one + b"GET /readyz HTTP/1.1\r\nhost: 127.0.0.1\r\nconnection: close\r\n\r\n"
+    )
     assert answer.count(b"HTTP/1.1 200 ") == 3 and answer.rfind(b'"ready"') > answer.rfind(b'"ok"'), answer
     return "3 requests in one write: 3 answers in order"
 
@@ -116,8 +118,8 @@ def pipelining(service: ServiceProcess) -> str:
 def request_smuggling(service: ServiceProcess) -> str:
     """Content-Length and Transfer-Encoding together: 400, and nothing behind it runs."""
     data = (
-        b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: 5\r\ntransfer-encoding: chunked\r\n\r\n"
-        b"0\r\n\r\nGET /metrics HTTP/1.1\r\nhost: x\r\n\r\n"
+        b"POST /lift HTTP/1.1\r\nhost: 127.0.0.1\r\ncontent-length: 5\r\ntransfer-encoding: chunked\r\n\r\n"
+        b"0\r\n\r\nGET /metrics HTTP/1.1\r\nhost: 127.0.0.1\r\n\r\n"
     )
     answer = _raw(service, data)
     assert answer.startswith(b"HTTP/1.1 400 ") and answer.count(b"HTTP/1.1") == 1, answer[:200]
@@ -184,7 +186,7 @@ def f1_surrogate_key(service: ServiceProcess) -> str:
 
 def f2_slow_bodies(service: ServiceProcess) -> str:
     """F2: 130 one-byte bodies: a normal /lift gets 200, each of them 408."""
-    head = b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: 1000\r\n\r\n{"
+    head = b"POST /lift HTTP/1.1\r\nhost: 127.0.0.1\r\ncontent-length: 1000\r\n\r\n{"
     socks = [socket.create_connection(("127.0.0.1", service.http_port), timeout=60) for _ in range(130)]
     try:
         for sock in socks:
@@ -223,7 +225,7 @@ def f4_idle_connections(service: ServiceProcess) -> str:
     socks = [socket.create_connection(("127.0.0.1", service.http_port), timeout=30) for _ in range(1200)]
     try:
         for sock in socks[1000:]:
-            sock.sendall(b"GET /readyz HTTP/1.1\r\nhost: x\r\nx-half: ab")
+            sock.sendall(b"GET /readyz HTTP/1.1\r\nhost: 127.0.0.1\r\nx-half: ab")
         start = time.perf_counter()
         ready = httpx.get(service.url + "/readyz", timeout=1).status_code
         serving = _serving(service)

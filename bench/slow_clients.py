@@ -92,7 +92,7 @@ def attacker(attack: str, host: str, port: int, duration: float) -> None:
     elif attack == "f3":
         plan = [(b"GET /readyz HTTP/1.1\r\nX-Long: ", b"a" * HEADER_CHUNK)] * 4
     else:
-        plan = [(b"", b"")] * 1000 + [(b"GET /readyz HTTP/1.1\r\nHost: x\r\nX-Half: ab", b"")] * 200
+        plan = [(b"", b"")] * 1000 + [(b"GET /readyz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Half: ab", b"")] * 200
 
     async def run() -> None:
         await asyncio.gather(*(_hold(host, port, first, trickle, stop) for first, trickle in plan))

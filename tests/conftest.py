@@ -170,7 +170,9 @@ def engine(engine_factory: Callable[..., LiftBatcher], lifter: Lifter) -> LiftBa
 
 @pytest.fixture
 def client(engine: LiftBatcher, metrics: Metrics, settings: Settings) -> Iterator[TestClient]:
-    with TestClient(build_app(engine, metrics, settings)) as client:
+    with TestClient(
+        build_app(engine, metrics, settings), base_url="http://localhost"
+    ) as client:  # a loopback Host
         yield client
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import glob
+import zipfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -183,11 +184,40 @@ def _read_json(data: Any) -> Poses:
     return replace(poses, fps=_fps(body))
 
 
+# What one input file may hold, so that a small file cannot take the machine's memory: an NPZ's
+# arrays once inflated (zip's deflate packs 1000:1, so the file's own size says little), and a JSON
+# file's text (Python's parser holds about 20x the text: 64 MiB of JSON peaks near 1.3 GB).
+MAX_NPZ_ARRAY_BYTES = 512 * 1024 * 1024
+MAX_JSON_BYTES = 64 * 1024 * 1024
+
+
+def check_input_size(path: Path) -> None:
+    """InputFileError naming `path` when it holds more than this reader takes (MAX_NPZ_ARRAY_BYTES,
+    MAX_JSON_BYTES), read from the zip directory or the file size before anything is loaded."""
+    if path.suffix == ".npz":
+        try:
+            with zipfile.ZipFile(path) as archive:  # zipfile reads an entry up to its declared size only
+                inflated = sum(entry.file_size for entry in archive.infolist())
+        except zipfile.BadZipFile as err:
+            raise InputFileError(f"{path}: not an NPZ file ({err})") from None
+        if inflated > MAX_NPZ_ARRAY_BYTES:
+            raise InputFileError(
+                f"{path}: its arrays hold {inflated} bytes once inflated, more than {MAX_NPZ_ARRAY_BYTES}; "
+                "split the input into several files"
+            )
+    elif path.suffix == ".json" and (size := path.stat().st_size) > MAX_JSON_BYTES:
+        raise InputFileError(
+            f"{path}: {size} bytes of JSON, more than {MAX_JSON_BYTES}; write it as an .npz (binary, "
+            "10x smaller) or split it into several files"
+        )
+
+
 def load_poses(path: Path) -> Poses:
     """Poses from a .json (a pose, a list of poses, a POST /lift body or OpenPose output) or .npz
     (`keypoints` (N, J, 2|3|4) or (J, 2|3|4) with NaN for missing joints, optional `confidence`,
     `format`; 4 values are MediaPipe's [x, y, z, visibility], to scale by an image size)."""
     try:
+        check_input_size(path)
         if path.suffix == ".npz":
             with np.load(path, allow_pickle=False) as npz:
                 if "keypoints" not in npz:

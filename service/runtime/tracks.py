@@ -171,8 +171,11 @@ class TrackTable:
             raise TrackLimitReached([Violation(field, reason, "too_many_tracks")])
         capacity = track_capacity(self.contract, fps)
         if not self.budget.take(track_bytes(capacity)):
-            limit = self.budget.limit
-            reason = f"the server holds at most {limit} open tracks (REPNET_MAX_TRACKS); retry later"
+            budget = self.budget
+            reason = (
+                f"the server holds at most {budget.limit} open tracks (REPNET_MAX_TRACKS) and "
+                f"{budget.max_bytes} bytes of track state (REPNET_TRACK_MEMORY_MB); retry later"
+            )
             raise TrackLimitReached([Violation(field, reason, "too_many_tracks")])
         track = self.tracks[track_id] = Track(capacity, fps)
         return track
@@ -193,17 +196,21 @@ class TrackBudget:
     """The server's open tracks, over all streams, and the bytes they hold; `on_change(tracks,
     bytes)` is told each change (the gauges). Streams of every model's batcher share it: a lock."""
 
-    def __init__(self, limit: int, on_change: Callable[[int, int], None] | None = None) -> None:
+    def __init__(
+        self, limit: int, on_change: Callable[[int, int], None] | None = None, max_bytes: int | None = None
+    ) -> None:
         self.limit = limit
+        self.max_bytes = max_bytes  # the most the open tracks hold together (None: no bound but limit)
         self.open = 0
         self.bytes = 0
         self.on_change = on_change
         self._lock = threading.Lock()
 
     def take(self, nbytes: int) -> bool:
-        """Count one more track holding `nbytes`; False at the limit."""
+        """Count one more track holding `nbytes`; False at the limit on tracks or on their bytes."""
         with self._lock:
-            if self.open >= self.limit:
+            over_bytes = self.max_bytes is not None and self.bytes + nbytes > self.max_bytes
+            if self.open >= self.limit or over_bytes:
                 return False
             self.open += 1
             self.bytes += nbytes

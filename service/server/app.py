@@ -27,7 +27,7 @@ from repnet.runtime.lifter import Lifter
 from repnet.runtime.loading import file_sha256, known_poses
 from repnet.runtime.plans import TemporalModels
 from repnet.server.auth import ApiKeys
-from repnet.server.config import Settings
+from repnet.server.config import Settings, trusted_hosts
 from repnet.server.grpc.server import GrpcServer, create_server, read_tls
 from repnet.server.http.api import create_app
 from repnet.server.http.server import HttpServer, http_config, raise_open_file_limit
@@ -190,6 +190,7 @@ def build_app(
         ui=settings.ui,
         max_in_flight=settings.http_max_in_flight,
         api_keys=api_keys,
+        allowed_hosts=trusted_hosts(settings),
     )
 
 

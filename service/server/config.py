@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 from typing import Literal
 
@@ -32,6 +33,14 @@ class Settings(BaseSettings):
         description="address both servers bind to: this machine only, so that `repnet serve` on a "
         "workstation is not reachable from its network; the container image sets `0.0.0.0` so that the "
         "ports it publishes reach it (see [Container](#container-and-deployment))",
+    )
+    allowed_hosts: str | None = Field(
+        default=None,
+        description="`Host` header names the HTTP server answers, comma-separated (`*.example.com`: its "
+        "subdomains; `*`: any); another gets 400 `Invalid host header`. Unset: `localhost`, `127.0.0.1` and "
+        "`[::1]` while `host` is a loopback address (so that a web page elsewhere cannot reach the service "
+        "through DNS rebinding), any host otherwise (on a network, set it; behind a proxy that checks "
+        "`Host`, `*`)",
     )
     http_port: int = Field(default=8000, ge=0, le=65535, description="HTTP port (0: any free port)")
     grpc_port: int = Field(default=50051, ge=0, le=65535, description="gRPC port (0: any free port)")
@@ -177,6 +186,14 @@ class Settings(BaseSettings):
     )
     stream_max_tracks: int = Field(default=64, ge=1, description="most open tracks of one `LiftStream`")
     max_tracks: int = Field(default=4096, ge=1, description="most open tracks of all streams together")
+    track_memory_mb: int = Field(
+        default=128,
+        ge=1,
+        description="most MiB of state the open tracks of all streams hold together (a track at F fps "
+        "holds its window, about 0.65 x F KB: 20 KB at 30 fps, 157 KB at 240; the process's memory grows "
+        "about 1.4 times that); a new track beyond it, or beyond `max_tracks`, is refused "
+        "(`too_many_tracks`, `RESOURCE_EXHAUSTED`)",
+    )
     track_idle_s: float = Field(
         default=10.0, gt=0, description="a stream's track that gets no frame for this long is dropped"
     )
@@ -209,6 +226,22 @@ class Settings(BaseSettings):
                 f"({self.max_request_poses}), or the largest request could never be queued"
             )
         return self
+
+
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "[::1]")  # what a browser on this machine sends as Host
+
+
+def trusted_hosts(settings: Settings) -> list[str] | None:
+    """The Host names the HTTP server answers (settings.allowed_hosts; its default: LOOPBACK_NAMES for
+    a loopback bind); None: any."""
+    given = [h.strip() for h in (settings.allowed_hosts or "").split(",") if h.strip()]
+    if given:
+        return None if "*" in given else given
+    try:
+        loopback = ipaddress.ip_address(settings.host).is_loopback
+    except ValueError:  # a name, not an address
+        loopback = settings.host == "localhost"
+    return list(LOOPBACK_NAMES) if loopback else None
 
 
 def settings_table() -> str:

@@ -97,7 +97,7 @@ def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> Tempo
         )
         for mode, temporal in lifters.items()
     }
-    budget = TrackBudget(settings.max_tracks, metrics.set_tracks)
+    budget = TrackBudget(settings.max_tracks, metrics.set_tracks, settings.track_memory_mb << 20)
     return TemporalModels(
         engines,
         budget,

@@ -30,7 +30,8 @@ def service(lifter: Lifter) -> Iterator[Service]:
 def lift_request(shift: float) -> bytes:
     body = json.dumps({"poses": [{"keypoints": (POSE_2D + shift).tolist()}]}).encode()
     head = (
-        f"POST /lift HTTP/1.1\r\nHost: test\r\nContent-Type: application/json\r\nContent-Length: {len(body)}"
+        "POST /lift HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}"
     )
     return head.encode() + b"\r\n\r\n" + body
 

@@ -51,7 +51,7 @@ def test_an_over_limit_body_written_whole_before_reading_gets_its_413(
 ) -> None:
     body = b"[" + b"0," * (BODY_LIMIT // 2 + 4096) + b"0]"
     head = (
-        b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\n"
+        b"POST /lift HTTP/1.1\r\nhost: 127.0.0.1\r\ncontent-type: application/json\r\n"
         b"content-length: %d\r\n\r\n" % len(body)
     )
     with socket.create_connection(("127.0.0.1", service_process.http_port), timeout=30) as sock:

@@ -35,7 +35,7 @@ TIMEOUT_S = 2.0  # the header and body timeouts of the short-timer services belo
 
 def slow_body(port: int) -> socket.socket:
     sock = socket.create_connection(("127.0.0.1", port), timeout=30)
-    sock.sendall(b"POST /lift HTTP/1.1\r\nhost: x\r\ncontent-length: 1000\r\n\r\n{")
+    sock.sendall(b"POST /lift HTTP/1.1\r\nhost: 127.0.0.1\r\ncontent-length: 1000\r\n\r\n{")
     return sock
 
 
@@ -88,7 +88,7 @@ def test_connections_without_a_whole_request_are_closed_after_the_header_timeout
     silent = [socket.create_connection(("127.0.0.1", short_timers.http_port), timeout=30) for _ in range(100)]
     half = [socket.create_connection(("127.0.0.1", short_timers.http_port), timeout=30) for _ in range(20)]
     for sock in half:
-        sock.sendall(b"GET /readyz HTTP/1.1\r\nhost: x\r\nx-half: ab")
+        sock.sendall(b"GET /readyz HTTP/1.1\r\nhost: 127.0.0.1\r\nx-half: ab")
     try:
         assert [read_all(s) for s in silent] == [b""] * 100  # closed, with nothing to say
         assert all(read_all(s).startswith(b"HTTP/1.1 408 ") for s in half)
@@ -112,7 +112,7 @@ def test_at_ulimit_1024_a_thousand_idle_connections_leave_health_and_lift_answer
             for i in range(1200):
                 sock = socket.create_connection(("127.0.0.1", service.http_port), timeout=30)
                 if i >= 1000:
-                    sock.sendall(b"GET /readyz HTTP/1.1\r\nhost: x\r\nx-half: ab")
+                    sock.sendall(b"GET /readyz HTTP/1.1\r\nhost: 127.0.0.1\r\nx-half: ab")
                 idle.append(sock)
             assert len(os.listdir(f"/proc/{service.pid}/fd")) < 1024
             with grpc.insecure_channel(service.target) as channel:

@@ -29,7 +29,9 @@ BODIES = {
 
 @pytest.fixture
 def app_client(engine: LiftBatcher, metrics: Metrics, settings: Settings) -> TestClient:
-    return TestClient(build_app(engine, metrics, settings), raise_server_exceptions=False)
+    return TestClient(
+        build_app(engine, metrics, settings), raise_server_exceptions=False, base_url="http://localhost"
+    )
 
 
 @pytest.mark.parametrize("where", list(BODIES))

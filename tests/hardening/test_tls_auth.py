@@ -30,7 +30,7 @@ from repnet.client.http import LiftClient, LiftClientError
 from repnet.client.stream import StreamClient
 from repnet.runtime.lifter import Lifter
 from repnet.server import auth
-from repnet.server.app import Service
+from repnet.server.app import Service, main
 from repnet.server.auth import UNAUTHENTICATED_MESSAGE
 from repnet.server.config import Settings
 from tests.conftest import POSE_2D
@@ -224,6 +224,23 @@ def test_keys_are_compared_in_constant_time_and_never_logged(
     # every key compared on every try, whether the first matched or not, on digests of one length
     assert len(calls) == 4 * len(KEYS) and set(calls) == {(32, 32)}
     assert caplog.records and not any(k in record.getMessage() for record in caplog.records for k in KEYS)
+
+
+def test_a_key_that_is_not_the_certificates_says_so_at_start(
+    pki: Pki, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 30: the start failed with "cannot bind the gRPC server ... Failed to bind"."""
+    flags = ["--tls-cert", str(pki.server_cert), "--tls-key", str(pki.client_key)]
+    assert main([*flags, "--http-port", "0", "--grpc-port", "0", "--workers", "1"]) == 1
+    (line,) = [r.getMessage() for r in caplog.records if "cannot start" in r.getMessage()]
+    assert "the key does not match the certificate" in line and "bind" not in line, line
+    not_pem = pki.server_key.with_name("garbage.pem")
+    not_pem.write_text("not a key")
+    caplog.clear()
+    assert main(["--tls-cert", str(pki.server_cert), "--tls-key", str(not_pem), "--http-port", "0",
+                 "--grpc-port", "0", "--workers", "1"]) == 1  # fmt: skip
+    (line,) = [r.getMessage() for r in caplog.records if "cannot start" in r.getMessage()]
+    assert "garbage.pem" in line and "cannot be used together" in line, line
 
 
 def test_settings_refuse_half_a_tls_configuration(pki: Pki) -> None:

@@ -7,6 +7,7 @@ import json
 import shutil
 import socket
 import time
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from repnet.cli.main import (
     progress_bar,
 )
 from repnet.core.formats import FORMATS, MODEL_JOINTS, MODEL_PARENTS, from_model_joints
+from repnet.io import pose_file
 from tests.conftest import POSE_2D, POSE_3D, SMALL_TEMPORAL_POSES, TEMPORAL_MODES, LiveService, project
 
 
@@ -177,6 +179,30 @@ def test_bad_usage_exits_2_with_a_message(
     assert message in capsys.readouterr().err
 
 
+def test_files_that_would_take_the_machines_memory_are_refused_before_loading(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 30: a 1 MB NPZ inflating to 1.09 GB OOM-killed the CLI; a 200 MB JSON took 3.85 GB."""
+    bomb = tmp_path / "bomb.npz"  # 544 MB of zeros in a file of about 0.5 MB
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as archive:
+        with archive.open("keypoints.npy", "w", force_zip64=True) as member:
+            for _ in range(544):
+                member.write(bytes(1 << 20))
+    assert bomb.stat().st_size < 4 << 20
+    assert main(["lift", str(bomb), "--local"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "bomb.npz: its arrays hold 570425344 bytes once inflated, more than 536870912" in err
+    monkeypatch.setattr(pose_file, "MAX_JSON_BYTES", 1000)
+    big = tmp_path / "big.json"
+    big.write_text(json.dumps({"keypoints": POSE_2D.tolist(), "pad": "x" * 1000}))
+    assert main(["lift", str(big), "--local"]) == EXIT_USAGE
+    assert "big.json: 1" in capsys.readouterr().err  # its size named, and the way out (.npz)
+    fake = tmp_path / "fake.npz"
+    fake.write_text("not a zip")
+    assert main(["lift", str(fake), "--local"]) == EXIT_USAGE
+    assert "fake.npz: not an NPZ file" in capsys.readouterr().err
+
+
 def test_missing_model_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["lift", str(_coco_file(tmp_path)), "--local", "--model", str(tmp_path / "none.onnx")]
     assert main(args) == EXIT_USAGE
@@ -251,7 +277,7 @@ def test_a_missing_joint_is_echoed_as_missing(tmp_path: Path) -> None:
     rows: list[object] = np.concatenate([POSE_2D, np.full((17, 1), 0.8)], axis=1).tolist()
     rows[4] = None
     (tmp_path / "rows.json").write_text(json.dumps({"keypoints": rows}))
-    assert main(["lift", str(tmp_path / "rows.json"), "--local", "-o", str(out)]) == EXIT_OK
+    assert main(["lift", str(tmp_path / "rows.json"), "--local", "-o", str(out), "--overwrite"]) == EXIT_OK
     echoed = json.loads(out.read_text())["poses"][0]["input"]
     assert echoed["keypoints"][4] is None and echoed["confidence"][4] is None
     assert echoed["confidence"][3] == 0.8
@@ -267,7 +293,7 @@ def test_lift_warns_on_stderr_when_the_format_looks_wrong(
     err = capsys.readouterr().err
     assert "repnet: warning: 3 of 3 poses: format: these keypoints look like coco17, not h36m17" in err
     assert all(p["warnings"] for p in json.loads(out.read_text())["poses"])
-    assert main(["lift", str(_coco_file(tmp_path)), "--local", "-o", str(out)]) == EXIT_OK
+    assert main(["lift", str(_coco_file(tmp_path)), "--local", "-o", str(out), "--overwrite"]) == EXIT_OK
     assert "warning" not in capsys.readouterr().err
 
 
@@ -308,7 +334,7 @@ def test_lift_reports_progress_over_files_and_poses(tmp_path: Path, monkeypatch:
 
     monkeypatch.setattr(cli, "progress_bar", Bar)
     folder, out = _openpose_folder(tmp_path), tmp_path / "out.json"
-    args = ["lift", str(folder), "--local", "--batch-size", "2", "-o", str(out)]
+    args = ["lift", str(folder), "--local", "--batch-size", "2", "-o", str(out), "--overwrite"]
     assert main([*args, "--temporal", "off"]) == EXIT_OK
     assert bars == [(3, "file", [1, 1, 1]), (3, "pose", [2, 1])]
     bars.clear()
@@ -537,7 +563,7 @@ def test_mediapipe_rows_need_an_image_size_and_lift_with_the_flag_as_with_the_bo
     np.savez(npz := tmp_path / "landmarks.npz", keypoints=np.array([rows]), format=np.array("mediapipe33"))
     sized_flag = ["--image-size", "1280", "720"]
     for args in ([str(bare), *sized_flag], [str(body)], [str(npz), *sized_flag]):
-        assert main(["lift", *args, "--local", "-o", str(tmp_path / "out.json")]) == EXIT_OK
+        assert main(["lift", *args, "--local", "-o", str(tmp_path / "out.json"), "--overwrite"]) == EXIT_OK
         answers.append(json.loads((tmp_path / "out.json").read_text())["poses"][0])
     assert answers[0]["reprojection"] == answers[1]["reprojection"] == answers[2]["reprojection"]
     np.testing.assert_allclose(answers[0]["input"]["keypoints"][11], pixels[11], atol=1e-6)  # left shoulder

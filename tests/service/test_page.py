@@ -55,7 +55,7 @@ def test_ui_false_serves_the_api_alone(
 ) -> None:
     monkeypatch.setenv("REPNET_UI", "false")
     assert Settings().ui is False
-    with TestClient(build_app(engine, metrics, Settings())) as client:
+    with TestClient(build_app(engine, metrics, Settings()), base_url="http://localhost") as client:
         assert client.get("/").status_code == 404 and client.get("/ui/page.js").status_code == 404
         assert client.get("/healthz").status_code == 200
 
@@ -370,6 +370,31 @@ def test_npz_upload_is_read_as_the_cli_reads_it(driver: Any, page_url: str, tmp_
     assert text_of(driver, "frame-label") == "frame 1 (2 / 3)"
     assert_numbers_match(shown_numbers(driver), reply["poses"][1], reply["joints"])
     assert "left_wrist" in text_of(driver, "num-imputed")
+
+
+def test_an_npz_that_inflates_past_the_limit_is_refused_unread(
+    driver: Any, page_url: str, tmp_path: Path
+) -> None:
+    """A small NPZ of a huge array (zeros deflate 1000:1) is refused by its zip directory's sizes
+    before anything is inflated (issue 30: the page froze at 2.7 GB); the page goes on working."""
+    from selenium.webdriver.common.by import By
+
+    limit = httpx.get(f"{page_url}/v1/model", timeout=10).json()["limits"]["max_body_bytes"]
+    path = tmp_path / "bomb.npz"
+    np.savez_compressed(path, keypoints=np.zeros((4 * limit // (17 * 2 * 8) + 1, 17, 2)))
+    assert path.stat().st_size < limit  # the file itself passes the size check
+    open_page(driver, page_url)
+    driver.find_element(By.ID, "file").send_keys(str(path))
+    wait_for(driver, "return document.getElementById('file-error').textContent.length > 0")
+    assert f"more than the {4 * limit} this page reads" in text_of(driver, "file-error")
+    driver.save_screenshot(str(SHOTS / "error-npz-inflated.png"))
+    small = tmp_path / "poses.npz"
+    np.savez_compressed(small, keypoints=np.stack([detector_pose("coco17", 0.0)]), format=np.array("coco17"))
+    before = lifts(driver)
+    driver.execute_script("document.getElementById('file').value = '';")  # a new pick, not one more file
+    driver.find_element(By.ID, "file").send_keys(str(small))
+    wait_lift(driver, before)
+    assert text_of(driver, "file-error") == ""
 
 
 def test_bad_inputs_show_the_api_error_next_to_the_field(driver: Any, page_url: str, tmp_path: Path) -> None:

@@ -135,7 +135,7 @@ def app_for(
 
     def build(model: Lifter) -> TestClient:
         engine = engine_factory(model, max_batch=4)  # a 10-pose request runs in three chunks
-        client = TestClient(build_app(engine, metrics, settings))
+        client = TestClient(build_app(engine, metrics, settings), base_url="http://localhost")
         clients.append(client.__enter__())
         return client
 

@@ -54,7 +54,7 @@ def temporal_service(lifter: Lifter, settings: Settings) -> Iterator[Temporal]:
     server.start()
     channel = grpc.insecure_channel(f"localhost:{server.port}")
     try:
-        with TestClient(build_app(engine, metrics, settings, models)) as client:
+        with TestClient(build_app(engine, metrics, settings, models), base_url="http://localhost") as client:
             yield Temporal(client, lifter_pb2_grpc.PoseLifterStub(channel), models, metrics)  # type: ignore[no-untyped-call]
     finally:
         channel.close()

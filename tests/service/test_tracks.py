@@ -11,6 +11,7 @@ from repnet.runtime.tracks import (
     Observation,
     Track,
     TrackBudget,
+    TrackLimitReached,
     TrackTable,
     clip_windows,
     track_bytes,
@@ -65,6 +66,23 @@ def test_the_budget_counts_each_tracks_own_bytes() -> None:
     assert budget.bytes == track_bytes(97) + track_bytes(385)
     table.close()
     assert budget.open == 0 and budget.bytes == 0
+
+
+def test_the_budget_refuses_a_track_past_its_bytes_whatever_its_count() -> None:
+    """REPNET_TRACK_MEMORY_MB: tracks at 240 fps hold 8x a 30 fps track's state, so a count alone
+    does not bound memory (issue 30: 4,096 tracks at 240 fps held 644 MB)."""
+    budget = TrackBudget(limit=100, max_bytes=2 * track_bytes(385) + track_bytes(49))
+    table = TrackTable(CONTRACT, per_stream=100, idle_s=10.0, budget=budget)
+    table.get("a", 240.0, "pose")
+    table.get("b", 240.0, "pose")
+    with pytest.raises(TrackLimitReached) as refused:
+        table.get("c", 240.0, "people[2].track_id")
+    (violation,) = refused.value.violations
+    assert violation.field == "people[2].track_id" and "REPNET_TRACK_MEMORY_MB" in violation.reason
+    table.get("c", 30.0, "pose")  # a smaller window still fits
+    assert budget.open == 3 and budget.bytes <= budget.max_bytes
+    table.close()
+    assert budget.bytes == 0
 
 
 def reference_offline(frames: list[int], fps: float, contract: Contract) -> tuple[list[np.ndarray], ...]:

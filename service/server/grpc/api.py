@@ -13,12 +13,9 @@ import grpc
 from repnet._proto.repnet.v1 import lifter_pb2
 from repnet.core.contract import MAX_FRAME, MAX_TRACK_ID
 from repnet.core.errors import (
-    MAX_ERROR_ITEMS,
     InvalidKeypoints,
     LiftError,
-    ModelNotReady,
     ModelOutputError,
-    Overloaded,
     Violation,
     clip,
 )
@@ -30,7 +27,8 @@ from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
 from repnet.runtime.pipeline import Job, Lifted
 from repnet.runtime.plans import TemporalModels
-from repnet.runtime.tracks import TrackLimitReached, fps_violations
+from repnet.runtime.tracks import fps_violations
+from repnet.server.grpc.errors import ErrorRoom, frame_error, status_message, status_of
 from repnet.server.grpc.input import image_size_violations, intrinsics_violations, to_pose_input
 from repnet.server.metrics import OVERLOADED, Metrics, outcome_of
 from repnet.server.stream import (
@@ -50,28 +48,8 @@ TRANSPORT = "grpc"
 SERVICE_NAME = lifter_pb2.DESCRIPTOR.services_by_name["PoseLifter"].full_name
 # The longest status message: it travels in a header, and one over grpc's metadata limit (8 KiB
 # soft, 16 KiB hard, after percent-encoding) reaches the client as RESOURCE_EXHAUSTED instead.
-MAX_STATUS_CHARS = 1000
 INTERNAL_MESSAGE = "internal error while lifting; this is a server fault"
 Context = grpc.aio.ServicerContext[Any, Any]
-
-
-def status_message(err: Exception) -> str:
-    """An error's message, cut to fit a status header."""
-    return clip(str(err), MAX_STATUS_CHARS)
-
-
-def status_of(err: LiftError) -> grpc.StatusCode:
-    """The status code a core error is answered with (a track refused for a limit on open tracks:
-    RESOURCE_EXHAUSTED, as a quota is, though it names its field as a bad input does)."""
-    if isinstance(err, TrackLimitReached):
-        return grpc.StatusCode.RESOURCE_EXHAUSTED
-    if isinstance(err, InvalidKeypoints):
-        return grpc.StatusCode.INVALID_ARGUMENT
-    if isinstance(err, Overloaded):
-        return grpc.StatusCode.RESOURCE_EXHAUSTED
-    if isinstance(err, ModelNotReady):
-        return grpc.StatusCode.UNAVAILABLE
-    return grpc.StatusCode.INTERNAL
 
 
 def frame_violations(message: lifter_pb2.LiftFrame, max_people: int) -> list[Violation]:
@@ -102,21 +80,6 @@ def frame_violations(message: lifter_pb2.LiftFrame, max_people: int) -> list[Vio
             reason = f"a tracked frame's number is at most {MAX_FRAME} (2^53 - 1), got {message.frame_id}"
             found.append(Violation("frame_id", reason, "frame_range"))
     return found
-
-
-def frame_error(err: LiftError) -> lifter_pb2.FrameError:
-    """A stream frame's error result: the status code, message and violations Lift would give."""
-    violations = err.violations if isinstance(err, InvalidKeypoints) else ()
-    return lifter_pb2.FrameError(
-        code=status_of(err).value[0],
-        message=status_message(err),
-        violations=[
-            lifter_pb2.FieldViolation(
-                field=v.field, reason=v.reason, code=v.code, joint_name=v.joint_name or "", joint=v.joint
-            )
-            for v in violations[:MAX_ERROR_ITEMS]
-        ],
-    )
 
 
 def proto_replies(lifted: Lifted) -> list[lifter_pb2.PoseResult]:
@@ -315,10 +278,11 @@ class PoseLifterServicer:
                 result.error.CopyFrom(frame_error(answer.outcome))
             elif answer.outcome is not None:
                 result.pose.CopyFrom(poses[answer.outcome])
+            room = ErrorRoom()  # shared by the frame's people
             for person, outcome in zip(answer.frame.people or (), answer.people, strict=True):
                 item = result.people.add(track_id=person.track_id)
                 if isinstance(outcome, LiftError):
-                    item.error.CopyFrom(frame_error(outcome))
+                    item.error.CopyFrom(frame_error(outcome, room))
                 else:
                     item.pose.CopyFrom(poses[outcome])
             out.append((result, answer))

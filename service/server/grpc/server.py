@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 import threading
 from collections.abc import Awaitable, Callable, Coroutine
 from concurrent import futures
@@ -145,9 +146,18 @@ class GrpcTls:
 
 def read_tls(cert: Path | None, key: Path | None, client_ca: Path | None) -> GrpcTls | None:
     """The TLS of PEM files as read now (None without a certificate: plaintext); OSError if one
-    cannot be read."""
+    cannot be read, or saying so when the key is not the certificate's (checked here with Python's
+    ssl, the check HTTPS makes: grpc would only say that it failed to bind)."""
     if cert is None or key is None:
         return None
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(cert, key)
+    except ssl.SSLError as err:
+        why = "the key does not match the certificate" if "MISMATCH" in str(err).upper() else "not PEM"
+        raise OSError(
+            f"TLS: REPNET_TLS_CERT {cert} and REPNET_TLS_KEY {key} cannot be used together: {why} "
+            f"({err.reason})"
+        ) from None
     return GrpcTls(cert.read_bytes(), key.read_bytes(), None if client_ca is None else client_ca.read_bytes())
 
 

@@ -12,6 +12,7 @@ import pydantic_core
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from repnet.core.errors import InvalidKeypoints, Violation
 from repnet.core.formats import FORMATS
@@ -144,10 +145,17 @@ def _body(info: ModelInfo, lifted: Lifted) -> bytes:
 
 
 def add_middleware(
-    app: FastAPI, metrics: Metrics, *, max_body_bytes: int, max_in_flight: int, api_keys: ApiKeys | None
+    app: FastAPI,
+    metrics: Metrics,
+    *,
+    max_body_bytes: int,
+    max_in_flight: int,
+    api_keys: ApiKeys | None,
+    allowed_hosts: list[str] | None,
 ) -> None:
-    """The middleware around every route, outermost first: reply headers, /lift metrics, API keys,
-    the body limit (while the body is read), the in-flight bound (once the body arrived)."""
+    """The middleware around every route, outermost first: the Host allow-list (None: any), reply
+    headers, /lift metrics, API keys, the body limit (while the body is read), the in-flight bound
+    (once the body arrived)."""
     # Each add wraps the ones before: the last added runs first.
     app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
     app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
@@ -155,6 +163,8 @@ def add_middleware(
         app.add_middleware(ApiKeyMiddleware, keys=api_keys)
     app.add_middleware(LiftMetricsMiddleware, metrics=metrics)
     app.add_middleware(SecurityHeadersMiddleware)
+    if allowed_hosts is not None:  # Starlette's check (IPv6 literals and ports parsed), no redirects
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts, www_redirect=False)
 
 
 def create_app(
@@ -167,12 +177,13 @@ def create_app(
     max_in_flight: int,
     api_keys: ApiKeys | None = None,
     temporal: TemporalModels | None = None,
+    allowed_hosts: list[str] | None = None,
 ) -> FastAPI:
     """The FastAPI app; it shares `engine` (one model's batcher, or a Catalog of several: a
     request's `model` picks one) with the gRPC server, and so the onnxruntime sessions. `ui`: also
     serve the web page at GET / (service/page.py). Beyond `max_in_flight` POST /lift
     requests in progress, the next is answered 503 at once. `api_keys`: POST /lift and /v1/* need
-    one of them (None: open)."""
+    one of them (None: open). `allowed_hosts`: the Host names answered (None: any)."""
     models = Catalog.of(engine, temporal is not None)
     app = FastAPI(
         title="RepNet pose lifting",
@@ -186,7 +197,12 @@ def create_app(
         redoc_url=None,
     )
     add_middleware(
-        app, metrics, max_body_bytes=max_body_bytes, max_in_flight=max_in_flight, api_keys=api_keys
+        app,
+        metrics,
+        max_body_bytes=max_body_bytes,
+        max_in_flight=max_in_flight,
+        api_keys=api_keys,
+        allowed_hosts=allowed_hosts,
     )
     add_error_handlers(app, metrics)
 

@@ -336,7 +336,8 @@ function liftFiles() {
       return;
     }
   }
-  run("file", () => parseFiles(files));
+  // An NPZ's arrays, inflated, may hold at most 4x a /lift body: their JSON is about as large.
+  run("file", () => parseFiles(files, 4 * state.model.limits.max_body_bytes));
 }
 
 function liftPaste() {

@@ -186,10 +186,11 @@ export function parseText(text) {
 
 // Several OpenPose files are the frames of one video, numbered by the last number in their names
 // (OpenPose numbers them), else in file-name order.
-export async function parseFiles(files) {
+// maxBytes: the most an NPZ's arrays may hold once inflated (its size as a file says little).
+export async function parseFiles(files, maxBytes = Infinity) {
   const sorted = [...files].sort((a, b) => a.name.localeCompare(b.name, undefined, { numeric: true }));
   if (sorted.length === 1 && sorted[0].name.toLowerCase().endsWith(".npz")) {
-    return parseNpz(new Uint8Array(await sorted[0].arrayBuffer()));
+    return parseNpz(new Uint8Array(await sorted[0].arrayBuffer()), maxBytes);
   }
   const frames = [];
   for (const file of sorted) {
@@ -212,12 +213,24 @@ export async function parseFiles(files) {
 
 // ---- NPZ: a zip archive (stored or deflated, zip64 sizes as numpy writes them) of .npy arrays ----
 
-async function inflate(bytes) {
-  const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("deflate-raw"));
-  return new Uint8Array(await new Response(stream).arrayBuffer());
+// An entry inflated, stopped as soon as it passes the size its zip directory declares.
+async function inflate(bytes, declared, name) {
+  const reader = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("deflate-raw")).getReader();
+  const out = new Uint8Array(declared);
+  let filled = 0;
+  for (let part = await reader.read(); !part.done; part = await reader.read()) {
+    if (filled + part.value.length > declared) {
+      await reader.cancel();
+      throw new InputError(`${name}: inflates to more than the ${declared} bytes its zip entry declares`);
+    }
+    out.set(part.value, filled);
+    filled += part.value.length;
+  }
+  return out.subarray(0, filled);
 }
 
-async function unzip(bytes) {
+// The zip's entries, each inflated only while all declared sizes together are at most maxBytes.
+async function unzip(bytes, maxBytes) {
   const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
   let end = bytes.length - 22;
   while (end >= 0 && view.getUint32(end, true) !== 0x06054b50) end -= 1;
@@ -225,10 +238,12 @@ async function unzip(bytes) {
   const count = view.getUint16(end + 10, true);
   let at = view.getUint32(end + 16, true);
   const entries = {};
+  let total = 0;
   for (let i = 0; i < count; i += 1) {
     if (view.getUint32(at, true) !== 0x02014b50) throw new InputError("damaged NPZ file");
     const method = view.getUint16(at + 10, true);
     let size = view.getUint32(at + 20, true);
+    let rawSize = view.getUint32(at + 24, true);
     let offset = view.getUint32(at + 42, true);
     const nameLength = view.getUint16(at + 28, true);
     const extraLength = view.getUint16(at + 30, true);
@@ -236,12 +251,11 @@ async function unzip(bytes) {
     const name = new TextDecoder().decode(bytes.subarray(at + 46, at + 46 + nameLength));
     let extra = at + 46 + nameLength;
     const extraEnd = extra + extraLength;
-    const rawSize = view.getUint32(at + 24, true);
     while (extra + 4 <= extraEnd) {  // zip64: the 64-bit values of the fields set to 0xFFFFFFFF
       const id = view.getUint16(extra, true);
       let field = extra + 4;
       if (id === 1) {
-        if (rawSize === 0xffffffff) field += 8;
+        if (rawSize === 0xffffffff) { rawSize = Number(view.getBigUint64(field, true)); field += 8; }
         if (size === 0xffffffff) { size = Number(view.getBigUint64(field, true)); field += 8; }
         if (offset === 0xffffffff) offset = Number(view.getBigUint64(field, true));
       }
@@ -250,7 +264,11 @@ async function unzip(bytes) {
     const start = offset + 30 + view.getUint16(offset + 26, true) + view.getUint16(offset + 28, true);
     const data = bytes.subarray(start, start + size);
     if (method !== 0 && method !== 8) throw new InputError(`${name}: unsupported zip compression ${method}`);
-    entries[name.replace(/\.npy$/, "")] = method === 8 ? await inflate(data) : data;
+    total += method === 8 ? rawSize : size;
+    if (total > maxBytes) {
+      throw new InputError(`its arrays hold ${total} bytes or more once inflated, more than the ${maxBytes} this page reads`);
+    }
+    entries[name.replace(/\.npy$/, "")] = method === 8 ? await inflate(data, rawSize, name) : data;
     at += 46 + nameLength + extraLength + commentLength;
   }
   return entries;
@@ -283,8 +301,8 @@ function readNpy(bytes, name) {
   throw new InputError(`${name}: unsupported dtype ${descr}`);
 }
 
-export async function parseNpz(bytes) {
-  const entries = await unzip(bytes);
+export async function parseNpz(bytes, maxBytes = Infinity) {
+  const entries = await unzip(bytes, maxBytes);
   if (!entries.keypoints) throw new InputError(`no 'keypoints' array (has ${Object.keys(entries).join(", ")})`);
   const keypoints = readNpy(entries.keypoints, "keypoints");
   let [n, j, d] = keypoints.shape;
