@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import socket
 import sys
 import time
@@ -27,7 +26,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 if __package__ in (None, ""):  # `python bench/probe.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench.server import ServiceProcess, rss_bytes
+from bench.server import ServiceProcess, open_fds, rss_bytes
 from bench.stats import sample_poses, write_json
 from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 
@@ -230,7 +229,7 @@ def f4_idle_connections(service: ServiceProcess) -> str:
         ready = httpx.get(service.url + "/readyz", timeout=1).status_code
         serving = _serving(service)
         seconds = time.perf_counter() - start
-        fds = len(os.listdir(f"/proc/{service.pid}/fd"))
+        fds = open_fds(service.pid)
         closed = sum(not sock.recv(64).startswith(b"HTTP/1.1 2") for sock in socks)  # after the timer
     finally:
         for sock in socks:

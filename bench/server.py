@@ -65,6 +65,17 @@ def process_tree(pid: int) -> list[int]:
     return found
 
 
+def open_fds(pid: int) -> int:
+    """The file descriptors `pid` and its workers hold open, summed (Linux /proc)."""
+    total = 0
+    for member in process_tree(pid):
+        try:
+            total += len(os.listdir(f"/proc/{member}/fd"))
+        except OSError:  # the process ended meanwhile
+            continue
+    return total
+
+
 def rss_bytes(pid: int) -> int:
     """Resident memory of process `pid` and its workers (Linux /proc)."""
     total = 0

@@ -20,7 +20,6 @@ import argparse
 import asyncio
 import collections
 import multiprocessing
-import os
 import sys
 import threading
 import time
@@ -36,7 +35,7 @@ if __package__ in (None, ""):  # `python bench/slow_clients.py`
 
 from bench.http_load import Connection, lift_request
 from bench.overload import PROBE_EVERY_S, _probe_once
-from bench.server import ServiceProcess, rss_bytes
+from bench.server import ServiceProcess, open_fds, rss_bytes
 from bench.stats import latency_summary, machine, sample_poses, write_json
 
 ATTACKS = ("f2", "f3", "f4")
@@ -149,7 +148,7 @@ def _probe(service: ServiceProcess, stop: float, seen: Seen) -> None:
         while time.monotonic() < stop:
             seen.readyz_s.append(_probe_once("127.0.0.1", service.http_port))
             seen.health_s.append(_health_once(stub))
-            seen.fds.append(len(os.listdir(f"/proc/{service.pid}/fd")))
+            seen.fds.append(open_fds(service.pid))
             seen.rss_mb.append(rss_bytes(service.pid) / 2**20)
             time.sleep(PROBE_EVERY_S)
 

@@ -222,7 +222,10 @@ def load_poses(path: Path) -> Poses:
             with np.load(path, allow_pickle=False) as npz:
                 if "keypoints" not in npz:
                     raise InputFileError(f"{path}: no 'keypoints' array (has {', '.join(npz.files)})")
-                keypoints = np.asarray(npz["keypoints"], dtype=np.float64)
+                raw = npz["keypoints"]
+                if raw.dtype.kind not in "iuf":  # complex, bool, text, ...: no coordinates
+                    raise InputFileError(f"{path}: 'keypoints' must hold real numbers, got dtype {raw.dtype}")
+                keypoints = np.asarray(raw, dtype=np.float64)
                 conf = npz["confidence"] if "confidence" in npz else None
                 fmt = npz["format"] if "format" in npz else None
                 fps = float(npz["fps"]) if "fps" in npz else None
@@ -240,6 +243,10 @@ def load_poses(path: Path) -> Poses:
             if isinstance(data, dict) and "people" in data and (number := frame_number(path)) is not None:
                 poses = replace(poses, frame=np.full(len(poses.frame), number))  # one OpenPose frame
             return poses
+    except InputFileError as err:  # named by the file it is about (one of a folder's, say)
+        if str(path) in str(err):
+            raise
+        raise InputFileError(f"{path}: {err}") from None
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
         raise InputFileError(f"{path}: {err}") from err
     raise InputFileError(f"{path}: expected a .json or .npz file")

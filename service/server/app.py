@@ -214,6 +214,7 @@ def build_grpc_server(
         api_keys=api_keys,
         workers=settings.grpc_workers,
         max_streams=settings.grpc_max_streams,
+        max_client_streams=settings.grpc_max_streams_per_client or max(1, settings.grpc_max_streams // 2),
         stream_idle_timeout_s=settings.stream_idle_timeout_s,
         max_message_bytes=settings.max_body_bytes,
         stream_window_poses=settings.stream_window_poses,

@@ -56,3 +56,16 @@ class ApiKeys:
         if authorization is None or authorization[: len(BEARER)].lower() != BEARER:
             return False
         return self.accepts(authorization[len(BEARER) :].strip())
+
+
+def client_identity(authorization: str | None, peer: str) -> str:
+    """Who a call comes from, for the limits per client: its API key (as a digest: the key itself is
+    kept nowhere) when it sends one, else its address without the port (gRPC's peer `ipv4:1.2.3.4:5`
+    -> `ipv4:1.2.3.4`, `ipv6:[::1]:5` -> `ipv6:[::1]`). Without keys, clients behind one NAT or proxy
+    share one identity. An unchecked key is no way around the limit: the interceptor refuses a call
+    whose key is not one of the service's before it is counted."""
+    if authorization is not None and authorization[: len(BEARER)].lower() == BEARER:
+        return "key:" + _digest(authorization[len(BEARER) :].strip()).hex()[:16]
+    if peer.startswith(("ipv4:", "ipv6:")):
+        return peer.rsplit(":", 1)[0]
+    return peer

@@ -75,6 +75,14 @@ class Settings(BaseSettings):
     grpc_max_streams: int = Field(
         default=64, ge=1, description="most `LiftStream` calls open at once; beyond: `RESOURCE_EXHAUSTED`"
     )
+    grpc_max_streams_per_client: int = Field(
+        default=0,
+        ge=0,
+        description="most `LiftStream` calls one client has open at once (a client: its API key, or "
+        "its address when the service has no keys); beyond: `RESOURCE_EXHAUSTED`. With the streams' own "
+        "limit on tracks, one client holds at most this many times `stream_max_tracks` tracks (0: half "
+        "of `grpc_max_streams`, at least 1)",
+    )
     stream_idle_timeout_s: float = Field(
         default=60.0,
         gt=0,

@@ -28,6 +28,7 @@ from repnet.runtime.catalog import Catalog
 from repnet.runtime.pipeline import Job, Lifted
 from repnet.runtime.plans import TemporalModels
 from repnet.runtime.tracks import fps_violations
+from repnet.server.auth import client_identity
 from repnet.server.grpc.errors import ErrorRoom, frame_error, status_message, status_of
 from repnet.server.grpc.input import image_size_violations, intrinsics_violations, to_pose_input
 from repnet.server.metrics import OVERLOADED, Metrics, outcome_of
@@ -113,6 +114,7 @@ class PoseLifterServicer:
         max_streams: int,
         stream_idle_timeout_s: float,
         temporal: TemporalModels | None = None,
+        max_client_streams: int | None = None,
     ) -> None:
         self.models = Catalog.of(engine, temporal is not None)  # a request's `model` picks one
         self.metrics = metrics
@@ -125,6 +127,8 @@ class PoseLifterServicer:
         self.joints = list(self.models.default_engine.lifter.info.joint_names)  # every model's (app.py)
         self._unary = 0  # Lift calls in progress; both counters live on the server's one event loop
         self._streams = 0  # LiftStream calls open
+        self.max_client_streams = max_streams if max_client_streams is None else max_client_streams
+        self._client_streams: dict[str, int] = {}  # by client_of (only those with one open)
 
     async def _refuse(self, context: Context, method: str, message: str) -> None:
         self.metrics.finish(TRANSPORT, method, OVERLOADED, 0.0)
@@ -180,6 +184,11 @@ class PoseLifterServicer:
             await self._refuse(
                 context, "LiftStream", f"too many open streams (limit {self.max_streams}); retry later"
             )
+        key = next((v for k, v in context.invocation_metadata() or () if k == "authorization"), None)
+        client = client_identity(key if isinstance(key, str) else None, context.peer())
+        if self._client_streams.get(client, 0) >= self.max_client_streams:
+            reason = f"this client has too many open streams (limit {self.max_client_streams}); retry later"
+            await self._refuse(context, "LiftStream", reason)
         gauge = self.metrics.in_flight.labels(transport=TRANSPORT)
         held = 0  # frames read and not answered
 
@@ -191,6 +200,7 @@ class PoseLifterServicer:
                 yield self._frame(message)
 
         self._streams += 1
+        self._client_streams[client] = self._client_streams.get(client, 0) + 1
         self.metrics.open_streams.inc()
         answers = answer_stream(
             frames(),
@@ -220,6 +230,8 @@ class PoseLifterServicer:
         finally:
             await answers.aclose()
             self._streams -= 1
+            if (left := self._client_streams.pop(client) - 1) > 0:
+                self._client_streams[client] = left
             self.metrics.open_streams.dec()
             gauge.dec(held)  # frames read but never answered (the client went away)
 

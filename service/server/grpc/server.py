@@ -254,13 +254,15 @@ def create_server(
     max_streams: int,
     stream_idle_timeout_s: float,
     max_message_bytes: int,
+    max_client_streams: int | None = None,
     stream_window_poses: int,
     temporal: TemporalModels | None = None,
     reuse_port: bool = False,
 ) -> GrpcServer:
     """A gRPC server (not started) bound to `address`, with health (`.health`) and reflection.
 
-    At most `workers` Lift calls and `max_streams` open streams at once; calls beyond get
+    At most `workers` Lift calls and `max_streams` open streams at once (`max_client_streams` of one
+    client; None: max_streams); calls beyond get
     RESOURCE_EXHAUSTED. Health and reflection have no limit: a health check always answers.
     `tls`: serve over TLS (None: plaintext). `api_keys`: the PoseLifter methods need one (None: open).
     """
@@ -282,6 +284,7 @@ def create_server(
             stream_window_poses=stream_window_poses,
             max_unary=workers,
             max_streams=max_streams,
+            max_client_streams=max_streams if max_client_streams is None else max_client_streams,
             stream_idle_timeout_s=stream_idle_timeout_s,
             temporal=temporal,
         )
