@@ -11,16 +11,22 @@ requests cost the server, measured as its peak resident memory over what it held
 - consecutive-offline: 6,000 consecutive frames at 240 fps;
 - silent-streams: 4 LiftStreams that send 1,024-person frames as fast as the server reads them and
   never read a reply, for --duration s;
+- temporal-bodies: 8 clients each sending the widest causal request (6,000 poses, every gap
+  bridged) back to back for --duration s: the parsing and the bridged work of big bodies;
 - frame-overflow: a tracked pose with `frame` 2^63 (the status).
 
 Each prints the server's resident memory before, its peak (VmHWM), the peak's growth, the status
-and the server CPU seconds the attack cost. It measures; it asserts nothing.
+and the server CPU seconds the attack cost, and what a bystander saw meanwhile (issue 30's targets:
+a one-pose `POST /lift` every 20 ms on its own keep-alive connection, p99 ≤ 100 ms; `/readyz` on a
+fresh connection every 0.25 s, each ≤ 0.5 s). It measures; it asserts nothing.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
+import queue
 import sys
 import threading
 import time
@@ -34,13 +40,18 @@ import httpx
 if __package__ in (None, ""):  # `python bench/memory_attacks.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.overload import _probe_once
 from bench.server import ServiceProcess, cpu_seconds, process_tree, rss_bytes
-from bench.stats import machine, sample_poses, write_json
+from bench.stats import latency_summary, machine, sample_poses, write_json
 from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 
 MB = 1024 * 1024
 STREAMS = 4
+BODY_CLIENTS = 8
 POSES = sample_poses(64)
+VICTIM_EVERY_S = 0.02
+READYZ_EVERY_S = 0.25
+JSON = {"content-type": "application/json"}
 
 
 def peak_rss_bytes(pid: int) -> int:
@@ -132,6 +143,92 @@ def silent_streams(service: ServiceProcess, duration_s: float) -> str:
     return f"4 streams for {duration_s:g} s"
 
 
+def _send_bodies(url: str, body: bytes, stop: float, out: Any) -> None:
+    """One attacking client: `body` to POST /lift back to back until `stop` (monotonic), ignoring
+    Retry-After; each status goes to `out`."""
+    with httpx.Client(timeout=300) as http:
+        while time.monotonic() < stop:
+            out.put(str(http.post(url + "/lift", content=body, headers=JSON).status_code))
+
+
+def temporal_bodies(service: ServiceProcess, duration_s: float) -> str:
+    """8 clients (processes of their own, so that they do not slow the bystander's measuring)
+    sending 6,000-pose causal requests with every gap bridged, back to back."""
+    body = temporal_body(list(range(0, 6000 * 120, 120)), "causal")
+    context = multiprocessing.get_context("fork")
+    out = context.Queue()
+    stop = time.monotonic() + duration_s  # CLOCK_MONOTONIC is one clock for the whole machine
+    clients = [
+        context.Process(target=_send_bodies, args=(service.url, body, stop, out)) for _ in range(BODY_CLIENTS)
+    ]
+    for client in clients:
+        client.start()
+    statuses: list[str] = []
+    while any(c.is_alive() for c in clients) or not out.empty():
+        try:
+            statuses.append(out.get(timeout=0.1))
+        except queue.Empty:
+            continue
+    for client in clients:
+        client.join()
+    counts = ", ".join(f"{statuses.count(s)} x {s}" for s in sorted(set(statuses)))
+    return f"{counts} ({len(body) / 1024:.0f} KB bodies, {BODY_CLIENTS} clients for {duration_s:g} s)"
+
+
+class Bystander:
+    """A client that uses the service normally while an attack runs: one pose every 20 ms on its own
+    keep-alive connection, and /readyz on a fresh connection every 0.25 s."""
+
+    def __init__(self, service: ServiceProcess) -> None:
+        self.service = service
+        self.lift_s: list[float] = []
+        self.statuses: list[int] = []
+        self.readyz_s: list[float | None] = []
+        self._stop = threading.Event()
+        body = {"poses": [{"keypoints": POSES[0].round(1).tolist()}]}
+        self._body = json.dumps(body).encode()
+        self._threads = [threading.Thread(target=self._lift), threading.Thread(target=self._ready)]
+
+    def _lift(self) -> None:
+        with httpx.Client(timeout=30) as http:
+            while not self._stop.wait(VICTIM_EVERY_S):
+                start = time.perf_counter()
+                try:
+                    status = http.post(
+                        self.service.url + "/lift", content=self._body, headers=JSON
+                    ).status_code
+                except httpx.HTTPError:
+                    status = 0
+                self.lift_s.append(time.perf_counter() - start)
+                self.statuses.append(status)
+
+    def _ready(self) -> None:
+        while not self._stop.wait(READYZ_EVERY_S):
+            self.readyz_s.append(_probe_once("127.0.0.1", self.service.http_port))
+
+    def __enter__(self) -> Bystander:
+        for thread in self._threads:
+            thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join()
+
+    def summary(self) -> dict[str, Any]:
+        """The bystander's lift latencies (ms), how many were not 200, and the worst /readyz (None:
+        one did not answer within the probe's timeout)."""
+        answered = [s for s in self.readyz_s if s is not None]
+        return {
+            "lift_ms": latency_summary(self.lift_s) if self.lift_s else None,
+            "lift_not_200": sum(s != 200 for s in self.statuses),
+            "lifts": len(self.statuses),
+            "readyz_worst_ms": max(answered) * 1000 if answered else None,
+            "readyz_missed": len(self.readyz_s) - len(answered),
+        }
+
+
 def frame_overflow(service: ServiceProcess, _: float) -> str:
     """A tracked pose with frame 2^63."""
     return post(service, temporal_body([2**63], "causal", fps=30.0))
@@ -143,6 +240,7 @@ ATTACKS: dict[str, Callable[[ServiceProcess, float], str]] = {
     "widest-causal": widest("causal"),
     "consecutive-offline": consecutive_offline,
     "silent-streams": silent_streams,
+    "temporal-bodies": temporal_bodies,
     "frame-overflow": frame_overflow,
 }
 
@@ -153,10 +251,11 @@ def measure(name: str, duration_s: float, flags: list[str]) -> dict[str, Any]:
         time.sleep(0.5)
         before, cpu = rss_bytes(service.pid), cpu_seconds(service.pid)
         started = time.monotonic()
-        try:
-            seen = ATTACKS[name](service, duration_s)
-        except (httpx.HTTPError, grpc.RpcError, OSError) as err:
-            seen = f"{type(err).__name__}: {err}"[:200]
+        with Bystander(service) as bystander:
+            try:
+                seen = ATTACKS[name](service, duration_s)
+            except (httpx.HTTPError, grpc.RpcError, OSError) as err:
+                seen = f"{type(err).__name__}: {err}"[:200]
         alive = service.process is not None and service.process.poll() is None
         peak = peak_rss_bytes(service.pid) if alive else 0
         return {
@@ -167,7 +266,18 @@ def measure(name: str, duration_s: float, flags: list[str]) -> dict[str, Any]:
             "growth_mb": (peak - before) / MB,
             "wall_s": time.monotonic() - started,
             "server_cpu_s": cpu_seconds(service.pid) - cpu if alive else float("nan"),
+            "bystander": bystander.summary(),
         }
+
+
+def bystanders_line(seen: dict[str, Any]) -> str:
+    """What the bystander saw, in one line."""
+    lift = seen["lift_ms"] or {"p50": float("nan"), "p99": float("nan")}
+    worst = "none answered" if seen["readyz_worst_ms"] is None else f"{seen['readyz_worst_ms']:.0f} ms"
+    return (
+        f"{seen['lifts']} lifts, p50 {lift['p50']:.1f} / p99 {lift['p99']:.1f} ms, "
+        f"{seen['lift_not_200']} not 200; worst /readyz {worst}, {seen['readyz_missed']} missed"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
             f"wall {result['wall_s']:5.1f} s  {result['seen']}",
             flush=True,
         )
+        print(f"{'':20} bystander: {bystanders_line(result['bystander'])}", flush=True)
     if args.json:
         write_json(args.json, {"machine": machine(), "flags": args.flags, "results": results})
     return 0

@@ -16,7 +16,7 @@ from prometheus_client import CollectorRegistry
 from repnet.core.formats import FORMATS, from_model_joints
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
-from repnet.server.http.api import LiftJSONResponse
+from repnet.server.http.body import reply_json
 from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_2D, POSE_3D, expected_reprojection
 
 JOINTS = 17
@@ -228,7 +228,7 @@ def test_metrics_count_requests_rejections_and_batches(
 def test_reply_renderer_keeps_every_value_and_never_writes_invalid_json() -> None:
     values = np.random.default_rng(0).normal(size=(4, 17, 3)).astype(np.float32) * 300
     content = {"poses": [{"pose_3d": v.tolist(), "scale": 0.0041} for v in values], "bad": [float("nan")]}
-    body = LiftJSONResponse(content).body
+    body = reply_json(content)
     decoded = json.loads(body)  # strict JSON: NaN or Infinity would not parse into these values
     assert decoded["bad"] == [None]
     assert decoded["poses"] == json.loads(json.dumps(content["poses"]))

@@ -8,7 +8,6 @@ from functools import partial
 from typing import Any
 
 import numpy as np
-import pydantic_core
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
@@ -27,6 +26,7 @@ from repnet.runtime.pipeline import Job, Lifted
 from repnet.runtime.plans import TemporalModels
 from repnet.server.auth import ApiKeys
 from repnet.server.http.api_docs import add_docs
+from repnet.server.http.body import LargeBodies, off_loop_route, replies_json
 from repnet.server.http.errors import add_error_handlers
 from repnet.server.http.middleware import (
     STARTED_KEY,
@@ -119,16 +119,6 @@ def to_pose_input(pose: PoseIn, request: LiftRequest, index: int) -> PoseInput:
     return PoseInput(points, present, confidence, fmt, intrinsics, person_height_m=height)
 
 
-class LiftJSONResponse(JSONResponse):
-    """A reply rendered by pydantic-core's JSON serializer: the same values as json.dumps, about
-    ten times faster for the float arrays of a batch (a 256-pose reply: 3.6 ms instead of 46 ms).
-    A non-finite number, which the model should never produce, is written as null."""
-
-    def render(self, content: Any) -> bytes:
-        """`content` as JSON bytes."""
-        return pydantic_core.to_json(content, inf_nan_mode="null")
-
-
 def _read(request: LiftRequest, limits: Limits) -> list[PoseInput]:
     poses, threshold = request.poses, request.confidence_threshold
     return read_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
@@ -139,9 +129,8 @@ def _body(info: ModelInfo, lifted: Lifted) -> bytes:
     breaks a rule, ModelOutputError when the model failed on any pose."""
     lifted.prepared.check()
     assert lifted.replies is not None  # the job asks for them
-    poses = lifted.replies.check().to_json()
-    body = {"model_id": info.model_id, "joints": list(info.joint_names), "poses": poses}
-    return pydantic_core.to_json(body, inf_nan_mode="null")
+    head = {"model_id": info.model_id, "joints": list(info.joint_names)}
+    return replies_json(head, lifted.replies.check())
 
 
 def add_middleware(
@@ -152,12 +141,13 @@ def add_middleware(
     max_in_flight: int,
     api_keys: ApiKeys | None,
     allowed_hosts: list[str] | None,
+    large: LargeBodies | None = None,
 ) -> None:
     """The middleware around every route, outermost first: the Host allow-list (None: any), reply
     headers, /lift metrics, API keys, the body limit (while the body is read), the in-flight bound
-    (once the body arrived)."""
+    (once the body arrived; a large body that `large` has no room for is refused before it is read)."""
     # Each add wraps the ones before: the last added runs first.
-    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight)  # counted by the metrics
+    app.add_middleware(LoadShedMiddleware, max_in_flight=max_in_flight, large=large)  # counted by the metrics
     app.add_middleware(BodyLimitMiddleware, max_bytes=max_body_bytes, metrics=metrics)
     if api_keys is not None:
         app.add_middleware(ApiKeyMiddleware, keys=api_keys)
@@ -185,6 +175,7 @@ def create_app(
     requests in progress, the next is answered 503 at once. `api_keys`: POST /lift and /v1/* need
     one of them (None: open). `allowed_hosts`: the Host names answered (None: any)."""
     models = Catalog.of(engine, temporal is not None)
+    large = LargeBodies(waiting=2)  # POST /lift bodies over OFF_LOOP_BYTES: one at a time
     app = FastAPI(
         title="RepNet pose lifting",
         version=VERSION,  # the package's
@@ -203,10 +194,10 @@ def create_app(
         max_in_flight=max_in_flight,
         api_keys=api_keys,
         allowed_hosts=allowed_hosts,
+        large=large,
     )
     add_error_handlers(app, metrics)
 
-    @app.post("/lift", response_model=LiftResponse, responses=ERRORS, summary="Lift 2D poses to 3D")
     async def lift(request: LiftRequest, http: Request) -> Response:
         """Lift one pose or a batch: each reply has the 3D pose, camera and reprojection."""
         count = len(request.poses)
@@ -219,7 +210,7 @@ def create_app(
                 return to_pose_input(request.poses[i], request, i)
 
             body = await lift_temporal(request, engine, temporal, limits, metrics, started, read, source)
-            return LiftJSONResponse(body)
+            return Response(body, media_type="application/json")
         with metrics.parsing("http", started):
             poses = await offload(count, _read, request, limits)
         job = Job(
@@ -229,6 +220,18 @@ def create_app(
             track_ids=[p.track_id for p in request.poses],
         )
         return Response(await engine.run_async(job, "http", source=source), media_type="application/json")
+
+    # A large body is decoded and validated on a worker thread, and its request handled, one at a
+    # time per worker; two more wait, and beyond a large request gets 503 (server.http.body)
+    app.router.add_api_route(
+        "/lift",
+        lift,
+        methods=["POST"],
+        response_model=LiftResponse,
+        responses=ERRORS,
+        summary="Lift 2D poses to 3D",
+        route_class_override=off_loop_route(LiftRequest, large),
+    )
 
     @app.get("/healthz", summary="The process is up")
     async def healthz() -> dict[str, str]:

@@ -10,6 +10,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from repnet.core.errors import Violation
 from repnet.server.auth import UNAUTHENTICATED_MESSAGE, ApiKeys
+from repnet.server.http.body import OFF_LOOP_BYTES, LargeBodies
 from repnet.server.metrics import (
     CANCELLED,
     ERROR,
@@ -121,10 +122,11 @@ class LoadShedMiddleware:
     everyone else (the connection layer, service/http_protocol.py, answers them 408). When the
     slots are already all taken as a request arrives, it is refused before its body is read."""
 
-    def __init__(self, app: ASGIApp, max_in_flight: int) -> None:
+    def __init__(self, app: ASGIApp, max_in_flight: int, large: LargeBodies | None = None) -> None:
         self.app = app
         self.max_in_flight = max_in_flight
         self.in_flight = 0  # on the server's one event loop: no lock
+        self.large = large  # a large body that would find no room is refused before it is read
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         """Read a POST /lift's body, then pass it on while fewer than max_in_flight are in
@@ -134,6 +136,10 @@ class LoadShedMiddleware:
             return
         if self.in_flight >= self.max_in_flight:
             await self._refuse(scope, send)
+            return
+        if self.large is not None and self.large.full() and (_content_length(scope) or 0) > OFF_LOOP_BYTES:
+            scope.setdefault("state", {})[OUTCOME_KEY] = OVERLOADED
+            await send_json(send, 503, {"detail": self.large.refusal}, (b"retry-after", b"1"))
             return
         body = await _read_body(receive)
         if body is None:  # the client went away (or the connection layer timed it out)
