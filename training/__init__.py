@@ -55,3 +55,7 @@ the joints of a Stacked-Hourglass (MPII) detection. `visible` (N, J) in {0, 1} i
 mask: the ONNX input `visibility` thresholded at 0.5 (model.LiftingGraph); a joint with
 visibility 0 is hidden.
 """
+
+# onnxruntime's usage telemetry off before training, export, evaluation or adapt makes a session of
+# its own (issue 31): the service's session module turns it off when it is imported.
+import repnet.runtime.session  # noqa: E402, F401

@@ -145,8 +145,9 @@ def batch_of(
 
 def result_json(result: LiftResult, points: np.ndarray, conf: np.ndarray | None) -> dict[str, Any]:
     """One pose of the output file: its input and every field of the service's reply. A missing
-    joint is null in both `keypoints` and `confidence`."""
-    missing = np.isnan(points).any(axis=1)  # (J,)
+    joint is null in both `keypoints` and `confidence`: NaN, and any non-finite coordinate, which the
+    service reads as missing where its confidence is 0 (and refuses elsewhere)."""
+    missing = ~np.isfinite(points).all(axis=1)  # (J,)
     keypoints = [None if gone else p.tolist() for p, gone in zip(points, missing, strict=True)]
     confidence = (
         None if conf is None else [None if gone else float(c) for c, gone in zip(conf, missing, strict=True)]

@@ -114,7 +114,8 @@ def run_lift(args: argparse.Namespace) -> int:
         written = write_output(args.output, Lifted(out, results, poses))
         tracks = "" if choice.temporal == "off" else f", temporal {choice.temporal} at {choice.fps:g} fps"
         files = ", ".join(map(str, written))
-        say(f"lifted {n} poses of {frames} frames ({fmt}, model {out['model_id']}{tracks}) -> {files}")
+        counted = f"{n} pose{'s' * (n != 1)} of {frames} frame{'s' * (frames != 1)}"
+        say(f"lifted {counted} ({fmt}, model {out['model_id']}{tracks}) -> {files}")
     return EXIT_OK
 
 

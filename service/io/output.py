@@ -8,6 +8,7 @@ import hashlib
 import io
 import json
 import re
+import stat
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from repnet.client.result import LiftResult
+from repnet.core.formats import FORMATS, to_model_joints
 from repnet.io.bvh import CAMERA_TO_BVH, solve_motion, write_bvh
 from repnet.io.poses import InputFileError, Poses
 
@@ -34,7 +36,10 @@ class Lifted:
 def check_output(path: Path, overwrite: bool = False) -> None:
     """InputFileError unless `path`'s suffix names a writer, its folder exists and, unless
     `overwrite`, no file it would write exists (a .bvh: the per-person files beside it too): checked
-    before lifting, so a long lift is not lost to a typo, nor an earlier output to a rerun."""
+    before lifting, so a long lift is not lost to a typo, nor an earlier output to a rerun. A device
+    (`-o /dev/null`, `/dev/stdout`) takes the JSON whatever its name."""
+    if is_device(path):
+        return
     if path.suffix.lower() not in WRITERS:
         raise InputFileError(
             f"-o {path}: unknown output suffix {path.suffix or '(none)'!r}; expected one of "
@@ -54,6 +59,16 @@ def check_output(path: Path, overwrite: bool = False) -> None:
         raise InputFileError(f"-o {path}: {found[0]} exists; --overwrite replaces it")
 
 
+def is_device(path: Path) -> bool:
+    """Whether `path` is a character device or a pipe (/dev/null, /dev/stdout, a FIFO): written as a
+    stream, never refused for existing."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return False
+    return stat.S_ISCHR(mode) or stat.S_ISFIFO(mode)
+
+
 def file_key(key: str) -> str:
     """A person's key (track-<id> or person-<i>) as a file name part: characters other than letters,
     digits, '.', '_' and '-' become '_' (a track id is the input's: '../x' or a NUL must not reach a
@@ -68,7 +83,7 @@ def write_output(path: Path, lifted: Lifted) -> list[Path]:
     """Write `lifted` as `path`'s suffix says, replacing what is there (the caller's check_output said
     whether it may); the files written (a .bvh: one per person)."""
     check_output(path, overwrite=True)
-    return WRITERS[path.suffix.lower()](path, lifted)
+    return WRITERS[".json" if is_device(path) else path.suffix.lower()](path, lifted)
 
 
 def _write_json(path: Path, lifted: Lifted) -> list[Path]:
@@ -129,25 +144,45 @@ CSV_HEADER = (
 )
 
 
+def input_points(lifted: Lifted) -> tuple[np.ndarray, np.ndarray]:
+    """Each pose's input point at each model joint: (N, 17, 2) px and (N, 17) whether it has one.
+    The input is in the file's format (coco17's 17 joints are not the model's 17): its points are
+    mapped onto the model's joints by the format's table, a derived joint (coco17's pelvis) the
+    midpoint of its sources where both are there."""
+    fmt = FORMATS[lifted.document["format"]]
+    rows = [pose["input"]["keypoints"] for pose in lifted.document["poses"]]
+    points = np.full((len(rows), len(fmt.joint_names), 2), np.nan)
+    for i, pose in enumerate(rows):
+        for k, row in enumerate(pose):
+            if row is not None:
+                points[i, k] = row[:2]
+    present = np.isfinite(points).all(axis=-1)
+    points17, visible17, _, _ = to_model_joints(fmt, points, present)
+    return points17, visible17
+
+
 def _write_csv(path: Path, lifted: Lifted) -> list[Path]:
     """One row per pose per joint: x, y, z the pose in the camera's orientation (pose_3d_camera, mm,
     pelvis at the origin); *_camera_m the joint in camera coordinates (root_camera_m + the pose), empty
-    without intrinsics; the input point (empty where missing) and the joint's flags."""
+    without intrinsics; the input point at that model joint (input_points; empty where the input has
+    none) and the joint's flags."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(CSV_HEADER)
     joints = lifted.document["joints"]
+    points17, has_point = input_points(lifted)
     for i, result in enumerate(lifted.results):
         frame, person = int(lifted.poses.frame[i]), int(lifted.poses.person[i])
         placed = (
             None if result.root_camera_m is None else result.root_camera_m + result.pose_3d_camera / 1000.0
         )
-        model_input = lifted.document["poses"][i]["input"]["keypoints"]
         for j, name in enumerate(joints):
             at = ("", "", "") if placed is None else tuple(f"{v:.5f}" for v in placed[j])
-            # the input is in the file's format: its points only where it has the model's joints
+            # float32 written shortest: a point sent as 393.6 reads 393.6
             point = (
-                model_input[j] if len(model_input) == len(joints) and model_input[j] is not None else ("", "")
+                tuple(np.format_float_positional(v, trim="-") for v in points17[i, j])
+                if has_point[i, j]
+                else ("", "")
             )
             writer.writerow(
                 [

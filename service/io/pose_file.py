@@ -122,7 +122,10 @@ def _coco(items: Sequence[Any], where: str) -> Poses:
     value 0, 1 or 2 flags a joint; 0 is missing), ordered by image; a joint with 0 is missing."""
     found = [a for a in items if isinstance(a, dict) and isinstance(a.get("keypoints"), list)]
     if not found:
-        raise InputFileError(f"{where}: no keypoints")
+        boxes = (
+            " (boxes only: a person detector's output, not a pose detector's)" if _boxes_only(items) else ""
+        )
+        raise InputFileError(f"{where}: no keypoints{boxes}")
     rows = [np.asarray(a["keypoints"], dtype=np.float64).reshape(-1, 3) for a in found]
     flags = all(np.isin(r[:, 2], (0, 1, 2)).all() for r in rows)
     poses = []
@@ -138,6 +141,15 @@ def _coco(items: Sequence[Any], where: str) -> Poses:
     for k in range(1, len(order)):
         person[k] = person[k - 1] + 1 if frames[order[k]] == frames[order[k - 1]] else 0
     return replace(stacked, frame=frames[order], person=person)
+
+
+def _boxes_only(data: Any) -> bool:
+    """COCO detections or annotations that have boxes and no keypoints."""
+    return (
+        isinstance(data, list)
+        and bool(data)
+        and all(isinstance(a, dict) and "bbox" in a and "keypoints" not in a for a in data)
+    )
 
 
 def _is_coco(data: Any) -> bool:
@@ -162,6 +174,11 @@ def _read_json(data: Any) -> Poses:
         return _openpose_frames(data)
     if _is_coco(data):  # detector results
         return _coco(data, "results")
+    if _boxes_only(data):
+        raise InputFileError(
+            "COCO detections with boxes and no keypoints: this is a person detector's output; lift the "
+            "output of a pose (keypoint) detector instead"
+        )
     if isinstance(data, dict) and isinstance(data.get("annotations"), list):
         return _coco(data["annotations"], "annotations")
     if isinstance(data, dict) and "poses" in data:  # the POST /lift body

@@ -121,7 +121,12 @@ def read_json(path: Path) -> Any:
     """The JSON value of a file; InputFileError naming the file when it is not JSON, is nested
     deeper than Python's parser goes, or cannot be read."""
     try:
-        return json.loads(path.read_text())
+        text = path.read_text()
+        if not text.strip():
+            raise InputFileError(f"{path}: the file is empty")
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise InputFileError(f"{path}: not valid JSON: {err}") from None
     except RecursionError:
         raise InputFileError(f"{path}: the JSON is nested too deeply to read") from None
     except (OSError, ValueError) as err:

@@ -582,3 +582,25 @@ def test_a_format_alias_and_a_joint_count_are_answered_with_the_format_they_mean
     assert main(["lift", str(path), "--local"]) == EXIT_USAGE
     err = capsys.readouterr().err
     assert "25 joints: this looks like body25 (OpenPose BODY_25): use --format body25" in err
+
+
+@pytest.mark.parametrize(
+    ("content", "said"),
+    [
+        ("", "the file is empty"),
+        ("  \n", "the file is empty"),
+        ('{"a": ', "not valid JSON: Expecting value"),
+        ('[{"image_id": 1, "bbox": [1, 2, 3, 4], "score": 0.9}]', "boxes and no keypoints"),
+        ('{"annotations": [{"image_id": 1, "bbox": [1, 2, 3, 4], "num_keypoints": 0}]}', "boxes only"),
+    ],
+)
+def test_an_empty_broken_or_boxes_only_file_is_named_for_what_it_is(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: str, said: str
+) -> None:
+    """Issue 31: an empty file said `Expecting value: line 1 column 1`, a boxes-only COCO file
+    `expected a joint, got {'bbox': ...}`."""
+    path = tmp_path / "input.json"
+    path.write_text(content)
+    assert main(["lift", str(path), "--local", "--format", "coco17"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"{path}: " in err and said in err and "Traceback" not in err

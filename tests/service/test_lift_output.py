@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from repnet.cli.main import EXIT_OK, EXIT_USAGE, main
-from repnet.core.formats import MODEL_JOINTS, MODEL_PARENTS
+from repnet.core.formats import FORMATS, MODEL_JOINTS, MODEL_PARENTS, from_model_joints, to_model_joints
 from repnet.io import bvh
 from repnet.io.output import CAMERA_TO_BVH, CSV_HEADER
 from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_3D, project
@@ -201,3 +201,61 @@ def test_a_frame_without_the_person_repeats_the_pose_before_it() -> None:
     assert positions.shape == (4, 17, 3)  # frames 4 to 7
     np.testing.assert_allclose(positions[2], positions[1])  # frame 6 missing: frame 5's pose
     np.testing.assert_allclose(positions[3, :, 0] - positions[0, :, 0], 0.3)  # m, x kept in BVH axes
+
+
+@pytest.mark.parametrize("fmt", ["h36m17", "coco17", "mpii16", "body25"])
+def test_csv_input_points_are_the_files_points_at_the_model_joints(tmp_path: Path, fmt: str) -> None:
+    """Issue 31: the CSV wrote input joint j in model joint j's row (coco17's nose as the pelvis), and
+    nothing for body25. Now each row has the file's point mapped to that model joint (a derived
+    joint, coco17's pelvis, the midpoint of its sources); the joints the model lacks (eyes, ears)
+    get points no model joint has, so a wrong mapping shows."""
+    table = FORMATS[fmt]
+    pose = project(POSE_3D)  # (17, 2) px
+    points, present = from_model_joints(table, pose[None])
+    points = np.where(present[..., None], points, 1000.0 + np.arange(len(table.joint_names))[None, :, None])
+    path = tmp_path / "pose.json"
+    path.write_text(json.dumps(points[0].round(2).tolist()))
+    _lift(path, tmp_path / "out.csv", "--format", fmt)
+    rows = list(csv.DictReader((tmp_path / "out.csv").open()))
+    expected, visible, derived, _ = to_model_joints(table, points.round(2), np.ones(points.shape[:2], bool))
+    for j, row in enumerate(rows):
+        assert row["joint"] == MODEL_JOINTS[j]
+        if visible[0, j]:
+            np.testing.assert_allclose(
+                [float(row["input_x_px"]), float(row["input_y_px"])], expected[0, j], atol=0.01
+            )
+            if not derived[0, j]:  # one source: the model joint's own point
+                np.testing.assert_allclose(expected[0, j], pose[j], atol=0.02)
+        else:
+            assert (row["input_x_px"], row["input_y_px"]) == ("", "")
+
+
+def test_a_non_finite_point_of_confidence_0_is_a_missing_joint_in_every_output(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 31: `Infinity` in a file crashed the CLI writing its JSON (the input echoed), while HTTP
+    reads the same joint as missing when its confidence is 0. Now it is null in the echo."""
+    rows = [[float(x), float(y), 1.0] for x, y in project(POSE_3D)]
+    rows[3] = [float("inf"), 5.0, 0.0]
+    path = tmp_path / "pose.json"
+    path.write_text(json.dumps(rows))  # Python writes Infinity
+    for name in ("out.json", "out.csv", "out.npz"):
+        _lift(path, tmp_path / name)
+    pose = json.loads((tmp_path / "out.json").read_text())["poses"][0]
+    assert pose["input"]["keypoints"][3] is None and pose["input"]["confidence"][3] is None
+    assert not pose["visible"][3]
+    rows[3][2] = 0.9  # seen: refused by name, no traceback
+    path.write_text(json.dumps(rows))
+    assert main(["lift", str(path), "--local", "-o", str(tmp_path / "again.json")]) != EXIT_OK
+    err = capsys.readouterr().err
+    assert "poses[0].keypoints[3] (right_ankle): coordinates must be finite numbers" in err
+    assert "Traceback" not in err and not (tmp_path / "again.json").exists()
+
+
+def test_a_device_takes_the_json_and_one_pose_is_counted_as_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "pose.json"
+    path.write_text(json.dumps(project(POSE_3D).tolist()))
+    assert main(["lift", str(path), "--local", "-o", "/dev/null"]) == EXIT_OK
+    assert "lifted 1 pose of 1 frame (h36m17" in capsys.readouterr().err

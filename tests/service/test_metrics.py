@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -33,6 +35,16 @@ def test_every_metric_is_registered_with_its_unit(registry: CollectorRegistry) -
     units = ("_total", "_seconds", "_poses", "_requests", "_streams", "_info", "_ratio", "_tracks", "_bytes")
     assert all(n.endswith(units) for n in names)
     Metrics(CollectorRegistry())  # a second registry: no clash, nothing global
+
+
+def test_every_metric_is_in_the_docs_table(registry: CollectorRegistry) -> None:
+    """Issue 31: repnet_open_tracks and repnet_track_state_bytes were served but not documented."""
+    Metrics(registry)
+    section = (Path(__file__).parents[2] / "docs" / "API.md").read_text().split("## Metrics", 1)[1]
+    table = section.split("\n## ", 1)[0]
+    documented = set(re.findall(r"^\| `(repnet_[a-z_]+)` \|", table, re.M))
+    served = {m.name + ("_total" if m.type == "counter" else "") for m in registry.collect()}
+    assert documented == served
 
 
 def test_track_classifies_outcomes_and_counts_rejections(registry: CollectorRegistry) -> None:
