@@ -16,6 +16,7 @@ from repnet.client.chunks import Progress
 from repnet.client.http import LiftClient
 from repnet.client.result import LiftClientError, LiftResult
 from repnet.core.contract import DEFAULT_FPS
+from repnet.core.inputs import Limits
 from repnet.io.poses import Poses
 
 Say = Callable[[str], None]
@@ -35,6 +36,10 @@ class LiftBackend(Protocol):
 
     def lift_batch(self, batch: Batch, progress: Progress | None = None) -> list[LiftResult]:
         """The results of the batch's poses, in order."""
+        ...
+
+    def limits(self) -> Limits:
+        """The input rules' limits of the poses it lifts."""
         ...
 
 
@@ -59,6 +64,16 @@ class RemoteBackend:
     def temporal_modes(self) -> tuple[str, ...]:
         """The modes of the service's temporal models (GET /v1/model)."""
         return tuple(str(entry.get("mode")) for entry in self.client.model().get("temporal") or ())
+
+    def limits(self) -> Limits:
+        """The service's limits (GET /v1/model)."""
+        found = self.client.model()["limits"]
+        return Limits(
+            max_request_poses=int(found["max_request_poses"]),
+            min_visible_joints=int(found["min_visible_joints"]),
+            confidence_threshold=float(found["confidence_threshold"]),
+            max_coordinate=float(found["max_coordinate_px"]),
+        )
 
     def lift_batch(self, batch: Batch, progress: Progress | None = None) -> list[LiftResult]:
         """LiftClient.lift_batch of the batch."""

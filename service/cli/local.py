@@ -9,11 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
+from repnet.cli.usable import pose_inputs
 from repnet.client.body import Batch
 from repnet.client.chunks import Part, Progress, batches, lift_parts, split_clip
 from repnet.client.result import LiftClientError, LiftResult
 from repnet.core.errors import InvalidKeypoints, LiftError
-from repnet.core.inputs import Limits, ModelInput, PoseInput
+from repnet.core.inputs import Limits, ModelInput
 from repnet.core.keypoints import prepare_request
 from repnet.runtime.batcher import MAX_BATCH
 from repnet.runtime.lifter import Lifter, Prediction
@@ -40,10 +41,14 @@ class LocalBackend:
         path = BUNDLED_MODEL if model is None else model
         self.lifter = check_lifter(Lifter.load(path))
         self.temporal: dict[str, TemporalLifter] = load_temporal_lifters(path, self.lifter, TEMPORAL_MODELS)
-        self.limits = Limits(max_request_poses=batch)
+        self._limits = Limits(max_request_poses=batch)
         self.batch = batch
         self.max_temporal_poses = Limits.max_temporal_poses
         self.max_batch = MAX_BATCH  # windows per temporal model run
+
+    def limits(self) -> Limits:
+        """The service's default limits."""
+        return self._limits
 
     def temporal_modes(self) -> tuple[str, ...]:
         """The temporal modes of the loaded models."""
@@ -80,21 +85,13 @@ class LocalBackend:
     def _lift(self, batch: Batch, send: np.ndarray) -> list[LiftResult]:
         """One request of the poses at `send`, answered as the HTTP adapter answers it."""
         points, conf, tracking = batch.points, batch.conf, batch.tracking
-        poses = [
-            PoseInput(
-                points[i],
-                ~np.isnan(points[i]).any(axis=1),
-                None if conf is None else conf[i],
-                batch.format,
-                batch.intrinsics,
-                person_height_m=batch.person_height_m,
-            )
-            for i in send.tolist()
-        ]
+        poses = pose_inputs(
+            points, conf, batch.format, send.tolist(), batch.intrinsics, batch.person_height_m
+        )
         ids = None if tracking.track_ids is None else [tracking.track_ids[i] for i in send.tolist()]
         frames = None if tracking.frames is None else tracking.frames[send]
         temporal = self.temporal.get(tracking.temporal)
-        limits = self.limits
+        limits = self._limits
         if temporal is not None and ids is not None and frames is not None:
             limits = replace(limits, max_request_poses=self.max_temporal_poses)
             if found := clip_violations(ids, frames.tolist(), tracking.fps):

@@ -25,6 +25,7 @@ from repnet.cli.lift import (
     tracks_of,
     warn_about,
 )
+from repnet.cli.usable import usable_poses
 from repnet.client.connection import DEFAULT_URL
 from repnet.client.http import LiftClientError
 from repnet.core.contract import TEMPORAL_MODES
@@ -72,7 +73,7 @@ def run_lift(args: argparse.Namespace) -> int:
     if args.output is not None:
         check_output(args.output, args.overwrite)
     size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
-    poses = read_input(args.input, lambda files: _progress(files, "file"), size)
+    poses = original = read_input(args.input, lambda files: _progress(files, "file"), size)
     fmt = resolve_format(poses, args.format, args.input)
     remote = (
         None
@@ -82,6 +83,8 @@ def run_lift(args: argparse.Namespace) -> int:
     try:
         model = None if args.model is None else Path(args.model)  # --local: an ONNX file
         lifter = local_backend(model, args.batch_size) if remote is None else remote
+        threshold = args.confidence_threshold
+        poses, skipped = usable_poses(poses, fmt, threshold, lifter.limits(), args.strict, say)
         choice = choose(poses, args.temporal, args.fps, lifter.temporal_modes, say)
         ids = tracks_of(poses, choice)
         batch = batch_of(
@@ -105,6 +108,7 @@ def run_lift(args: argparse.Namespace) -> int:
         "joints": list(results[0].joints),
         "parents": list(MODEL_PARENTS),
         "poses": output_rows(results, poses),
+        "skipped": [s.to_json(original) for s in skipped],
     }
     warn_about(results, poses)
     n, frames = len(results), poses.frame_count
@@ -237,6 +241,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"output file by its suffix ({', '.join(WRITERS)}; default: JSON on stdout): .npz "
         "arrays named as the reply's fields, .csv a row per pose per joint, .bvh a skeleton "
         "animation per person (file.track-ID.bvh when several)",
+    )
+    lift.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse the file if a pose breaks the input rules (default: skip it, said in `skipped`)",
     )
     lift.add_argument(
         "--overwrite",

@@ -140,7 +140,18 @@ def _coco(items: Sequence[Any], where: str) -> Poses:
     person = np.zeros(len(order), np.int64)
     for k in range(1, len(order)):
         person[k] = person[k - 1] + 1 if frames[order[k]] == frames[order[k - 1]] else 0
-    return replace(stacked, frame=frames[order], person=person)
+    labels = tuple(_coco_label(found[k]) for k in order)
+    return replace(stacked, frame=frames[order], person=person, label=labels)
+
+
+def _coco_label(item: dict[str, Any]) -> str:
+    """A COCO detection or annotation as the file names it: its image id, and its own id if any."""
+    named = [
+        f"{key} {shown(item[key]) if isinstance(item[key], str) else item[key]}"
+        for key in ("image_id", "id")
+        if key in item
+    ]
+    return ", ".join(named) or "no id"
 
 
 def _boxes_only(data: Any) -> bool:
@@ -291,6 +302,7 @@ def load_frames(
     parts: list[np.ndarray] = []
     frames: list[int] = []
     persons: list[int] = []
+    labels: list[str] = []  # the file each pose came from
     fmt: str | None = None
     for index, path in enumerate(progress(files)):
         data = read_json(path)
@@ -311,8 +323,9 @@ def load_frames(
         parts += rows
         frames += [index if number is None else number] * len(rows)
         persons += range(len(rows))
+        labels += [path.name] * len(rows)
     poses = stack_poses(parts, None, fmt, f"{len(files)} files")
-    return replace(poses, frame=np.array(frames), person=np.array(persons))
+    return replace(poses, frame=np.array(frames), person=np.array(persons), label=tuple(labels))
 
 
 def read_input(spec: str, progress: Progress, image_size: tuple[float, float] | None = None) -> Poses:

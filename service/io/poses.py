@@ -36,6 +36,8 @@ class Poses:
     # image_size), NaN where the file gives none; None: none given
     image_size: np.ndarray | None = None
     landmarks: np.ndarray | None = None  # (N,) the pose's rows were MediaPipe [x, y, z, visibility]
+    # (N,) what the file calls each pose, where it names them (a COCO file: "image_id 397133, id 1768")
+    label: tuple[str, ...] | None = None
 
     @property
     def frame_count(self) -> int:

@@ -121,16 +121,16 @@ def test_lift_to_stdout(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     assert len(json.loads(capsys.readouterr().out)["poses"]) == 1
 
 
-def test_rejected_pose_is_named_by_its_index_in_the_file(
+def test_rejected_pose_is_named_by_its_place_in_the_file(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     keypoints = np.stack([POSE_2D] * 5)
     keypoints[3] = 100.0  # every joint at one point
     path = tmp_path / "bad.npz"
     np.savez(path, keypoints=keypoints)
-    assert main(["lift", str(path), "--local", "--batch-size", "2"]) == EXIT_REJECTED
+    assert main(["lift", str(path), "--local", "--batch-size", "2", "--strict"]) == EXIT_REJECTED
     err = capsys.readouterr().err
-    assert "poses[3].keypoints" in err and "one point" in err
+    assert "frame 3, person 0: keypoints" in err and "one point" in err
 
 
 def test_openpose_json_is_read_as_body25(tmp_path: Path) -> None:
@@ -604,3 +604,62 @@ def test_an_empty_broken_or_boxes_only_file_is_named_for_what_it_is(
     assert main(["lift", str(path), "--local", "--format", "coco17"]) == EXIT_USAGE
     err = capsys.readouterr().err
     assert f"{path}: " in err and said in err and "Traceback" not in err
+
+
+def coco_annotations(tmp_path: Path, people: int = 3, empty: tuple[int, ...] = (1,)) -> Path:
+    """A COCO annotation file of one image: `people` people, those at `empty` with no keypoint
+    (`num_keypoints: 0`, as every COCO annotation file has)."""
+    points, _ = from_model_joints(FORMATS["coco17"], project(POSE_3D)[None])
+    full = [
+        v
+        for x, y in points[0].tolist()
+        for v in ((0, 0, 0) if np.isnan(x) else (round(x, 1), round(y, 1), 2))
+    ]
+    annotations = [
+        {"id": 100 + k, "image_id": 397133, "num_keypoints": 0 if k in empty else 15, "bbox": [1, 2, 3, 4],
+         "keypoints": [0] * 51 if k in empty else full}
+        for k in range(people)
+    ]  # fmt: skip
+    path = tmp_path / "person_keypoints.json"
+    path.write_text(json.dumps({"images": [{"id": 397133}], "annotations": annotations}))
+    return path
+
+
+@pytest.mark.parametrize("where", ["local", "remote"])
+def test_a_file_with_unusable_poses_lifts_the_others_and_names_the_skipped_ones(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], live_service: LiveService, where: str
+) -> None:
+    """Issue 31: a COCO annotation file's person of num_keypoints 0 refused the whole file, named as
+    poses[1] of the flattened file. Now the others are lifted and the skipped one is named by its
+    image and annotation ids, on stderr and in the output."""
+    path, out = coco_annotations(tmp_path), tmp_path / "out.json"
+    backend = ["--local"] if where == "local" else ["--url", live_service.http_url]
+    assert main(["lift", str(path), "--format", "coco17", *backend, "-o", str(out)]) == EXIT_OK
+    err = capsys.readouterr().err
+    assert (
+        "skipped 1 of 3 poses" in err
+        and "frame 397133, person 1 (image_id 397133, id 101): keypoints: 0 of" in err
+    )
+    document = json.loads(out.read_text())
+    assert [(p["frame"], p["person"]) for p in document["poses"]] == [(397133, 0), (397133, 2)]
+    assert document["skipped"] == [
+        {"frame": 397133, "person": 1, "source": "image_id 397133, id 101",
+         "errors": [{"field": "keypoints", "code": "too_few_visible",
+                     "reason": document["skipped"][0]["errors"][0]["reason"]}]}
+    ]  # fmt: skip
+
+
+def test_strict_refuses_the_file_and_a_file_of_no_usable_pose_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path, out = coco_annotations(tmp_path), tmp_path / "out.json"
+    assert (
+        main(["lift", str(path), "--format", "coco17", "--local", "--strict", "-o", str(out)])
+        == EXIT_REJECTED
+    )
+    assert "1 of 3 poses break the input rules (without --strict they are skipped)" in capsys.readouterr().err
+    assert not out.exists()
+    path = coco_annotations(tmp_path, people=2, empty=(0, 1))
+    assert main(["lift", str(path), "--format", "coco17", "--local", "-o", str(out)]) == EXIT_REJECTED
+    assert "none of the 2 poses can be lifted" in capsys.readouterr().err
+    assert not out.exists()

@@ -248,7 +248,7 @@ def test_a_non_finite_point_of_confidence_0_is_a_missing_joint_in_every_output(
     path.write_text(json.dumps(rows))
     assert main(["lift", str(path), "--local", "-o", str(tmp_path / "again.json")]) != EXIT_OK
     err = capsys.readouterr().err
-    assert "poses[0].keypoints[3] (right_ankle): coordinates must be finite numbers" in err
+    assert "frame 0, person 0: keypoints[3] (right_ankle): coordinates must be finite numbers" in err
     assert "Traceback" not in err and not (tmp_path / "again.json").exists()
 
 
