@@ -15,6 +15,10 @@ PY := $(VENV)/bin/python
 STAMP_DIR := $(VENV)
 endif
 PYTEST_ARGS ?=
+# Editable installs in setuptools' strict mode: a tree of links (build/__editable__*) in which service/
+# is repnet and training/ repnet.train, so that tools that read files (lint-imports, mypy) see the
+# package as it installs. A new module needs `make` to reinstall (touch pyproject.toml).
+EDITABLE = --config-settings editable_mode=strict -e
 # onnxruntime >= 1.29 sends usage telemetry on Linux unless ORT_DISABLE_TELEMETRY=1 (override: make VAR=...).
 export ORT_DISABLE_TELEMETRY ?= 1
 IMAGE ?= repnet:0.2.0
@@ -35,12 +39,12 @@ $(VENV)/bin/python:
 # The service (the `server` extra) and the `repnet` command with its `cli` extra (progress bars, `repnet plot`).
 $(STAMP_DIR)/.serve-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/python)
 	@mkdir -p $(STAMP_DIR)
-	$(PY) -m pip install $(PIP_ARGS) -e '.[server,cli]'
+	$(PY) -m pip install $(PIP_ARGS) $(EDITABLE) '.[server,cli]'
 	@touch $@
 
 $(STAMP_DIR)/.test-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/python)
 	@mkdir -p $(STAMP_DIR)
-	$(PY) -m pip install $(PIP_ARGS) -e '.[server,train,cli,dev]'
+	$(PY) -m pip install $(PIP_ARGS) $(EDITABLE) '.[server,train,cli,dev]'
 	@touch $@ $(STAMP_DIR)/.serve-installed
 
 serve: $(STAMP_DIR)/.serve-installed
@@ -63,7 +67,7 @@ typecheck: $(STAMP_DIR)/.test-installed layout
 	cd build/layout && MYPYPATH=. $(abspath $(PY)) -m mypy --config-file $(CURDIR)/pyproject.toml -p repnet
 
 contracts: $(STAMP_DIR)/.test-installed layout
-	PYTHONPATH=build/layout $(dir $(PY))lint-imports --no-cache pyproject.toml
+	$(dir $(PY))lint-imports --no-cache
 
 check: lint typecheck contracts test
 
