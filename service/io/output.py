@@ -149,15 +149,9 @@ def input_points(lifted: Lifted) -> tuple[np.ndarray, np.ndarray]:
     The input is in the file's format (coco17's 17 joints are not the model's 17): its points are
     mapped onto the model's joints by the format's table, a derived joint (coco17's pelvis) the
     midpoint of its sources where both are there."""
-    fmt = FORMATS[lifted.document["format"]]
-    rows = [pose["input"]["keypoints"] for pose in lifted.document["poses"]]
-    points = np.full((len(rows), len(fmt.joint_names), 2), np.nan)
-    for i, pose in enumerate(rows):
-        for k, row in enumerate(pose):
-            if row is not None:
-                points[i, k] = row[:2]
-    present = np.isfinite(points).all(axis=-1)
-    points17, visible17, _, _ = to_model_joints(fmt, points, present)
+    points = lifted.poses.points  # (N, K, 2), what the document's `input` echoes
+    present = np.isfinite(points).all(axis=-1)  # the echo's non-null joints
+    points17, visible17, _, _ = to_model_joints(FORMATS[lifted.document["format"]], points, present)
     return points17, visible17
 
 
