@@ -118,10 +118,11 @@ class Batch:
     intrinsics: Intrinsics | None  # (fx, fy, cx, cy) px
     tracking: Tracking
     person_height_m: float | None = None  # the person's skeleton height, m
+    invalid_poses: str = "refuse"  # "report": lift_each's requests
 
     def body(self, part: Part) -> dict[str, Any]:
         """The POST /lift body of the poses of `part`."""
-        return build_request(
+        body = build_request(
             self.points,
             self.conf,
             self.format,
@@ -131,6 +132,7 @@ class Batch:
             part.send,
             self.person_height_m,
         )
+        return body if self.invalid_poses == "refuse" else {**body, "invalid_poses": self.invalid_poses}
 
 
 def as_intrinsics(values: Sequence[float] | None) -> Intrinsics | None:
@@ -189,8 +191,28 @@ def http_error(response: httpx.Response) -> LiftClientError:
 def parse_response(response: httpx.Response, part: Part | None = None) -> list[LiftResult]:
     """The results of a POST /lift answer, or LiftClientError with the server's message (its pose
     indices those of the caller's batch when the request held the poses of `part`)."""
+    results = parse_each(response, part)
+    if errors := [r for r in results if isinstance(r, LiftClientError)]:  # not asked for: refuse
+        raise errors[0]
+    return [r for r in results if isinstance(r, LiftResult)]
+
+
+def parse_each(response: httpx.Response, part: Part | None = None) -> list[LiftResult | LiftClientError]:
+    """parse_response's, where a pose not lifted (`invalid_poses: report`) is its own
+    LiftClientError (status 422) with its errors, renumbered as parse_response renumbers."""
     if response.status_code != 200:
         error = http_error(response)
         raise error if part is None else error.renumbered(part.send.tolist())
     body = response.json()
-    return [LiftResult.from_fields(p.__getitem__, body["joints"], body["model_id"]) for p in body["poses"]]
+    by_pose: dict[int, list[dict[str, Any]]] = {}
+    for item in body.get("errors") or ():
+        by_pose.setdefault(int(item.get("pose") or 0), []).append(item)
+    results: list[LiftResult | LiftClientError] = []
+    for i, pose in enumerate(body["poses"]):
+        if pose is not None:
+            results.append(LiftResult.from_fields(pose.__getitem__, body["joints"], body["model_id"]))
+            continue
+        items = by_pose.get(i, [])
+        error = LiftClientError("; ".join(str(d.get("message")) for d in items) or "not lifted", 422, items)
+        results.append(error if part is None else error.renumbered(part.send.tolist()))
+    return results

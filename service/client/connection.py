@@ -3,6 +3,7 @@ failed request and the answer's parsing."""
 
 from __future__ import annotations
 
+import json
 import ssl
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,11 +25,20 @@ from repnet.client.result import (
     LiftInputError,
     as_poses,
 )
+from repnet.core.formats import DEFAULT_FORMAT
 
 DEFAULT_URL = "http://localhost:8000"
 
 
 DEFAULT_BATCH = 256  # poses per request; the server's default limit is 1024
+
+
+def json_body(body: dict[str, Any] | None) -> dict[str, Any]:
+    """httpx's request arguments for a JSON body: written by json.dumps, whose Infinity and NaN the
+    service reads and judges (a field-level error naming the joint), where httpx's json= raises."""
+    if body is None:
+        return {}
+    return {"content": json.dumps(body).encode(), "headers": {"content-type": "application/json"}}
 
 
 def connection_options(api_key: str | None, ca_file: str | Path | None) -> dict[str, Any]:
@@ -64,15 +74,16 @@ class HttpBase:
     def _batch(
         self,
         keypoints: ArrayLike,
-        format: str,
-        confidence: ArrayLike | None,
-        confidence_threshold: float | None,
-        intrinsics: Sequence[float] | None,
-        temporal: str,
-        fps: float | None,
-        track_ids: Sequence[str | None] | None,
-        frames: ArrayLike | None,
+        format: str = DEFAULT_FORMAT,
+        confidence: ArrayLike | None = None,
+        confidence_threshold: float | None = None,
+        intrinsics: Sequence[float] | None = None,
+        temporal: str = "off",
+        fps: float | None = None,
+        track_ids: Sequence[str | None] | None = None,
+        frames: ArrayLike | None = None,
         person_height_m: float | None = None,
+        invalid_poses: str = "refuse",
     ) -> Batch:
         points, conf = as_poses(keypoints, confidence)
         try:
@@ -85,6 +96,7 @@ class HttpBase:
                 as_intrinsics(intrinsics),
                 tracking,
                 person_height_m,
+                invalid_poses,
             )
         except (ValueError, TypeError) as err:  # raised before any request: as the service would
             raise LiftInputError("arguments", str(err)) from err

@@ -12,12 +12,14 @@ import httpx
 import numpy as np
 
 from repnet.client.body import (
+    Batch,
     build_request,
     http_error,
+    parse_each,
     parse_response,
 )
 from repnet.client.chunks import Part, Progress, assemble, lift_parts
-from repnet.client.connection import DEFAULT_BATCH, DEFAULT_URL, HttpBase, connection_options
+from repnet.client.connection import DEFAULT_BATCH, DEFAULT_URL, HttpBase, connection_options, json_body
 from repnet.client.result import (
     ArrayLike,
     BoolArray,
@@ -90,7 +92,7 @@ class LiftClient(HttpBase):
 
     def _try(self, method: str, path: str, body: dict[str, Any] | None) -> httpx.Response | httpx.HTTPError:
         try:
-            return self._http.request(method, path, json=body)
+            return self._http.request(method, path, **json_body(body))
         except httpx.HTTPError as err:
             return err
 
@@ -153,10 +155,24 @@ class LiftClient(HttpBase):
             frames,
             person_height_m,
         )
-        parts = self._parts(batch, None if temporal == "off" else self.model())
+        return [r for r in self._lift(batch, progress) if isinstance(r, LiftResult)]  # or raised
 
-        def lift(part: Part) -> list[LiftResult]:
-            return parse_response(self._send("POST", "/lift", self._body(batch, part)), part)
+    def lift_each(
+        self, keypoints: ArrayLike, *, progress: Progress | None = None, **options: Any
+    ) -> list[LiftResult | LiftClientError]:
+        """lift_batch (the same options) with `invalid_poses: report`: a pose that breaks an input
+        rule is not lifted and its item is a LiftClientError (status 422, `details` naming its
+        fields), while the others are lifted; a refusal of a whole request still raises."""
+        return self._lift(self._batch(keypoints, **options, invalid_poses="report"), progress)
+
+    def _lift(self, batch: Batch, progress: Progress | None) -> list[LiftResult | LiftClientError]:
+        temporal = batch.tracking.temporal
+        parts = self._parts(batch, None if temporal == "off" else self.model())
+        report = batch.invalid_poses == "report"
+
+        def lift(part: Part) -> list[LiftResult | LiftClientError]:
+            response = self._send("POST", "/lift", self._body(batch, part))
+            return parse_each(response, part) if report else list(parse_response(response, part))
 
         return lift_parts(len(batch.points), parts, lift, progress)
 
@@ -221,7 +237,7 @@ class AsyncLiftClient(HttpBase):
         self, method: str, path: str, body: dict[str, Any] | None
     ) -> httpx.Response | httpx.HTTPError:
         try:
-            return await self._http.request(method, path, json=body)
+            return await self._http.request(method, path, **json_body(body))
         except httpx.HTTPError as err:
             return err
 
@@ -276,12 +292,26 @@ class AsyncLiftClient(HttpBase):
             frames,
             person_height_m,
         )
+        return [r for r in await self._lift(batch, progress) if isinstance(r, LiftResult)]  # or raised
+
+    async def lift_each(
+        self, keypoints: ArrayLike, *, progress: Progress | None = None, **options: Any
+    ) -> list[LiftResult | LiftClientError]:
+        """LiftClient.lift_each: lift_batch with `invalid_poses: report`."""
+        return await self._lift(self._batch(keypoints, **options, invalid_poses="report"), progress)
+
+    async def _lift(self, batch: Batch, progress: Progress | None) -> list[LiftResult | LiftClientError]:
+        temporal = batch.tracking.temporal
         parts = self._parts(batch, None if temporal == "off" else await self.model())
         slots = asyncio.Semaphore(self.max_concurrency)
+        report = batch.invalid_poses == "report"
 
-        async def post(part: Part) -> list[LiftResult]:
+        async def post(part: Part) -> list[LiftResult | LiftClientError]:
             async with slots:
-                results = parse_response(await self._send("POST", "/lift", self._body(batch, part)), part)
+                response = await self._send("POST", "/lift", self._body(batch, part))
+            results: list[LiftResult | LiftClientError] = (
+                parse_each(response, part) if report else list(parse_response(response, part))
+            )
             if progress is not None:
                 progress(int(part.keep.sum()))
             return results

@@ -8,6 +8,7 @@ import re
 import socket
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -459,3 +460,40 @@ def test_stream_client_sends_the_camera_and_height_for_the_root(live_service: Li
     )
     for got in (unary.root_camera_m, streamed.result.root_camera_m):
         np.testing.assert_allclose(got, expected, atol=1e-4)
+
+
+def test_lift_each_lifts_the_valid_poses_and_gives_the_others_their_error(live_service: LiveService) -> None:
+    points = np.stack([POSE_2D, POSE_2D + 30.0, POSE_2D, POSE_2D - 20.0])
+    points[1, 3:] = np.nan  # 3 of 17 joints: not lifted
+    points[3, 0] = np.inf  # a non-finite coordinate
+    with LiftClient(live_service.http_url, batch_size=2) as client:
+        each = client.lift_each(points)
+        alone = client.lift_batch(points[[0, 2]])
+        with pytest.raises(LiftClientError) as refused:  # lift_batch refuses the whole batch
+            client.lift_batch(points)
+    assert [type(r).__name__ for r in each] == [
+        "LiftResult",
+        "LiftClientError",
+        "LiftResult",
+        "LiftClientError",
+    ]
+    ok = [r for r in each if isinstance(r, LiftResult)]
+    np.testing.assert_allclose(ok[0].pose_3d, alone[0].pose_3d, atol=1e-2)  # batches of 1 and 2
+    np.testing.assert_allclose(ok[1].pose_3d, alone[1].pose_3d, atol=1e-2)
+    error = each[3]
+    assert isinstance(error, LiftClientError) and error.status == 422
+    assert error.details[0]["pose"] == 3 and error.details[0]["field"].startswith("poses[3].keypoints[0]")
+    assert "poses[1]" in refused.value.message
+
+
+def test_async_lift_each_answers_as_the_sync_client(live_service: LiveService) -> None:
+    points = np.stack([POSE_2D, POSE_2D])
+    points[0, 2:] = np.nan
+
+    async def run() -> list[Any]:
+        async with AsyncLiftClient(live_service.http_url) as client:
+            return await client.lift_each(points)
+
+    got = asyncio.run(run())
+    assert isinstance(got[0], LiftClientError) and got[0].details[0]["pose"] == 0
+    assert isinstance(got[1], LiftResult)

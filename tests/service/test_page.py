@@ -518,6 +518,40 @@ def test_cli_output_and_coco_annotations_files_are_read(driver: Any, page_url: s
     assert "left_wrist" in text_of(driver, "num-imputed")
 
 
+def test_a_coco_file_with_unusable_people_lifts_the_others_and_names_the_skipped(
+    driver: Any, page_url: str, tmp_path: Path
+) -> None:
+    from selenium.webdriver.common.by import By
+
+    coco = np.stack([detector_pose("coco17", y) for y in (10.0, 40.0)])
+    visible = np.full((17, 1), 2.0)
+    unlabelled = np.zeros((17, 3))  # num_keypoints 0, as every COCO annotation file has some
+    annotations = [
+        {"id": 11, "image_id": 5, "keypoints": np.concatenate([coco[0], visible], 1).ravel().tolist()},
+        {"id": 12, "image_id": 5, "num_keypoints": 0, "keypoints": unlabelled.ravel().tolist()},
+        {"id": 13, "image_id": 6, "keypoints": np.concatenate([coco[1], visible], 1).ravel().tolist()},
+    ]
+    path = tmp_path / "person_keypoints.json"
+    path.write_text(json.dumps({"images": [{"id": 5}, {"id": 6}], "annotations": annotations}))
+    open_page(driver, page_url)
+    before = lifts(driver)
+    driver.find_element(By.ID, "file").send_keys(str(path))
+    wait_lift(driver, before)
+    assert "lifted 2 poses, skipped 1" in text_of(driver, "status")
+    skipped = text_of(driver, "skipped")
+    assert skipped.startswith("skipped poses[1] (image_id 5, id 12): keypoints: 0 of 17"), skipped
+    assert text_of(driver, "num-error") != "—"  # the first usable pose is shown
+    driver.save_screenshot(str(SHOTS / "coco-skipped.png"))
+
+    every = [{**a, "keypoints": unlabelled.ravel().tolist()} for a in annotations]  # nothing usable
+    path.write_text(json.dumps({"images": [{"id": 5}, {"id": 6}], "annotations": every}))
+    driver.execute_script("document.getElementById('file').value = ''")
+    driver.find_element(By.ID, "file").send_keys(str(path))
+    wait_for(driver, "return document.getElementById('status').textContent.includes('no pose')", 15)
+    assert "0 of 17" in text_of(driver, "file-error")
+    assert text_of(driver, "skipped") == ""
+
+
 # ---- sequences: tracks, the temporal control, clips cut into requests ----
 
 TRACK_JS = """

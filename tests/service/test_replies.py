@@ -22,7 +22,7 @@ from repnet.runtime.lifter import Lifter, Prediction
 from repnet.runtime.replies import Replies, build_replies
 from repnet.server.app import limits_of
 from repnet.server.config import Settings
-from repnet.server.http.schemas import PoseResult
+from repnet.server.http.responses import PoseResult
 from tests.conftest import CENTRE_PX, FOCAL_PX, POSE_2D
 
 INTRINSICS = (FOCAL_PX, FOCAL_PX, *CENTRE_PX)

@@ -6,11 +6,13 @@ import logging
 import time
 from collections.abc import AsyncIterator
 from dataclasses import replace
+from functools import partial
 from typing import Any
 
 import grpc
 
 from repnet._proto.repnet.v1 import lifter_pb2
+from repnet.core import report
 from repnet.core.contract import MAX_FRAME, MAX_TRACK_ID
 from repnet.core.errors import (
     InvalidKeypoints,
@@ -91,6 +93,24 @@ def proto_replies(lifted: Lifted) -> list[lifter_pb2.PoseResult]:
     return lifted.replies.check().to_proto()
 
 
+def proto_report(count: int, readable: report.Readable, lifted: Lifted) -> tuple[list[Any], list[Any]]:
+    """The PoseResults and PoseErrors of an INVALID_POSES_REPORT Lift (on the batcher's thread): an
+    empty PoseResult for each pose not lifted; ModelOutputError when the model failed on any pose."""
+    assert lifted.replies is not None  # the job asks for them
+    result = report.outcome(count, readable, lifted.prepared)
+    replies = iter(lifted.replies.check().to_proto())
+    results = [next(replies) if row >= 0 else lifter_pb2.PoseResult() for row in result.rows]
+    by_pose: dict[int, list[Violation]] = {}
+    for v in result.errors:
+        by_pose.setdefault(v.pose or 0, []).append(v)
+    room = ErrorRoom()
+    errors = [
+        lifter_pb2.PoseError(pose=i, error=frame_error(InvalidKeypoints(found), room))
+        for i, found in by_pose.items()
+    ]
+    return results, errors
+
+
 class PoseLifterServicer:
     """Implements repnet.v1.PoseLifter (grpc.aio) on the shared LiftBatcher.
 
@@ -146,9 +166,13 @@ class PoseLifterServicer:
             with self.metrics.track(TRANSPORT, "Lift"):
                 with self.metrics.parsing(TRANSPORT):
                     engine = self.models.pick(request.model)
-                    poses, threshold = await offload(count, self._read_request, request)
-                job = Job(finish=proto_replies, poses=poses, threshold=threshold)
-                results = await engine.run_async(job, TRANSPORT, source=context.peer())
+                    readable, threshold = await offload(count, self._read_request, request)
+                if request.invalid_poses == lifter_pb2.INVALID_POSES_REPORT:
+                    job = Job(partial(proto_report, count, readable), readable.poses, threshold=threshold)
+                    results, errors = await engine.run_async(job, TRANSPORT, source=context.peer())
+                else:
+                    job = Job(finish=proto_replies, poses=readable.poses, threshold=threshold)
+                    results, errors = await engine.run_async(job, TRANSPORT, source=context.peer()), []
         except LiftError as err:
             if isinstance(err, ModelOutputError):  # counted by track(); one line, no traceback
                 log.error("Lift: %s", err)
@@ -158,10 +182,12 @@ class PoseLifterServicer:
             await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_MESSAGE)
         finally:
             self._unary -= 1
-        return lifter_pb2.LiftResponse(model_id=engine.model, joints=self.joints, poses=results)
+        joints = self.joints
+        return lifter_pb2.LiftResponse(model_id=engine.model, joints=joints, poses=results, errors=errors)
 
-    def _read_request(self, request: lifter_pb2.LiftRequest) -> tuple[list[PoseInput], float | None]:
-        """A Lift's poses as read from the wire, and its threshold (read_request's rules)."""
+    def _read_request(self, request: lifter_pb2.LiftRequest) -> tuple[report.Readable, float | None]:
+        """A Lift's poses as read from the wire, and its threshold: read_request's rules, or with
+        INVALID_POSES_REPORT read_each's (each pose on its own)."""
         default = request.intrinsics if request.HasField("intrinsics") else None
         size = request.image_size if request.HasField("image_size") else None
         found = [] if default is None else intrinsics_violations(default, "intrinsics")
@@ -170,10 +196,14 @@ class PoseLifterServicer:
         threshold = request.confidence_threshold if request.HasField("confidence_threshold") else None
         poses, fmt = request.poses, request.format or DEFAULT_FORMAT
         height = request.person_height_m if request.HasField("person_height_m") else None
-        read = read_request(
-            len(poses), lambda i: to_pose_input(poses[i], fmt, default, size, height), threshold, self.limits
-        )
-        return read, threshold
+
+        def read(i: int) -> PoseInput:
+            return to_pose_input(poses[i], fmt, default, size, height)
+
+        if request.invalid_poses == lifter_pb2.INVALID_POSES_REPORT:
+            return report.read_each(len(poses), read, threshold, self.limits), threshold
+        everything = read_request(len(poses), read, threshold, self.limits)
+        return report.Readable(everything, list(range(len(poses))), {}), threshold
 
     async def LiftStream(
         self, request_iterator: AsyncIterator[lifter_pb2.LiftFrame], context: Context

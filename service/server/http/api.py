@@ -17,6 +17,7 @@ from repnet.core.errors import InvalidKeypoints, Violation
 from repnet.core.formats import FORMATS
 from repnet.core.inputs import Limits, PoseInput
 from repnet.core.keypoints import read_request
+from repnet.core.report import REPORT, Readable, outcome
 from repnet.core.version import VERSION
 from repnet.runtime.batcher import offload
 from repnet.runtime.batchers import LiftBatcher
@@ -38,13 +39,9 @@ from repnet.server.http.middleware import (
 )
 from repnet.server.http.model_routes import add_model_routes
 from repnet.server.http.page import add_page
-from repnet.server.http.schemas import (
-    FRAME_DOC,
-    ErrorResponse,
-    LiftRequest,
-    LiftResponse,
-    PoseIn,
-)
+from repnet.server.http.report import read_poses, report_json
+from repnet.server.http.responses import ErrorResponse, LiftResponse
+from repnet.server.http.schemas import FRAME_DOC, LiftRequest, PoseIn
 from repnet.server.http.temporal import lift_temporal
 from repnet.server.metrics import Metrics
 
@@ -122,6 +119,15 @@ def to_pose_input(pose: PoseIn, request: LiftRequest, index: int) -> PoseInput:
 def _read(request: LiftRequest, limits: Limits) -> list[PoseInput]:
     poses, threshold = request.poses, request.confidence_threshold
     return read_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
+
+
+def _report_body(info: ModelInfo, count: int, readable: Readable, lifted: Lifted) -> bytes:
+    """The 200 answer's JSON of an `invalid_poses: report` request (on the batcher's thread): the
+    lifted poses' replies, null and errors for the others; ModelOutputError when the model failed on
+    any pose."""
+    assert lifted.replies is not None  # the job asks for them
+    head = {"model_id": info.model_id, "joints": list(info.joint_names)}
+    return report_json(head, lifted.replies.check(), outcome(count, readable, lifted.prepared))
 
 
 def _body(info: ModelInfo, lifted: Lifted) -> bytes:
@@ -204,13 +210,24 @@ def create_app(
         started = getattr(http.state, STARTED_KEY, None)  # since the body arrived
         engine = models.pick(request.model, temporal=request.temporal != "off")
         source = peer_of(http)  # the batch queue is shared fairly between connections
+
+        def read(i: int) -> PoseInput:
+            return to_pose_input(request.poses[i], request, i)
+
         if request.temporal != "off":
-
-            def read(i: int) -> PoseInput:
-                return to_pose_input(request.poses[i], request, i)
-
             body = await lift_temporal(request, engine, temporal, limits, metrics, started, read, source)
             return Response(body, media_type="application/json")
+        if request.invalid_poses == REPORT:
+            with metrics.parsing("http", started):
+                readable = await offload(count, read_poses, request, limits, read)
+            report = Job(
+                finish=partial(_report_body, engine.lifter.info, count, readable),
+                poses=readable.poses,
+                threshold=request.confidence_threshold,
+                track_ids=[request.poses[i].track_id for i in readable.positions],
+            )
+            answer = await engine.run_async(report, "http", source=source)
+            return Response(answer, media_type="application/json")
         with metrics.parsing("http", started):
             poses = await offload(count, _read, request, limits)
         job = Job(

@@ -20,6 +20,7 @@ ASSETS = {
     "page.js": "text/javascript; charset=utf-8",
     "parse.js": "text/javascript; charset=utf-8",
     "lift.js": "text/javascript; charset=utf-8",
+    "notes.js": "text/javascript; charset=utf-8",
     "track.js": "text/javascript; charset=utf-8",
     "view.js": "text/javascript; charset=utf-8",
     "trajectory.js": "text/javascript; charset=utf-8",

@@ -10,7 +10,9 @@ from pydantic import (
     Field,
     JsonValue,
     Strict,
-    create_model,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    WrapValidator,
     field_validator,
     model_validator,
 )
@@ -18,10 +20,10 @@ from pydantic_core import PydanticCustomError
 
 from repnet.core.contract import MAX_FRAME, MAX_TRACK_ID
 from repnet.core.errors import echo, encodable
-from repnet.core.fields import ANY, FIELDS, ReplyField
 from repnet.core.format_hints import raw_output_hint
 from repnet.core.formats import DEFAULT_FORMAT, FORMATS
 from repnet.core.inputs import EXAMPLE_KEYPOINTS
+from repnet.core.report import MAX_POSE_ERRORS, REPORT
 
 # Strict: a JSON string such as "12" or a boolean is not a coordinate.
 Number = Annotated[float, Strict()]
@@ -189,6 +191,50 @@ class PoseIn(BaseModel):
             )
         return value
 
+    @property
+    def refusal(self) -> list[dict[str, Any]]:
+        """Why the request's schema refused this pose (PoseRefused); [] for a valid pose."""
+        return []
+
+
+class PoseRefused(PoseIn):
+    """A pose of an `invalid_poses: report` request that PoseIn refused: made by LiftRequest's
+    validator (never from JSON), it holds pydantic's errors, located within the pose."""
+
+    errors: list[dict[str, Any]] = Field(default_factory=list, exclude=True)
+
+    @property
+    def refusal(self) -> list[dict[str, Any]]:
+        """Why the request's schema refused this pose."""
+        return self.errors
+
+
+def _each_pose(value: Any) -> Any:
+    """A pose already validated or refused by LiftRequest's validator (report), else the JSON value."""
+    if isinstance(value, list):
+        return [p if isinstance(p, PoseIn) else _one_pose(p) for p in value]
+    return value
+
+
+def _one_pose(value: Any) -> PoseIn:
+    try:
+        return PoseIn.model_validate(value)
+    except ValidationError as err:
+        return PoseRefused.model_construct(keypoints=[], errors=err.errors(include_url=False))
+
+
+def _pass_validated(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+    return value if isinstance(value, PoseIn) else handler(value)
+
+
+INVALID_POSES_DOC = (
+    "What to do with poses that break an input rule: `refuse` (default) answers 422 for the whole "
+    "request, naming every such pose; `report` lifts the others and answers 200 with `null` in "
+    "`poses` for each pose not lifted and its errors in `errors` (each with its `pose` index; at most "
+    f"{MAX_POSE_ERRORS} per pose, `error_count` counts them all). The request's own rules (pose count, "
+    "threshold, a temporal request's tracks and fps) refuse it whole either way."
+)
+
 
 # A person in mid-stride seen from 4.5 m (h36m17 joint order, px): the OpenAPI example request.
 
@@ -204,7 +250,9 @@ class LiftRequest(BaseModel):
         json_schema_extra={"examples": [{"poses": [{"keypoints": EXAMPLE}], "format": DEFAULT_FORMAT}]},
     )
 
-    poses: list[PoseIn] = Field(description="The poses to lift, answered in the same order.", fail_fast=True)
+    poses: list[Annotated[PoseIn, WrapValidator(_pass_validated)]] = Field(
+        description="The poses to lift, answered in the same order.", fail_fast=True
+    )
     format: str = Field(
         "h36m17",
         description="Keypoint format of poses that do not name their own: " + ", ".join(FORMATS) + ".",
@@ -231,6 +279,7 @@ class LiftRequest(BaseModel):
     fps: Annotated[float, Strict()] | None = Field(
         None, description="Frames per second of the tracks, in (0, 240]; needed with `temporal`."
     )
+    invalid_poses: Literal["refuse", "report"] = Field("refuse", description=INVALID_POSES_DOC)
     model: str | None = Field(
         None,
         description="The model to lift with: a `model_id` that GET /v1/models lists (default: the "
@@ -244,59 +293,11 @@ class LiftRequest(BaseModel):
         if (hint := raw_output_hint(data)) is not None:
             raise PydanticCustomError(DETECTOR_OUTPUT, hint)
         if isinstance(data, dict) and "poses" not in data and "keypoints" in data:
-            request_level = ("confidence_threshold", "model")
+            request_level = ("confidence_threshold", "model", "invalid_poses")
             batch = {"poses": [{k: v for k, v in data.items() if k not in request_level}]}
             batch.update({k: data[k] for k in request_level if k in data})
             return batch
         reject_unknown_keys(cls, data)
+        if isinstance(data, dict) and data.get("invalid_poses") == REPORT:  # each pose on its own
+            return {**data, "poses": _each_pose(data.get("poses"))}
         return data
-
-
-def _result_type(field: ReplyField) -> tuple[Any, Any]:
-    """The pydantic type and default of one reply field (core.fields)."""
-    scalar: Any = Literal[field.choices] if field.choices else field.kind
-    kind: Any = scalar if not field.shape else list[scalar] if len(field.shape) == 1 else Matrix
-    if field.optional:
-        return kind | None, Field(None, description=field.doc)
-    if field.shape == (ANY,) and field.kind is str:  # a list: empty, never absent
-        return kind, Field(default_factory=list, description=field.doc)
-    return kind, Field(description=field.doc)
-
-
-# The 3D pose and camera for one input pose: core.fields' fields, in their order.
-_RESULT_FIELDS: dict[str, Any] = {f.name: _result_type(f) for f in FIELDS}
-PoseResult: type[BaseModel] = create_model(
-    "PoseResult",
-    __doc__="The 3D pose and camera for one input pose. Joint arrays follow `joints` (17 model joints).",
-    **_RESULT_FIELDS,
-)
-
-
-LiftResponse: type[BaseModel] = create_model(
-    "LiftResponse",
-    __doc__="The lifted poses, in request order.",
-    model_id=(str, Field(description="Id of the model that answered.")),
-    joints=(list[str], Field(description="Names of the 17 model joints, the order of every joint array.")),
-    poses=(list[PoseResult], Field(description="One result per request pose, in request order.")),  # type: ignore[valid-type]
-)
-
-
-class ErrorItem(BaseModel):
-    """One rejected field."""
-
-    field: str = Field(description='Where, e.g. "poses[2].keypoints[5]".')
-    reason: str = Field(description="Why it was rejected.")
-    message: str = Field(description="Field, joint name and reason in one line (the gRPC message).")
-    code: str = Field(description='Short reason code, e.g. "non_finite" (the metrics label).')
-    pose: int | None = Field(None, description="Index of the pose in the request.")
-    joint: int | None = Field(None, description="Index of the joint in the pose's format.")
-    joint_name: str | None = Field(None, description="Name of the joint in the pose's format.")
-
-
-class ErrorResponse(BaseModel):
-    """A 4xx/503 answer: `detail` lists the rejected fields, or says why the server cannot serve."""
-
-    detail: list[ErrorItem] | str
-    error_count: int | None = Field(
-        None, description="How many fields were rejected; `detail` lists the first 20 of them."
-    )

@@ -2,6 +2,7 @@
 // Every value from a file or the API reaches the document through textContent, never as HTML.
 
 import { chooseMode, liftRequests } from "./lift.js";
+import { showSkipped, showWarnings, slotOf } from "./notes.js";
 import { InputError, parseFiles, parseJson, parseText } from "./parse.js";
 import { assignTracks } from "./track.js";
 import { cameraFields, drawTrajectory, rootsOf } from "./trajectory.js";
@@ -27,6 +28,7 @@ function clearErrors() {
   for (const slot of SLOTS) text(`${slot}-error`, "");
   text("status", "");
   $("format-warnings").replaceChildren();
+  $("skipped").replaceChildren();
 }
 
 // An error leaves nothing of an earlier lift on screen: views, numbers and player are emptied.
@@ -46,17 +48,6 @@ function addError(slot, message) {
   $(`${slot}-error`).append(line);
 }
 
-// The field an API error names -> the page field it belongs next to.
-function slotOf(field, source) {
-  if (field === "format" || /\.format$/.test(field)) return "format";
-  if (field === "confidence_threshold") return "threshold";
-  if (field === "temporal") return "temporal";
-  if (field === "fps") return "rate";
-  if (/(^|\.)intrinsics(\.|$)/.test(field)) return "intrinsics";
-  if (/(^|\.)person_height_m$/.test(field)) return "height";
-  return source;
-}
-
 // send: the input's position of each pose of the request, to say where a pose the API names is.
 function showApiError(status, detail, send, frames, source) {
   if (!Array.isArray(detail)) {
@@ -67,19 +58,6 @@ function showApiError(status, detail, send, frames, source) {
     const at = Number.isInteger(item.pose) ? send[item.pose] : undefined;
     const where = at !== undefined && at !== item.pose ? ` (poses[${at}] of the input, frame ${frames[at]})` : "";
     addError(slotOf(String(item.field ?? ""), source), `${item.message ?? item.reason ?? JSON.stringify(item)}${where}`);
-  }
-}
-
-function showWarnings(warnings) {
-  const list = $("format-warnings");
-  const seen = new Set();
-  for (const w of warnings) {
-    const message = typeof w === "string" ? w : (w?.message ?? w?.reason ?? JSON.stringify(w));
-    if (seen.has(message)) continue;
-    seen.add(message);
-    const item = document.createElement("li");
-    item.textContent = message;
-    list.append(item);
   }
 }
 
@@ -130,8 +108,10 @@ async function lift(parsed, source) {
   Object.assign(extra, camera.extra);
   let batches;
   try {
+    // A file's poses that break an input rule are skipped and said, the others lifted (a pasted
+    // request body is sent as it is: its own invalid_poses, else refused whole).
     batches = parsed.body ? [{ send: [], keep: [], body: JSON.stringify({ ...parsed.body, ...extra }) }]
-      : liftRequests(poses, tracks, parsed.frames, { mode, fps }, extra, state.model);
+      : liftRequests(poses, tracks, parsed.frames, { mode, fps }, { ...extra, invalid_poses: "report" }, state.model);
   } catch (err) {
     addError(source, err.message);
     return;
@@ -144,6 +124,7 @@ async function lift(parsed, source) {
   document.body.dataset.busy = "true";
   const results = new Array(poses.length).fill(null);
   const warnings = [];
+  const skipped = [];  // {at, item}: a pose the service did not lift, and why
   try {
     for (const batch of batches) {
       const tooBig = tooLarge(new Blob([batch.body]).size, "the request");
@@ -159,10 +140,13 @@ async function lift(parsed, source) {
         return;
       }
       reply.poses.forEach((pose, k) => {
-        if (!batch.keep[k]) return;  // context of a cut track: another request answers it
+        if (!batch.keep[k] || pose === null) return;  // context of a cut track, or skipped
         if (Array.isArray(pose.warnings)) warnings.push(...pose.warnings);
         results[batch.send[k]] = { ...pose, model_id: reply.model_id };
       });
+      for (const item of reply.errors ?? []) {
+        if (batch.keep[item.pose]) skipped.push({ at: batch.send[item.pose], send: batch.send, item });
+      }
     }
   } catch (err) {
     addError(source, `the service could not be reached: ${err.message}`);
@@ -170,13 +154,20 @@ async function lift(parsed, source) {
   } finally {
     document.body.dataset.busy = "false";
   }
-  showWarnings(warnings);
-  show(parsed, poses.map((p) => ({ ...p, format: p.format || extra.format, image_size: p.image_size ?? extra.image_size })), results, tracks, mode);
   const lifted = results.filter(Boolean).length;
+  if (!lifted && skipped.length) {  // nothing usable: every reason, next to its field
+    for (const { send, item } of skipped.slice(0, 20)) showApiError(422, [item], send, parsed.frames, source);
+    text("status", "no pose of the input could be lifted");
+    return;
+  }
+  showSkipped($("skipped"), skipped, parsed);
+  showWarnings($("format-warnings"), warnings);
+  show(parsed, poses.map((p) => ({ ...p, format: p.format || extra.format, image_size: p.image_size ?? extra.image_size })), results, tracks, mode);
   const how = mode === "off" ? "each pose alone" : `temporal ${mode} at ${fps} fps`;
   const counted = tracks ? `, ${new Set(tracks.filter((t) => t !== null)).size} track(s)` : "";
   const said = [parsed.note, ...notes].join("; ");
-  text("status", `lifted ${lifted} pose${lifted === 1 ? "" : "s"} in ${batches.length} request${batches.length === 1 ? "" : "s"}, ${how}${counted} (${said})`);
+  const left = skipped.length ? `, skipped ${new Set(skipped.map((s) => s.at)).size}` : "";
+  text("status", `lifted ${lifted} pose${lifted === 1 ? "" : "s"}${left} in ${batches.length} request${batches.length === 1 ? "" : "s"}, ${how}${counted} (${said})`);
   if (mode !== "off" && typeof fps === "number") $("fps").value = String(Math.round(fps));
   state.lifts += 1;
   document.body.dataset.temporal = mode;

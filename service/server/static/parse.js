@@ -1,10 +1,11 @@
 // Input files and pasted text -> poses for POST /lift. Values pass through as they are: the service,
 // not the page, judges them and words the error. Only the layout of each file kind is read here.
 //
-// parse*() return {poses, frames, people, allFrames, trackIds, fps, temporal, format, threshold, request, note}:
+// parse*() return {poses, frames, people, labels, allFrames, trackIds, fps, temporal, format, threshold, request, note}:
 // poses are /lift pose objects ({keypoints, confidence?, format?}); frames[i] is pose i's frame number
 // and people[i] its index in that frame; allFrames every frame number of the input in order (a frame
-// may have no person); trackIds (per pose), fps and temporal what the input gives, else null; request:
+// may have no person); labels (per pose) its name in the file's own identifiers (COCO: image and
+// annotation ids), else null; trackIds (per pose), fps and temporal what the input gives, else null; request:
 // the request-level fields of a POST /lift body that its poses default to (image_size, intrinsics).
 
 export class InputError extends Error {}
@@ -50,7 +51,7 @@ function poseFromTriples(flat, format, cIsFlag) {
 function withFrames(parsed) {
   const frames = parsed.frames ?? parsed.poses.map((_, i) => i);
   return {
-    trackIds: null, fps: null, temporal: null, people: parsed.poses.map(() => 0),
+    trackIds: null, fps: null, temporal: null, labels: null, people: parsed.poses.map(() => 0),
     allFrames: [...new Set(frames)].sort((a, b) => a - b), ...parsed, frames,
   };
 }
@@ -101,7 +102,8 @@ function cocoPoses(items, note) {
   const poses = order.map((k) => poseFromTriples(triples[k].keypoints, "coco17", flags));
   const frames = order.map((k) => frameOf[k]);
   const people = frames.map((f, i) => frames.slice(0, i).filter((g) => g === f).length);
-  return withFrames({ poses, frames, people, format: "coco17", note: `${note}: ${poses.length} poses` });
+  const labels = order.map((k) => `image_id ${triples[k].image_id ?? k}${triples[k].id !== undefined ? `, id ${triples[k].id}` : ""}`);
+  return withFrames({ poses, frames, people, labels, format: "coco17", note: `${note}: ${poses.length} poses` });
 }
 
 // The tracks, frame numbers and temporal fields a POST /lift body or repnet lift output gives.

@@ -1,10 +1,18 @@
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from collections.abc import Iterable as _Iterable, Mapping as _Mapping
 from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class InvalidPoses(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    INVALID_POSES_REFUSE: _ClassVar[InvalidPoses]
+    INVALID_POSES_REPORT: _ClassVar[InvalidPoses]
+INVALID_POSES_REFUSE: InvalidPoses
+INVALID_POSES_REPORT: InvalidPoses
 
 class Pose2D(_message.Message):
     __slots__ = ("keypoints", "confidence", "missing", "format", "intrinsics", "image_size", "person_height_m")
@@ -45,7 +53,7 @@ class CameraIntrinsics(_message.Message):
     def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ...) -> None: ...
 
 class LiftRequest(_message.Message):
-    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics", "image_size", "model", "person_height_m")
+    __slots__ = ("poses", "format", "confidence_threshold", "intrinsics", "image_size", "model", "person_height_m", "invalid_poses")
     POSES_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
@@ -53,6 +61,7 @@ class LiftRequest(_message.Message):
     IMAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     PERSON_HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
+    INVALID_POSES_FIELD_NUMBER: _ClassVar[int]
     poses: _containers.RepeatedCompositeFieldContainer[Pose2D]
     format: str
     confidence_threshold: float
@@ -60,7 +69,16 @@ class LiftRequest(_message.Message):
     image_size: ImageSize
     model: str
     person_height_m: float
-    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., model: _Optional[str] = ..., person_height_m: _Optional[float] = ...) -> None: ...
+    invalid_poses: InvalidPoses
+    def __init__(self, poses: _Optional[_Iterable[_Union[Pose2D, _Mapping]]] = ..., format: _Optional[str] = ..., confidence_threshold: _Optional[float] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., model: _Optional[str] = ..., person_height_m: _Optional[float] = ..., invalid_poses: _Optional[_Union[InvalidPoses, str]] = ...) -> None: ...
+
+class PoseError(_message.Message):
+    __slots__ = ("pose", "error")
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    pose: int
+    error: FrameError
+    def __init__(self, pose: _Optional[int] = ..., error: _Optional[_Union[FrameError, _Mapping]] = ...) -> None: ...
 
 class PoseResult(_message.Message):
     __slots__ = ("pose_3d", "pose_3d_camera", "camera", "scale", "rotation", "reprojection", "reprojection_error_px", "visible", "imputed", "derived", "plausibility", "warnings", "temporal", "track_id", "root_camera_m", "root_height_source")
@@ -99,14 +117,16 @@ class PoseResult(_message.Message):
     def __init__(self, pose_3d: _Optional[_Iterable[float]] = ..., pose_3d_camera: _Optional[_Iterable[float]] = ..., camera: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., reprojection: _Optional[_Iterable[float]] = ..., reprojection_error_px: _Optional[float] = ..., visible: _Optional[_Iterable[bool]] = ..., imputed: _Optional[_Iterable[bool]] = ..., derived: _Optional[_Iterable[bool]] = ..., plausibility: _Optional[float] = ..., warnings: _Optional[_Iterable[str]] = ..., temporal: _Optional[bool] = ..., track_id: _Optional[str] = ..., root_camera_m: _Optional[_Iterable[float]] = ..., root_height_source: _Optional[str] = ...) -> None: ...
 
 class LiftResponse(_message.Message):
-    __slots__ = ("model_id", "joints", "poses")
+    __slots__ = ("model_id", "joints", "poses", "errors")
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     JOINTS_FIELD_NUMBER: _ClassVar[int]
     POSES_FIELD_NUMBER: _ClassVar[int]
+    ERRORS_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     joints: _containers.RepeatedScalarFieldContainer[str]
     poses: _containers.RepeatedCompositeFieldContainer[PoseResult]
-    def __init__(self, model_id: _Optional[str] = ..., joints: _Optional[_Iterable[str]] = ..., poses: _Optional[_Iterable[_Union[PoseResult, _Mapping]]] = ...) -> None: ...
+    errors: _containers.RepeatedCompositeFieldContainer[PoseError]
+    def __init__(self, model_id: _Optional[str] = ..., joints: _Optional[_Iterable[str]] = ..., poses: _Optional[_Iterable[_Union[PoseResult, _Mapping]]] = ..., errors: _Optional[_Iterable[_Union[PoseError, _Mapping]]] = ...) -> None: ...
 
 class LiftFrame(_message.Message):
     __slots__ = ("frame_id", "pose", "confidence_threshold", "track_id", "fps", "people", "model")
