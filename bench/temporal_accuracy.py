@@ -23,7 +23,7 @@ import numpy as np
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
-from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_OFFLINE
+from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_MODEL, BUNDLED_OFFLINE
 from repnet.server.app import build_app, build_batcher, load_lifter, load_temporal
 from repnet.server.config import Settings
 from repnet.server.metrics import Metrics
@@ -107,6 +107,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--data-dir", default="", help="Human3.6M folder (default: $REPNET_H36M_DIR, ../shared)"
     )
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=BUNDLED_MODEL,
+        help="the single-frame model the temporal models run over (default: the bundled one; an "
+        "adapted model of it, `repnet adapt`, keeps its temporal models)",
+    )
     parser.add_argument("--causal-model", type=Path, default=BUNDLED_CAUSAL)
     parser.add_argument("--offline-model", type=Path, default=BUNDLED_OFFLINE)
     parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
@@ -115,6 +122,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, help="write the figures as JSON here")
     args = parser.parse_args(argv)
     settings = Settings(
+        model_path=args.model,
         intra_op_threads=args.threads,
         causal_model_path=args.causal_model,
         offline_model_path=args.offline_model,

@@ -27,6 +27,7 @@ from repnet.runtime.loading import BUNDLED_MODEL
 from repnet.train import checkpoint, lineage
 from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
 from repnet.train.adapt_report import (
+    compare,
     export_adapted,
     measure,
     parent_scorer,
@@ -155,8 +156,8 @@ def run(
         f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
         f"({rate:.0f} samples/s){'' if done else '; run again with --resume to go on'}"
     )
-    before = measure(generator_of(parent), scorer, *test, mirror)
-    after = measure(adaptation.trainer.generator, scorer, *test, mirror)
+    runs = [int(part.sum()) for part in np.split(held, np.cumsum(counts)[:-1])] if held.any() else None
+    before, after = compare(generator_of(parent), adaptation.trainer.generator, scorer, test, mirror, runs)
     print(render(before, after, len(test[0])))
     reasons = worse(before, after)
     if reasons and not args.force:

@@ -18,9 +18,11 @@ class Catalog:
     holds two models' poses, and its own queue of at most queue_size poses: a flood on one model
     fills that model's queue (503 / RESOURCE_EXHAUSTED for it) while the others keep theirs.
 
-    `temporal_base`: the model the loaded temporal models were trained on (their metadata's
-    base_model_sha256 is its file's), None without temporal models. Temporal lifting runs over that
-    model only; a request for temporal lifting with another gets a field-level error.
+    `temporal_base`: the model the loaded temporal models were loaded with (trained on its answers,
+    or on those of a model it was adapted from), None without temporal models; `adapted`: the other
+    models served that temporal lifting runs over too (adapted from the model the temporal models
+    were trained on: runtime.loading.serves_under). A request for temporal lifting with any other
+    model gets a field-level error.
     """
 
     engines: dict[str, LiftBatcher]
@@ -28,6 +30,11 @@ class Catalog:
     sha256: dict[str, str] = field(default_factory=dict)  # each model file's, by id (lineage)
     # Whether the service's other workers serve too (server.workers; None: one process).
     peers_ready: Callable[[], bool] | None = None
+    adapted: frozenset[str] = frozenset()
+
+    def runs_temporal(self, model: str) -> bool:
+        """Whether temporal lifting runs over model `model`."""
+        return self.temporal_base is not None and (model == self.temporal_base or model in self.adapted)
 
     def __post_init__(self) -> None:
         if not self.engines:
@@ -63,10 +70,11 @@ class Catalog:
         if model not in self.engines:
             reason = f"unknown model {clip(model, 100)!r}; this service serves: {self.known()}"
             return Violation(MODEL_FIELD, reason, "unknown_model")
-        if temporal and self.temporal_base is not None and model != self.temporal_base:
+        if temporal and self.temporal_base is not None and not self.runs_temporal(model):
+            over = ", ".join(repr(m) for m in self.engines if self.runs_temporal(m))
             reason = (
-                f"temporal lifting runs over {self.temporal_base!r}, the model its temporal models "
-                f"were trained on, not {model!r}: name {self.temporal_base!r} (or none), or lift "
+                f"temporal lifting runs over {over} (the model its temporal models were trained on, "
+                f"and those adapted from it), not {model!r}: name one of them (or none), or lift "
                 "without temporal"
             )
             return Violation(MODEL_FIELD, reason, "model_not_temporal")

@@ -4,8 +4,10 @@ a person standing still), and files read safely (regular files of bounded size, 
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -43,6 +45,34 @@ def file_sha256(path: Path) -> str:
     return model_sha256(path)
 
 
+MAX_LINEAGE = 64  # parents followed up a model's lineage (an adapted model of an adapted model...)
+
+
+def ancestors(metadata: dict[str, str]) -> list[str]:
+    """The sha256 of each model a model was adapted from (`repnet adapt`'s lineage metadata: its
+    parent, then the parent's parent...), nearest first; [] for a model not adapted."""
+    try:
+        record: Any = json.loads(metadata.get("lineage", "") or "null")
+    except json.JSONDecodeError:
+        return []
+    found: list[str] = []
+    while isinstance(record, dict) and len(found) < MAX_LINEAGE:
+        parent = record.get("parent")
+        sha = parent.get("sha256") if isinstance(parent, dict) else None
+        if not isinstance(sha, str) or not sha:
+            break
+        found.append(sha)
+        record = record.get("parent_lineage")
+    return found
+
+
+def serves_under(temporal: TemporalLifter, sha256: str, metadata: dict[str, str]) -> bool:
+    """Whether `temporal` runs over the single-frame model of file hash `sha256` and `metadata`: the
+    model its answers were trained on, or one adapted from it (`repnet adapt`: the temporal models
+    work unchanged over an adapted model, docs/RESULTS.md)."""
+    return temporal.base_model_sha256 in (sha256, *ancestors(metadata))
+
+
 def load_temporal_lifters(
     model_path: Path,
     lifter: Lifter,
@@ -50,9 +80,10 @@ def load_temporal_lifters(
     settings: HasSessionOptions | None = None,
 ) -> dict[str, TemporalLifter]:
     """The temporal models at `paths` by mode ("causal", "offline"), checked: each must be the mode
-    it is given as, trained on the answers of `lifter` (loaded from `model_path`: its sha256) and pass
-    its start-up check. A bundled temporal model that is missing or belongs to another single-frame
-    model is left out with a warning; another that does not fit raises ModelLoadError."""
+    it is given as, trained on the answers of `lifter` (loaded from `model_path`: its sha256) or of a
+    model it was adapted from (serves_under), and pass its start-up check. A bundled temporal model
+    that is missing or belongs to another single-frame model is left out with a warning; another
+    that does not fit raises ModelLoadError."""
     found: dict[str, TemporalLifter] = {}
     base = file_sha256(model_path)
     bundled = {"causal": BUNDLED_CAUSAL, "offline": BUNDLED_OFFLINE}
@@ -63,7 +94,7 @@ def load_temporal_lifters(
         temporal = TemporalLifter.load(path, settings)
         if temporal.mode != mode:
             raise ModelLoadError(f"{path}: a {temporal.mode} temporal model, set as the {mode} one")
-        if temporal.base_model_sha256 != base:
+        if not serves_under(temporal, base, lifter.info.metadata):
             message = (
                 f"{path}: trained on the answers of the single-frame model with sha256 "
                 f"{temporal.base_model_sha256[:12]}, not of {model_path.name} ({base[:12]})"

@@ -24,7 +24,7 @@ from repnet.core.inputs import Limits
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
 from repnet.runtime.lifter import Lifter
-from repnet.runtime.loading import file_sha256, known_poses
+from repnet.runtime.loading import file_sha256, known_poses, serves_under
 from repnet.runtime.plans import TemporalModels
 from repnet.server.auth import ApiKeys
 from repnet.server.config import Settings, trusted_hosts
@@ -234,7 +234,17 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
     sha256 = {m.info.model_id: file_sha256(m.path) for m in lifters}
     peers = Peers.from_env()  # a supervised worker's (server.workers)
     ready = None if peers is None else peers.all_ready
-    models = Catalog(engines, None if temporal is None else lifter.info.model_id, sha256, ready)
+    adapted = frozenset(
+        m.info.model_id
+        for m in lifters[1:]
+        if temporal is not None
+        and all(
+            serves_under(e.lifter, sha256[m.info.model_id], m.info.metadata)
+            for e in temporal.engines.values()
+        )
+    )
+    base = None if temporal is None else lifter.info.model_id
+    models = Catalog(engines, base, sha256, ready, adapted)
     api_keys = None if settings.api_keys_file is None else ApiKeys.read(settings.api_keys_file)
     app = build_app(models, metrics, settings, temporal, api_keys)
     grpc_server = build_grpc_server(models, metrics, settings, temporal, api_keys, peers is not None)

@@ -7,23 +7,27 @@ import json
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
 from repnet.cli.main import main as repnet
 from repnet.core import skeleton
+from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_OFFLINE, load_temporal_lifters
 from repnet.server.config import Settings
 from repnet.server.startup import load_lifter
 from repnet.train import adapt_report, checkpoint, lineage, metrics, prior, synthetic
-from repnet.train.adapt import answer, split_holdout
+from repnet.train.adapt import Adaptation, answer, split_holdout
 from repnet.train.adapt_report import Figures, worse
 from repnet.train.camera import masked_centre, project_weak_perspective
 from repnet.train.checkpoint import read_metadata
 from repnet.train.config import RepNetConfig
+from repnet.train.export import generator_of
 from repnet.train.model import MM_PER_UNIT, RepNet, normalize_keypoints
 from tests.training.conftest import plant
 
 FAST = ["--threads", "1", "--prior-poses", "2000"]
+TEMPORAL_PATHS = {"causal": BUNDLED_CAUSAL, "offline": BUNDLED_OFFLINE}
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +72,8 @@ def test_adapt_writes_a_model_the_service_serves_with_its_lineage(
     assert record["inputs"] == [{"input": "detections.npz", "sha256": lineage.file_sha256(poses_file)}]
     assert record["command"].startswith("repnet adapt ") and str(tmp_path) not in record["command"]
     assert record["steps"] == 4 and record["poses"] == 270 and record["holdout_poses"] == 30
-    figures = {"reprojection_px", "plausibility", "implausible_pct", "symmetry_mm", "bone_std_mm"}
+    figures = {"reprojection_px", "plausibility", "implausible_pct", "symmetry_mm", "bone_std_mm", "depth_mm"}
+    figures |= {"jitter_mm", "plausible_lost_pct"}
     assert set(record["report"]["before"]) == figures
     lifter = load_lifter(Settings(model_path=out))  # the service's own loading and start-up check
     points = np.nan_to_num(np.load(poses_file)["keypoints"][:5]).astype(np.float32)
@@ -143,13 +148,79 @@ def test_a_worse_model_is_not_written_unless_forced(
     assert json.loads(read_metadata(out)["lineage"])["refused_but_forced"]
 
 
-def test_worse_names_each_figure_that_got_worse() -> None:
-    before = Figures(
-        reprojection_px=10.0, plausibility=0.7, implausible_pct=2.0, symmetry_mm=5.0, bone_std_mm=3.0
-    )
-    assert worse(before, Figures(10.9, 0.5, 2.9, 5.9, 3.9)) == []  # a mean nearer 0.5 is no sign
-    found = worse(before, Figures(11.5, 0.7, 3.5, 7.0, 4.5))
-    assert [r.split()[0] for r in found] == ["reprojection", "implausible", "symmetry", "bone-length"]
+def test_worse_names_each_figure_that_got_worse_the_furthest_first() -> None:
+    before = Figures(10.0, 0.7, 2.0, 5.0, 3.0, depth_mm=100.0, jitter_mm=4.0)
+    # a mean nearer 0.5, more implausible answers and a few lost plausible ones are no sign alone
+    assert worse(before, Figures(10.9, 0.4, 9.9, 5.9, 3.9, 140.0, 4.9, plausible_lost_pct=40.0)) == []
+    found = worse(before, Figures(11.5, 0.7, 3.5, 7.0, 4.5, 60.0, 6.0, plausible_lost_pct=60.0))
+    order = ["symmetry", "jitter", "reprojection", "bone-length", "parent's", "depth"]  # by excess
+    assert [r.split()[0] for r in found] == order
+    assert "(at most 50 %)" in found[4] and "0.60x the parent's" in found[5]
+
+
+class DepthScaled(torch.nn.Module):
+    """A generator whose every answer has its depth multiplied by `factor` and its camera divided by
+    it: the same reprojection K X, a flipped (-1), flattened or stretched person."""
+
+    def __init__(self, generator: RepNet, factor: float) -> None:
+        super().__init__()
+        self.generator, self.scale = generator, torch.tensor([1.0, 1.0, factor])
+
+    def forward(self, points: torch.Tensor, visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pose, camera = self.generator(points, visible)
+        return pose * self.scale, camera / self.scale
+
+
+@pytest.mark.parametrize(
+    ("factor", "decided"),
+    [(-1.0, "parent's plausible answers lost"), (0.2, "symmetry error"), (1.0, None)],
+)
+def test_a_depth_flipped_or_collapsed_model_is_refused_though_it_reprojects_the_same(
+    poses_file: Path, parent: Path, factor: float, decided: str | None
+) -> None:
+    state = checkpoint.from_onnx(parent)
+    scorer = adapt_report.parent_scorer(state, state["metadata"])
+    generator = generator_of(state)
+    points = np.load(poses_file)["keypoints"].astype(np.float32)
+    visible = np.isfinite(points).all(axis=-1).astype(np.float32)
+    held = (np.nan_to_num(points), visible)
+    broken = DepthScaled(generator, factor).eval()
+    before, after = adapt_report.compare(generator, broken, scorer, held, True, runs=[150, 150])
+    assert after.reprojection_px == pytest.approx(before.reprojection_px, rel=1e-4)
+    reasons = worse(before, after)
+    if decided is None:
+        assert reasons == [] and after.plausible_lost_pct == 0.0
+        return
+    assert reasons and reasons[0].startswith(decided), reasons
+    if factor < 0:  # the flip: only the parent's plausibility sees it
+        assert len(reasons) == 1 and after.plausible_lost_pct > 90.0
+    else:
+        assert any(r.startswith("depth extent") and "0.20x" in r for r in reasons)
+
+
+def test_the_command_refuses_a_depth_flipped_adaptation_and_says_why(
+    poses_file: Path, parent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    run = Adaptation.run
+
+    def flipped(self: Adaptation, *args: object, **kwargs: object) -> bool:
+        """Adapt, then flip the generator's depth in its weights: z of the pose and K's third column."""
+        done = run(self, *args, **kwargs)  # type: ignore[arg-type]
+        with torch.no_grad():
+            last_pose = self.trainer.generator.pose_branch[-1]
+            last_camera = self.trainer.generator.camera_branch[-1]
+            for layer, rows in ((last_pose, slice(2, None, 3)), (last_camera, [2, 5])):
+                layer.weight[rows] *= -1
+                layer.bias[rows] *= -1
+        return done
+
+    monkeypatch.setattr(Adaptation, "run", flipped)
+    out = tmp_path / "flipped.onnx"
+    assert adapt(poses_file, parent, out, "--steps", "2", "--run-dir", str(tmp_path / "run")) == 1
+    err = capsys.readouterr().err
+    assert not out.exists()
+    assert "not written" in err and "parent's plausible answers lost" in err, err
 
 
 def test_bad_flags_are_named(
@@ -231,3 +302,39 @@ def test_a_fitted_prior_round_trips_and_keeps_the_bone_lengths(tmp_path: Path) -
     assert np.allclose(again.mean_lengths, lengths.mean(axis=0), rtol=1e-3)
     drawn = again.sample(50, np.random.default_rng(5))
     assert drawn.shape == (50, skeleton.NUM_JOINTS, 3) and metrics.symmetry_error(drawn).max() < 0.05
+
+
+def test_an_adapted_model_keeps_the_temporal_models_of_its_parent(
+    poses_file: Path, parent: Path, tmp_path: Path
+) -> None:
+    from tests.service.test_temporal import clip, temporal_service
+
+    out = tmp_path / "adapted-here.onnx"
+    assert adapt(poses_file, parent, out, "--steps", "4", "--run-dir", str(tmp_path / "run"), "--force") == 0
+    settings = Settings(model_path=out, grpc_port=0, intra_op_threads=1)
+    lifter = load_lifter(settings)
+    service = temporal_service(lifter, settings)  # its temporal models load over the adapted model
+    temporal = next(service)
+    try:
+        points = clip(30, noise_px=2.0)
+        poses = [{"keypoints": p.tolist(), "track_id": "a", "frame": f} for f, p in enumerate(points)]
+        for mode in ("causal", "offline"):
+            reply = temporal.client.post("/lift", json={"poses": poses, "temporal": mode, "fps": 30.0})
+            assert reply.status_code == 200, reply.text
+            assert all(p["temporal"] for p in reply.json()["poses"])
+        listed = temporal.client.get("/v1/models").json()["models"]
+        assert listed[0]["model_id"] == "adapted-here" and listed[0]["temporal"]
+        assert sorted(listed[0]["temporal_models"]) == sorted(
+            e.lifter.model_id for e in temporal.models.engines.values()
+        )
+    finally:
+        service.close()
+    other = tmp_path / "unrelated.onnx"  # the same weights without the lineage: not its parent's child
+    meta = read_metadata(out)
+    model = onnx.load(out)
+    del model.metadata_props[:]
+    for key, value in meta.items():
+        if key != "lineage":
+            model.metadata_props.add(key=key, value=value)
+    onnx.save(model, other)
+    assert load_temporal_lifters(other, load_lifter(Settings(model_path=other)), TEMPORAL_PATHS) == {}

@@ -193,7 +193,12 @@ class ModelSummary(BaseModel):
     sha256: str = Field("", description="The model file's sha256 (what a derived model's lineage names).")
     temporal: bool = Field(
         description="Requests with `temporal` causal or offline (and tracked stream frames) may name "
-        "it: the loaded temporal models were trained on its answers."
+        "it: the loaded temporal models were trained on its answers, or on those of the model it was "
+        "adapted from (`repnet adapt`)."
+    )
+    temporal_models: list[str] = Field(
+        default_factory=list,
+        description="The model_id of each temporal model that runs over it (empty: none).",
     )
     plausibility: bool = Field(description="The model gives each pose a `plausibility`.")
     evaluation: dict[str, Any] = Field(description="Evaluation figures embedded in the model.")
@@ -210,8 +215,10 @@ class ModelList(BaseModel):
     models: list[ModelSummary] = Field(description="Every model served, the default first.")
 
 
-def describe_models(models: Catalog) -> ModelList:
-    """What GET /v1/models says: each model served, with its lineage, the default first."""
+def describe_models(models: Catalog, temporal: TemporalModels | None = None) -> ModelList:
+    """What GET /v1/models says: each model served, with its lineage and the temporal models that
+    run over it, the default first."""
+    temporal_ids = [] if temporal is None else [e.lifter.model_id for e in temporal.engines.values()]
     found = []
     for model_id, engine in models.engines.items():
         info = engine.lifter.info
@@ -221,7 +228,8 @@ def describe_models(models: Catalog) -> ModelList:
                 default=model_id == models.default,
                 skeleton=info.skeleton,
                 sha256=models.sha256.get(model_id, ""),
-                temporal=model_id == models.temporal_base,
+                temporal=models.runs_temporal(model_id),
+                temporal_models=temporal_ids if models.runs_temporal(model_id) else [],
                 plausibility=engine.lifter.has_plausibility,
                 evaluation=info.evaluation,
                 metadata=info.public_metadata,
@@ -246,7 +254,7 @@ def add_model_routes(
     async def model(model: str | None = None) -> ModelDescription:
         """The default model, or the one `?model=` names (a model_id of GET /v1/models)."""
         chosen = models.pick(model)
-        runs_temporal = chosen.lifter.info.model_id == models.temporal_base
+        runs_temporal = models.runs_temporal(chosen.lifter.info.model_id)
         return describe_model(
             chosen.lifter.info, limits, chosen, max_body_bytes, temporal if runs_temporal else None
         )
@@ -254,4 +262,4 @@ def add_model_routes(
     @app.get("/v1/models", response_model=ModelList, summary="Every model served, with its lineage")
     async def list_models() -> ModelList:
         """The models a request may name in `model`, the default first, each with its metadata."""
-        return describe_models(models)
+        return describe_models(models, temporal)
