@@ -30,6 +30,11 @@ def format_error(name: str) -> str:
     return f"unknown format {echo(name)}; expected one of {', '.join(FORMATS)}{means}"
 
 
+def _as_flags(match: re.Match[str]) -> str:
+    """'send format "body25" or "body25b"' -> 'use --format body25 or --format body25b'."""
+    return "use " + re.sub(r'"(\w+)"', r"--format \1", match[1])
+
+
 def resolve_format(poses: Poses, given: str | None, source: str) -> str:
     """The keypoint format of a file's poses: `given` (--format), else the file's, else h36m17;
     InputFileError when the poses' joint count is not that format's, with a hint at the right one."""
@@ -39,7 +44,7 @@ def resolve_format(poses: Poses, given: str | None, source: str) -> str:
     if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
         first = poses.points[0]
         hint = hint_for(first, ~np.isnan(first).any(axis=1), fmt) or "; pick the format with --format"
-        hint = re.sub(r'send format "(\w+)"', r"use --format \1", hint)
+        hint = re.sub(r'send format ("\w+"(?: or "\w+")*)', _as_flags, hint)
         raise InputFileError(
             f"{source}: poses have {poses.points.shape[1]} joints, format {fmt} has "
             f"{len(FORMATS[fmt].joint_names)}{hint}"

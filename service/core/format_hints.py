@@ -22,8 +22,13 @@ _HIPS = [COCO17.joint_names.index(j) for j in ("left_hip", "right_hip")]
 
 @cache
 def lookalike_of(name: str) -> str | None:
-    """The other format a pose in `name` is mistaken for: the one with as many joints, if any."""
+    """The other format a pose in `name` is mistaken for in the reply's format warning: the other
+    17-joint format (h36m17 and coco17 each other's), else None. The warning's geometry (nose_height,
+    on COCO's torso) and threshold are that pair's; body25 and body25b, the other shared count, are
+    told apart by suggest_format."""
     count = len(FORMATS[name].joint_names)
+    if count != len(COCO17.joint_names):
+        return None
     others = [f for f in FORMATS if f != name and len(FORMATS[f].joint_names) == count]
     return others[0] if len(others) == 1 else None
 
@@ -104,11 +109,17 @@ def alias_of(name: str) -> str | None:
     return FORMAT_ALIASES.get(key) or FORMAT_ALIASES.get(key.replace(".", ""))
 
 
+def formats_with(count: int) -> tuple[str, ...]:
+    """The formats whose poses have `count` joints, in FORMATS order."""
+    return tuple(f.name for f in FORMATS.values() if len(f.joint_names) == count)
+
+
 def suggest_format(points: np.ndarray, present: np.ndarray) -> str | None:
     """The format a pose of (K, 2) points (present (K,): the joints given) looks like: the one format
-    with K joints; where two have K (h36m17 and coco17), the one joint 0's height above the
-    shoulders points to (nose_height: above, COCO's nose; below, Human3.6M's pelvis); else None."""
-    names = [f.name for f in FORMATS.values() if len(f.joint_names) == len(points)]
+    with K joints; where two have K, for 17 (h36m17 and coco17) the one joint 0's height above the
+    shoulders points to (nose_height: above, COCO's nose; below, Human3.6M's pelvis); else None
+    (body25 and body25b have the same joints in other places: suggest_formats names both)."""
+    names = formats_with(len(points))
     if len(names) < 2:
         return names[0] if names else None
     if len(points) != len(COCO17.joint_names):
@@ -120,14 +131,37 @@ def suggest_format(points: np.ndarray, present: np.ndarray) -> str | None:
     return COCO17.name if height > 0 else H36M17.name
 
 
-def hint_for(points: np.ndarray, present: np.ndarray, given: str | None) -> str:
-    """A hint for a pose that does not fit its format `given` (None: no format was sent): "; this
-    looks like body25 (OpenPose BODY_25): send format \"body25\"", or "" when nothing fits better."""
+def suggest_formats(points: np.ndarray, present: np.ndarray) -> tuple[str, ...]:
+    """The formats a pose of (K, 2) points may be in: suggest_format's one, else every format with K
+    joints where nothing tells them apart (25: body25 and body25b), else none."""
     found = suggest_format(points, present)
-    if found is None or found == given:
+    if found is not None:
+        return (found,)
+    return () if len(points) == len(COCO17.joint_names) else formats_with(len(points))
+
+
+def hint_for(points: np.ndarray, present: np.ndarray, given: str | None) -> str:
+    """A hint for a pose that does not fit its format `given` (None: no format was sent): "; 25
+    joints: this looks like body25 (OpenPose BODY_25) or body25b (...): send format \"body25\" or
+    \"body25b\"", or "" when nothing fits better."""
+    found = [name for name in suggest_formats(points, present) if name != given]
+    if not found:
         return ""
-    described = FORMATS[found].description
-    return f'; {len(points)} joints: this looks like {found} ({described}): send format "{found}"'
+    described = " or ".join(f"{name} ({FORMATS[name].description})" for name in found)
+    send = " or ".join(f'"{name}"' for name in found)
+    return f"; {len(points)} joints: this looks like {described}: send format {send}"
+
+
+def alternatives_note(name: str) -> str:
+    """For a format a file's joint count chose: the other formats with as many joints that a file
+    cannot tell from it, as a note ("25 joints read as body25 (OpenPose BODY_25); for OpenPose
+    BODY_25B ... use --format body25b"), else "" (17 joints: the reply's format warning tells)."""
+    count = len(FORMATS[name].joint_names)
+    others = [other for other in formats_with(count) if other != name]
+    if not others or count == len(COCO17.joint_names):
+        return ""
+    choices = "; ".join(f"for {FORMATS[o].description} use --format {o}" for o in others)
+    return f"{count} joints read as {name} ({FORMATS[name].description}); {choices}"
 
 
 def raw_output_hint(data: object) -> str | None:

@@ -581,7 +581,8 @@ def test_a_format_alias_and_a_joint_count_are_answered_with_the_format_they_mean
     path.write_text(json.dumps([[None if np.isnan(p).any() else p.tolist() for p in body[0]]]))
     assert main(["lift", str(path), "--local"]) == EXIT_USAGE
     err = capsys.readouterr().err
-    assert "25 joints: this looks like body25 (OpenPose BODY_25): use --format body25" in err
+    assert "25 joints: this looks like body25 (OpenPose BODY_25) or body25b (OpenPose BODY_25B" in err
+    assert "use --format body25 or --format body25b" in err
 
 
 @pytest.mark.parametrize(
