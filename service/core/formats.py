@@ -70,6 +70,13 @@ _LIMBS = {
     "right_wrist": ("right_wrist",),
 }
 
+# Detectors with hips and shoulders but no pelvis or thorax point: the midpoints stand in for them.
+_COCO_TORSO = {
+    "pelvis": ("left_hip", "right_hip"),
+    "thorax": ("left_shoulder", "right_shoulder"),
+    "neck": ("nose",),
+}
+
 H36M17 = _format(
     "h36m17",
     "Human3.6M 17 joints, the model's own order",
@@ -123,12 +130,7 @@ COCO17 = _format(
         "left_ankle",
         "right_ankle",
     ),
-    {
-        **_LIMBS,
-        "pelvis": ("left_hip", "right_hip"),
-        "thorax": ("left_shoulder", "right_shoulder"),
-        "neck": ("nose",),
-    },
+    {**_LIMBS, **_COCO_TORSO},
 )
 
 # OpenPose's Neck and MidHip are detector outputs (trained as the shoulder and hip midpoints).
@@ -203,12 +205,7 @@ MEDIAPIPE33 = _format(
         "left_foot_index",
         "right_foot_index",
     ),
-    {
-        **_LIMBS,
-        "pelvis": ("left_hip", "right_hip"),
-        "thorax": ("left_shoulder", "right_shoulder"),
-        "neck": ("nose",),
-    },
+    {**_LIMBS, **_COCO_TORSO},
 )
 
 # OpenPose's --model_pose COCO: BODY_25's joints without MidHip and the feet, in the same order
@@ -231,13 +228,7 @@ BODY25B = _format(
     "body25b",
     "OpenPose BODY_25B, the experimental model with upper neck and head top",
     (*COCO17.joint_names, "upper_neck", "head_top", *_FEET),
-    {
-        **_LIMBS,
-        "pelvis": ("left_hip", "right_hip"),
-        "thorax": ("left_shoulder", "right_shoulder"),
-        "neck": ("upper_neck",),
-        "head": ("head_top",),
-    },
+    {**_LIMBS, **_COCO_TORSO, "neck": ("upper_neck",), "head": ("head_top",)},
 )
 
 # Halpe-FullBody's 26 body keypoints: COCO's 17, then Head (the top of the head), Neck, Hip (the
@@ -275,12 +266,7 @@ WHOLEBODY133 = _format(
         *(f"left_hand_{i}" for i in range(21)),
         *(f"right_hand_{i}" for i in range(21)),
     ),
-    {
-        **_LIMBS,
-        "pelvis": ("left_hip", "right_hip"),
-        "thorax": ("left_shoulder", "right_shoulder"),
-        "neck": ("nose",),
-    },
+    {**_LIMBS, **_COCO_TORSO},
 )
 
 # New formats go last: ModelInput.format_index counts in this order.
