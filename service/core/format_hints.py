@@ -79,6 +79,13 @@ FORMAT_ALIASES: dict[str, str] = {
     "openpose": "body25",
     "openposebody25": "body25",
     "op25": "body25",
+    "openposecoco": "coco18",
+    "openpose18": "coco18",
+    "op18": "coco18",
+    "openposebody25b": "body25b",
+    "halpe": "halpe26",
+    "alphapose": "halpe26",
+    "pose2sim": "halpe26",
     "coco": "coco17",
     "yolo": "coco17",
     "yolopose": "coco17",
@@ -87,7 +94,10 @@ FORMAT_ALIASES: dict[str, str] = {
     "detectron2": "coco17",
     "rtmpose": "coco17",
     "vitpose": "coco17",
-    "cocowholebody": "coco17",
+    "cocowholebody": "wholebody133",
+    "wholebody": "wholebody133",
+    "rtmw": "wholebody133",
+    "dwpose": "wholebody133",
     "mediapipe": "mediapipe33",
     "blazepose": "mediapipe33",
     "mediapipepose": "mediapipe33",
@@ -164,6 +174,16 @@ def alternatives_note(name: str) -> str:
     return f"{count} joints read as {name} ({FORMATS[name].description}); {choices}"
 
 
+def _openpose_formats(people: object) -> str:
+    """The format(s) of an OpenPose frame's people, by the first one's joint count: "coco18" for 18,
+    "body25" or "body25b" for 25 (and for a frame it cannot count)."""
+    first = people[0] if isinstance(people, list) and people else None
+    flat = first.get("pose_keypoints_2d") if isinstance(first, dict) else None
+    count = len(flat) // 3 if isinstance(flat, list) else 0
+    names = formats_with(count) if count in (18, 25) else formats_with(25)
+    return " or ".join(f'"{name}"' for name in names)
+
+
 def raw_output_hint(data: object) -> str | None:
     """What to do with a detector's own output file posted as a POST /lift body, or None for any
     other body: an OpenPose --write_json frame ({"version", "people": [{"pose_keypoints_2d"}]}) or
@@ -171,7 +191,8 @@ def raw_output_hint(data: object) -> str | None:
     if isinstance(data, dict) and "people" in data and "poses" not in data:
         return (
             "this is OpenPose output (--write_json): use `repnet lift` on the file or folder, or send "
-            'each person\'s pose_keypoints_2d as {"keypoints": [[x, y, c], ...]} with format "body25"'
+            'each person\'s pose_keypoints_2d as {"keypoints": [[x, y, c], ...]} with format '
+            + _openpose_formats(data["people"])
         )
     items = data.get("annotations") if isinstance(data, dict) and "poses" not in data else data
     first = items[0] if isinstance(items, list) and items else None
