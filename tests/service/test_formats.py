@@ -83,8 +83,8 @@ def test_published_joint_orders_of_the_openpose_halpe_and_wholebody_formats() ->
 # Per new format, the source joint(s) each model joint reads (None: imputed by the model).
 NEW_TABLES = {
     "coco18": {"pelvis": ("left_hip", "right_hip"), "thorax": ("neck",), "neck": ("nose",), "head": None},
-    "body25b": {"pelvis": ("left_hip", "right_hip"), "thorax": ("left_shoulder", "right_shoulder"),
-                "neck": ("upper_neck",), "head": ("head_top",)},
+    "body25b": {"pelvis": ("left_hip", "right_hip"), "thorax": None, "neck": ("upper_neck",),
+                "head": ("head_top",)},
     "halpe26": {"pelvis": ("hip",), "thorax": ("neck",), "neck": ("nose",), "head": ("head",)},
     "wholebody133": {"pelvis": ("left_hip", "right_hip"), "thorax": ("left_shoulder", "right_shoulder"),
                      "neck": ("nose",), "head": None},

@@ -248,7 +248,7 @@ def test_coco_keypoints_without_a_format_get_a_warning(client: TestClient, train
 
 @pytest.mark.parametrize(
     ("name", "imputed"),
-    [("coco18", ["spine", "head"]), ("body25b", ["spine"]), ("halpe26", ["spine"]),
+    [("coco18", ["spine", "head"]), ("body25b", ["spine", "thorax"]), ("halpe26", ["spine"]),
      ("wholebody133", ["spine", "head"])],
 )  # fmt: skip
 def test_detector_formats_lift_as_the_model_joints_their_tables_give(
