@@ -83,9 +83,7 @@ FORMAT_ALIASES: dict[str, str] = {
     "openpose18": "coco18",
     "op18": "coco18",
     "openposebody25b": "body25b",
-    "halpe": "halpe26",
-    "alphapose": "halpe26",
-    "pose2sim": "halpe26",
+    "halpe": "halpe26",  # not "alphapose": its models are COCO 17, Halpe 26 or 136
     "coco": "coco17",
     "yolo": "coco17",
     "yolopose": "coco17",

@@ -209,11 +209,12 @@ MEDIAPIPE33 = _format(
 )
 
 # OpenPose's --model_pose COCO: BODY_25's joints without MidHip and the feet, in the same order
-# (OpenPose src/openpose/pose/poseParameters.cpp, POSE_COCO_BODY_PARTS). Its Neck is a detector
-# output as in BODY_25.
+# (OpenPose src/openpose/pose/poseParameters.cpp, POSE_COCO_BODY_PARTS; the same in tf-pose-estimation's
+# tf_pose/common.py and Lightweight OpenPose's modules/pose.py). Its Neck is a detector output as in
+# BODY_25. (trt_pose's 18 are COCO's 17 then the neck: not this order.)
 COCO18 = _format(
     "coco18",
-    "OpenPose COCO 18 keypoints (--model_pose COCO; older OpenPose, tf-pose-estimation, trt_pose)",
+    "OpenPose COCO 18 keypoints (--model_pose COCO, tf-pose-estimation, Lightweight OpenPose)",
     tuple(joint for joint in BODY25.joint_names[:19] if joint != "mid_hip"),
     {**_LIMBS, "pelvis": ("left_hip", "right_hip"), "thorax": ("neck",), "neck": ("nose",)},
 )

@@ -178,7 +178,7 @@ def test_a_correctly_labelled_pose_gets_no_hint_and_a_17_joint_mix_up_is_told_by
 @pytest.mark.parametrize(("given", "means"), [("openpose", "body25"), ("BODY_25", "body25"),
                                               ("MediaPipe", "mediapipe33"), ("yolo", "coco17"),
                                               ("OpenPose-COCO", "coco18"), ("BODY_25B", "body25b"),
-                                              ("AlphaPose", "halpe26"), ("COCO-WholeBody", "wholebody133"),
+                                              ("Halpe", "halpe26"), ("COCO-WholeBody", "wholebody133"),
                                               ("RTMW", "wholebody133")])  # fmt: skip
 def test_a_format_alias_names_the_format_it_means(given: str, means: str) -> None:
     (message,) = violations(pose(format=given))
