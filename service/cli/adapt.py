@@ -40,8 +40,8 @@ def resolve_format(
 ) -> str:
     """The keypoint format of a file's poses: `given` (--format), else the file's, else h36m17;
     InputFileError when the poses' joint count is not that format's, with a hint at the right one.
-    `say` is told when the file's format was chosen among formats with as many joints (body25 or
-    body25b: format_hints.alternatives_note)."""
+    Without --format, `say` is told of the other formats with as many joints, which the file cannot
+    tell from its own (body25: body25b; format_hints.alternatives_note)."""
     fmt = given or poses.format or DEFAULT_FORMAT
     if given is None and fmt in FORMATS and say is not None and (note := alternatives_note(fmt)):
         say(note)

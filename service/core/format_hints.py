@@ -24,8 +24,8 @@ _HIPS = [COCO17.joint_names.index(j) for j in ("left_hip", "right_hip")]
 def lookalike_of(name: str) -> str | None:
     """The other format a pose in `name` is mistaken for in the reply's format warning: the other
     17-joint format (h36m17 and coco17 each other's), else None. The warning's geometry (nose_height,
-    on COCO's torso) and threshold are that pair's; body25 and body25b, the other shared count, are
-    told apart by suggest_format."""
+    on COCO's torso) and threshold are that pair's; body25 and body25b, the other shared count, have
+    no such test: their hints name both (suggest_formats)."""
     count = len(FORMATS[name].joint_names)
     if count != len(COCO17.joint_names):
         return None
@@ -161,8 +161,8 @@ def hint_for(points: np.ndarray, present: np.ndarray, given: str | None) -> str:
 
 
 def alternatives_note(name: str) -> str:
-    """For a format a file's joint count chose: the other formats with as many joints that a file
-    cannot tell from it, as a note ("25 joints read as body25 (OpenPose BODY_25); for OpenPose
+    """A note for poses read as `name` without --format: the other formats with as many joints,
+    which the joints cannot tell from it ("25 joints read as body25 (OpenPose BODY_25); for OpenPose
     BODY_25B ... use --format body25b"), else "" (17 joints: the reply's format warning tells)."""
     count = len(FORMATS[name].joint_names)
     others = [other for other in formats_with(count) if other != name]
