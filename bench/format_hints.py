@@ -6,8 +6,9 @@ Human3.6M S9/S11 ground truth, projected through the true cameras to 2D, is turn
 detector format (repnet.core.formats.from_model_joints: the joints a format shares with Human3.6M; eyes,
 ears, feet and hands missing) and sent through the service's input rules (keypoints.prepare_poses):
 
-- without a format (the request's default, h36m17): a 16-, 25- or 33-joint pose should be refused
-  with the hint "looks like mpii16 / body25 / mediapipe33" (target >= 99 %);
+- without a format (the request's default, h36m17): a pose of any other count than 17 should be
+  refused with the hint naming its format ("looks like mpii16", "coco18", ...; 25 joints: "body25 or
+  body25b", the two formats of that count, which nothing in the joints tells apart) (target >= 99 %);
 - 17-joint poses under a label of another joint count (mpii16): the hint must tell h36m17 from
   coco17 by the geometry (joint 0 above the shoulders: COCO's nose);
 - a coco17 pose without a format has the default's joint count, so no count hint: the reply's format
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import time
 from pathlib import Path
@@ -32,6 +34,7 @@ if __package__ in (None, ""):  # `python bench/format_hints.py`
 
 from bench.format_mixup import frames
 from bench.h36m_args import check_frame_step, h36m_parser
+from repnet.core.format_hints import formats_with
 from repnet.core.formats import DEFAULT_FORMAT, FORMATS, from_model_joints
 from repnet.core.inputs import PoseInput
 from repnet.core.keypoints import prepare_poses
@@ -44,11 +47,18 @@ from repnet.train.testset import DATASET_LABEL, build_test_set, select_sequences
 
 log = logging.getLogger("bench.format_hints")
 BATCH = 4096
-COUNT_HINTED = ("mpii16", "body25", "mediapipe33")  # joint counts no other format has
+# Formats whose joint count the count hint answers (17 is the default's: the format warning's case).
+COUNT_HINTED = tuple(name for name, f in FORMATS.items() if len(f.joint_names) != 17)
+
+
+def count_answer(name: str) -> str:
+    """What the count hint should say for a pose in `name`: every format with its joint count."""
+    return " or ".join(formats_with(len(FORMATS[name].joint_names)))
 
 
 def hints(points: np.ndarray, present: np.ndarray, label: str) -> list[str]:
-    """Per pose, the format its refusal says it looks like ("" when none: accepted or no hint)."""
+    """Per pose, the format(s) its refusal says to send ("coco18", "body25 or body25b"; "" when none:
+    accepted or no hint)."""
     limits = limits_of(Settings())
     out: list[str] = []
     for a in range(0, len(points), BATCH):
@@ -56,7 +66,9 @@ def hints(points: np.ndarray, present: np.ndarray, label: str) -> list[str]:
         prepared = prepare_poses([PoseInput(p, v, None, label) for p, v in chunk], limits)
         for found in prepared.violations:
             said = [
-                v.reason.split("looks like ")[1].split(" ")[0] for v in found if "looks like " in v.reason
+                " or ".join(re.findall(r'"(\w+)"', v.reason.split("send format ")[1]))
+                for v in found
+                if "looks like " in v.reason
             ]
             out.append(said[0] if said else "")
     return out
@@ -105,7 +117,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         points = points.astype(np.float64)
         log.info("%s", name)
         if name in COUNT_HINTED:
-            rows.append(row("no format", name, DEFAULT_FORMAT, hints(points, present, DEFAULT_FORMAT), name))
+            said = hints(points, present, DEFAULT_FORMAT)
+            rows.append(row("no format", name, DEFAULT_FORMAT, said, count_answer(name)))
         elif name == "coco17":
             rows.append(
                 row("no format", name, DEFAULT_FORMAT, warned(lifter, points, present, DEFAULT_FORMAT), name)
@@ -151,7 +164,8 @@ def markdown(result: dict[str, Any]) -> str:
         )
     lines += [
         "",
-        f"16/25/33-joint poses without a format told the right format: {s['count_hint_right']:.3%} "
+        "Poses of another count than 17 without a format told the right format(s): "
+        f"{s['count_hint_right']:.3%} "
         f"(target >= 99 %); correctly labelled poses told anything: {s['right_labels_told_something']:.3%} "
         "(target: none).",
     ]
