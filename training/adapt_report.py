@@ -10,6 +10,7 @@ track's limbs keep their length (bone-length spread over the held-out poses, mm)
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,9 @@ class Figures:
 # mean that falls towards 0.5 is no sign of worse answers; more answers below 0.05 are.
 TOLERANCE = {"reprojection_px": 0.10, "implausible_pct": 1.0, "symmetry_mm": 1.0, "bone_std_mm": 1.0}
 IMPLAUSIBLE = 0.05  # the service's meaning: fewer than 1 in 20 real poses look as implausible
+# The fewest held-out poses on which the refusal can tell a worse model from chance: one answer that
+# turns implausible moves implausible_pct by 100 / n points, within its tolerance from n = 100 on.
+MIN_HOLDOUT = math.ceil(100 / TOLERANCE["implausible_pct"])
 
 
 def parent_scorer(state: dict[str, Any], meta: dict[str, str]) -> Plausibility:
