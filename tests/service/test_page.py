@@ -21,6 +21,7 @@ from fastapi.testclient import TestClient
 
 from repnet.client.http import LiftClient
 from repnet.client.tracker import assign_tracks
+from repnet.core.errors import SPLIT_HINT
 from repnet.core.formats import FORMATS, from_model_joints
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
@@ -442,7 +443,8 @@ def test_bad_inputs_show_the_api_error_next_to_the_field(driver: Any, page_url: 
     driver.find_element(By.ID, "file").send_keys(str(big))
     wait_for(driver, "return document.getElementById('file-error').textContent.length > 0")
     assert text_of(driver, "file-error") == (
-        f"file big.json has {big.stat().st_size} bytes, more than the {BODY_LIMIT}-byte limit of a /lift body"
+        f"file big.json has {big.stat().st_size} bytes, more than the {BODY_LIMIT}-byte limit of a /lift "
+        f"body; {SPLIT_HINT}"
     )
     driver.save_screenshot(str(SHOTS / "error-file-limit.png"))
 

@@ -83,9 +83,12 @@ function showWarnings(warnings) {
   }
 }
 
+// The way out of a size limit, as the service words it (repnet.core.errors.SPLIT_HINT).
+const SPLIT_HINT = "`repnet lift FILE` and the Python client's LiftClient.lift_batch split a long clip into requests";
+
 function tooLarge(bytes, what) {
   const limit = state.model.limits.max_body_bytes;
-  return bytes > limit ? `${what} has ${bytes} bytes, more than the ${limit}-byte limit of a /lift body` : null;
+  return bytes > limit ? `${what} has ${bytes} bytes, more than the ${limit}-byte limit of a /lift body; ${SPLIT_HINT}` : null;
 }
 
 // The frame rate of a lift: the page's field (as typed, for the API to judge), else the input's, else
