@@ -149,7 +149,9 @@ def choose(
         mode = fallback
     if rate is None and mode != "off":
         rate = DEFAULT_FPS
-        tell(f"assuming {DEFAULT_FPS:g} fps (the input gives no frame rate; set it with --fps)")
+        by = poses.numbered_by  # why the frames were taken for a video, where they may not have been
+        video = "" if by is None else f"{poses.frame_count} frames ({by} in sequence): "
+        tell(f"{video}assuming {DEFAULT_FPS:g} fps (the input gives no frame rate; set it with --fps)")
     return Choice(mode, rate)
 
 

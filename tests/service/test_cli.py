@@ -543,7 +543,7 @@ def test_unrelated_coco_images_are_lifted_one_by_one_and_numbered_ones_as_a_clip
     clip = _coco_images(tmp_path, [1000, 1001, 1002, 1004, 1005])  # 1003: nobody found
     data = _lifted(["lift", str(clip), "--local", "-o", str(tmp_path / "clip.json")])
     err = capsys.readouterr().err
-    assert "still images" not in err and "assuming 30 fps" in err
+    assert "still images" not in err and "5 frames (image ids in sequence): assuming 30 fps" in err
     assert data["temporal"] != "off" and data["fps"] == 30.0 and data["stills"] is None
     assert len({p["track_id"] for p in data["poses"]}) == 3
 

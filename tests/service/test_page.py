@@ -563,7 +563,7 @@ def test_unrelated_images_are_lifted_one_by_one_and_numbered_ones_as_a_clip(
             assert page_mode(driver) == "off" and "track" not in status and "assuming" not in status
         else:
             assert "still images" not in status and page_mode(driver) != "off", status
-            assert "3 track(s)" in status and "assuming 30 fps" in status
+            assert "3 track(s)" in status and "4 frames (image ids in sequence): assuming 30 fps" in status
 
 
 # ---- sequences: tracks, the temporal control, clips cut into requests ----

@@ -122,7 +122,8 @@ function plan(parsed) {
   const gap = state.model.rules.max_gap_s;
   const tracks = tracking ? assignTracks(parsed.frames, poses, numeric, gap).map(String) : parsed.trackIds;
   const still = stills && `${parsed.allFrames.length} still images (${stills}): lifted one by one; give a frame rate to treat them as a video`;
-  const notes = [still, note, mode === "off" ? "" : rate.note].filter(Boolean);
+  const video = rate.note && parsed.numberedBy ? `${parsed.allFrames.length} frames (${parsed.numberedBy} in sequence): ` : "";
+  const notes = [still, note, mode === "off" ? "" : video + rate.note].filter(Boolean);
   return { poses, extra, mode, fps: rate.fps, tracks, notes };
 }
 
