@@ -8,8 +8,10 @@ on) through onnxruntime, one shift at a time: GT 2D clean, GT 2D + N(0, 20 px), 
 and Stacked-Hourglass detections; and the two shifts of the adaptation benchmark (bench.adapt_h36m):
 the tails seen from high cameras (45-65 degrees down) and all of S8 with its SH detections (every
 10th frame). Per shift it prints the P-II (mm) of each plausibility decile, the lowest decile's
-P-II over the highest's, and the Spearman rank correlation between plausibility and per-pose P-II
-(negative: a lower score goes with a larger error). It measures and prints; it asserts nothing.
+P-II over the highest's, the Spearman rank correlation between plausibility and per-pose P-II
+(negative: a lower score goes with a larger error), and the answers' 1st and 5th percentile of
+plausibility (the GT shift's 1st sets the service's implausible-pose warning) and the share of
+answers that warning is given (below IMPLAUSIBLE_BELOW). It measures and prints; it asserts nothing.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ if __package__ in (None, ""):  # `python bench/plausibility_rank.py`
 
 from bench.adapt_h36m import high_tails, s8_sh
 from bench.stats import write_json
+from repnet.runtime.replies import IMPLAUSIBLE_BELOW
 from repnet.train import data, metrics, sequences
 from repnet.train.config import TrainConfig
 from repnet.train.evaluate import open_model
@@ -74,6 +77,10 @@ def rank_figures(p: np.ndarray, e: np.ndarray) -> dict[str, Any]:
         "ratio": deciles[0] / deciles[-1],
         "spearman": metrics.spearman(p, e),
         "zero_share": float((p == 0).mean()),
+        # the low tail the service's warning is set against, and the share it warns
+        "percentile_1": float(np.percentile(p, 1)),
+        "percentile_5": float(np.percentile(p, 5)),
+        "warned_share": float((p < IMPLAUSIBLE_BELOW).mean()),
     }
 
 
@@ -102,15 +109,17 @@ def shifts(
 def table(results: dict[str, dict[str, dict[str, Any]]]) -> str:
     """Markdown: one row per model and shift."""
     lines = [
-        "| model | shift | P-II | decile 1 | decile 10 | ratio | Spearman | share at 0 |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "| model | shift | P-II | decile 1 | decile 10 | ratio | Spearman | share at 0 | 1st pct | 5th pct "
+        f"| warned (< {IMPLAUSIBLE_BELOW:g}) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for model, by_shift in results.items():
         for shift, r in by_shift.items():
             d = r["deciles_pa_mpjpe"]
             lines.append(
                 f"| {model} | {shift} | {r['pa_mpjpe']:.1f} | {d[0]:.1f} | {d[-1]:.1f} | "
-                f"{r['ratio']:.2f} | {r['spearman']:+.3f} | {100 * r['zero_share']:.1f} % |"
+                f"{r['ratio']:.2f} | {r['spearman']:+.3f} | {100 * r['zero_share']:.1f} % | "
+                f"{r['percentile_1']:.3f} | {r['percentile_5']:.3f} | {100 * r['warned_share']:.1f} % |"
             )
     return "\n".join(lines)
 

@@ -8,8 +8,10 @@ model and the export are repnet.train.adapt_report's.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
+import math
 import shlex
 import sys
 import time
@@ -22,11 +24,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from repnet.core.contract import DEFAULT_FPS
 from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE
 from repnet.runtime.loading import BUNDLED_MODEL
 from repnet.train import checkpoint, lineage
 from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
 from repnet.train.adapt_report import (
+    MIN_HOLDOUT,
+    SHARE_STEP_PCT,
     compare,
     export_adapted,
     measure,
@@ -112,14 +117,8 @@ def run(
     write. 0 written, 1 refused (worse), 2 usage."""
     if args.threads:
         torch.set_num_threads(args.threads)
-    if args.output.suffix != ".onnx":
-        say(f"-o {args.output}: the adapted model is an .onnx file")
-        return 2
-    if not args.output.parent.is_dir():
-        say(f"-o {args.output}: the folder {args.output.parent} does not exist")
-        return 2
-    if args.model_id is None and MODEL_ID.fullmatch(args.output.stem) is None:
-        say(f"-o {args.output}: its name is the model id, which must be {MODEL_ID_RULE}; give --model-id")
+    if (problem := _output_problem(args)) is not None:
+        say(f"-o {args.output}: {problem}")
         return 2
     held = split_holdout(list(counts), args.holdout_fraction)
     train = (points[~held], visible[~held])
@@ -147,14 +146,14 @@ def run(
         say(f"resumed {state} at step {adaptation.step} of {config.steps}")
     elif args.resume:
         say(f"nothing to resume in {folder}: starting afresh")
-    probe = (test[0][:PROBE_POSES], test[1][:PROBE_POSES])
-    with tqdm(total=config.steps, initial=adaptation.step, desc="adapt", unit="step", file=sys.stderr) as bar:
-        done = adaptation.run(config.minutes, state, on_step=_progress(adaptation, probe, scorer, bar))
+    done = _adapt(adaptation, state, (test[0][:PROBE_POSES], test[1][:PROBE_POSES]), scorer)
+    if done is None:
+        return 130
     # Samples/s over the whole run (every call of a resumed one): what its wall time bought.
     rate = adaptation.step * config.batch_size / max(adaptation.elapsed, 1e-9)
     say(
         f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
-        f"({rate:.0f} samples/s){'' if done else '; run again with --resume to go on'}"
+        f"({rate:.0f} samples/s){'' if done else f'; {kept(state)}: run again with --resume to go on'}"
     )
     runs = [int(part.sum()) for part in np.split(held, np.cumsum(counts)[:-1])] if held.any() else None
     before, after = compare(generator_of(parent), adaptation.trainer.generator, scorer, test, mirror, runs)
@@ -163,8 +162,10 @@ def run(
     if reasons and not args.force:
         say(
             "not written: the adapted model is worse on the held-out poses (" + "; ".join(reasons) + "); "
-            "--force writes it anyway"
+            f"--force writes it anyway ({kept(state)}: --resume --force writes it without adapting again)"
         )
+        if (advice := more_data(len(test[0]), args.holdout_fraction)) is not None:
+            say(advice)
         return 1
     record = {
         "model_id": args.model_id or args.output.stem,
@@ -192,4 +193,58 @@ def run(
         f"wrote {args.output} (model {model}, torch vs onnxruntime {diff:.1e} mm, {took:.1f} s): "
         "serve it with --model-path or from REPNET_MODEL_DIR"
     )
+    if done and args.run_dir is None:  # the cache's checkpoint has served (a --run-dir is the user's)
+        state.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            folder.rmdir()  # when empty
     return 0
+
+
+def _output_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with -o, if anything."""
+    if args.output.suffix != ".onnx":
+        return "the adapted model is an .onnx file"
+    if not args.output.parent.is_dir():
+        return f"the folder {args.output.parent} does not exist"
+    if args.model_id is None and MODEL_ID.fullmatch(args.output.stem) is None:
+        return f"its name is the model id, which must be {MODEL_ID_RULE}; give --model-id"
+    return None
+
+
+def _adapt(
+    adaptation: Adaptation, state: Path, probe: tuple[np.ndarray, np.ndarray], scorer: Any
+) -> bool | None:
+    """Adaptation.run with its progress bar: True when all steps are done, False at the time limit,
+    None when interrupted (Ctrl-C), said with the checkpoint a rerun resumes from."""
+    steps = adaptation.config.steps
+    try:
+        with tqdm(total=steps, initial=adaptation.step, desc="adapt", unit="step", file=sys.stderr) as bar:
+            on_step = _progress(adaptation, probe, scorer, bar)
+            return adaptation.run(adaptation.config.minutes, state, on_step=on_step)
+    except KeyboardInterrupt:
+        # No save here: an interrupted step may have half-updated the weights; the last periodic save stands.
+        said = (
+            f"{kept(state)}: --resume goes on from it" if state.is_file() else "no checkpoint was written yet"
+        )
+        say(f"interrupted; {said}")
+        return None
+
+
+def kept(state: Path) -> str:
+    """Where the run's checkpoint is kept, and its size."""
+    size = state.stat().st_size if state.is_file() else 0
+    return f"its checkpoint is kept in {state} ({size / 1e6:.1f} MB)"
+
+
+def more_data(holdout: int, fraction: float) -> str | None:
+    """What a refused run on too few held-out poses lacks (MIN_HOLDOUT, of the refusal's tolerance),
+    and about how many poses to give; None when the held-out part is large enough."""
+    if holdout >= MIN_HOLDOUT:
+        return None
+    poses = math.ceil(MIN_HOLDOUT / fraction) if fraction > 0 else MIN_HOLDOUT
+    return (
+        f"only {holdout} held-out poses: the decision needs at least {MIN_HOLDOUT} (one answer turning "
+        f"one way or the other moves a share by {100 / max(holdout, 1):.0f} points, not at most "
+        f"{SHARE_STEP_PCT:g}); give about {poses} poses ({poses} frames of "
+        f"one person, {poses / DEFAULT_FPS:.0f} s at {DEFAULT_FPS:g} fps) or more"
+    )

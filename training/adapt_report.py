@@ -8,9 +8,11 @@ properties a person's skeleton has: left equals right (symmetry, mm) and the lim
 length within a run of the user's poses (mm); how smoothly consecutive answers move (jitter); and
 the answers' depth extent, which a flattened or stretched model changes while it reprojects the same.
 """
+
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -61,6 +63,11 @@ TOLERANCE = {
     "depth_mm": 1.5,
 }
 IMPLAUSIBLE = 0.05  # the service's meaning: fewer than 1 in 20 real poses look as implausible
+# The fewest held-out poses on which the refusal can tell a worse model from chance: below, one
+# answer moves the shares (plausible answers lost, implausible answers) by more than a point and a
+# mean by more than 1 % of its sum, and the runs are too short for jitter and bone spread.
+SHARE_STEP_PCT = 1.0  # the most one answer may move a share, in points
+MIN_HOLDOUT = math.ceil(100 / SHARE_STEP_PCT)
 
 
 def parent_scorer(state: dict[str, Any], meta: dict[str, str]) -> Plausibility:

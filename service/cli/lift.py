@@ -16,6 +16,7 @@ from repnet.client.chunks import Progress
 from repnet.client.http import LiftClient
 from repnet.client.result import LiftClientError, LiftResult
 from repnet.core.contract import DEFAULT_FPS
+from repnet.core.formats import FORMATS, MODEL_PARENTS
 from repnet.core.inputs import Limits
 from repnet.io.poses import Poses
 
@@ -110,32 +111,56 @@ class Choice:
 
     temporal: str  # off, causal, offline
     fps: float | None  # the tracks' frame rate (None when off and the file gives none)
+    stills: str | None = None  # why the frames were taken for unrelated still images; None: they were not
+
+
+def stills_reason(numbered_by: str | None, frames: Sequence[int]) -> str | None:
+    """Why frames numbered so are unrelated still images rather than a clip, or None for a clip: ids
+    with no number, or numbers of which fewer than half follow the previous one by 1 (COCO image ids
+    397133, 37777, 252219; a clip's frames step by 1 but where nobody was found). The page's
+    stillsReason (static/lift.js) is this rule."""
+    distinct = sorted(set(frames))
+    if numbered_by is None or len(distinct) < 2:
+        return None
+    if numbered_by == "image names":
+        return "image ids not numbered"
+    steps = np.diff(distinct)
+    return None if 2 * int((steps == 1).sum()) >= len(steps) else f"{numbered_by} not consecutive"
 
 
 def choose(
     poses: Poses, asked: str | None, fps: float | None, modes: Callable[[], Sequence[str]], tell: Say
 ) -> Choice:
     """The temporal mode: `asked` (--temporal), else offline for a sequence (poses of more than one
-    frame) and off for one frame; a default the lifter has no model for falls back to causal, then
-    off (told). The frame rate: `fps` (--fps), else the file's, else DEFAULT_FPS (told)."""
+    frame) and off for one frame or for unrelated still images (stills_reason, told, unless a frame
+    rate or tracks make them a clip); a default the lifter has no model for falls back to causal,
+    then off (told). The frame rate: `fps` (--fps), else the file's, else DEFAULT_FPS (told)."""
+    rate = fps if fps is not None else poses.fps
+    clip = asked in ("causal", "offline") or rate is not None or poses.track_id is not None
+    stills = None if clip else stills_reason(poses.numbered_by, poses.frame.tolist())
+    if stills is not None:
+        count = poses.frame_count
+        tell(f"{count} still images ({stills}): lifted one by one; --fps N to treat them as a video")
+        return Choice("off", None, stills)
     mode = asked or ("offline" if poses.frame_count > 1 else "off")
     if asked is None and mode != "off" and mode not in (found := modes()):
         fallback = "causal" if "causal" in found else "off"
         tell(f"no {mode} temporal model here: lifting the sequence with temporal {fallback}")
         mode = fallback
-    rate = fps if fps is not None else poses.fps
     if rate is None and mode != "off":
         rate = DEFAULT_FPS
-        tell(f"assuming {DEFAULT_FPS:g} fps (the input gives no frame rate; set it with --fps)")
+        by = poses.numbered_by  # why the frames were taken for a video, where they may not have been
+        video = "" if by is None else f"{poses.frame_count} frames ({by} in sequence): "
+        tell(f"{video}assuming {DEFAULT_FPS:g} fps (the input gives no frame rate; set it with --fps)")
     return Choice(mode, rate)
 
 
 def tracks_of(poses: Poses, choice: Choice) -> tuple[str | None, ...] | None:
     """Each pose's track: the file's, else, for a sequence or a temporal lift, the tracker's
-    (repnet.client.tracker); None for one frame lifted alone."""
+    (repnet.client.tracker); None for one frame or still images lifted alone."""
     if poses.track_id is not None:
         return poses.track_id
-    if choice.temporal == "off" and poses.frame_count < 2:
+    if choice.temporal == "off" and (poses.frame_count < 2 or choice.stills is not None):
         return None
     from repnet.client.tracker import assign_tracks
 
@@ -191,6 +216,24 @@ def output_rows(results: Sequence[LiftResult], poses: Poses) -> list[dict[str, A
     ]
 
 
+def output_document(
+    results: Sequence[LiftResult], poses: Poses, fmt: str, choice: Choice, skipped: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """The output file: the model, how the poses were lifted, the joints, the poses, those skipped."""
+    return {
+        "model_id": results[0].model_id,
+        "format": fmt,
+        "temporal": choice.temporal,
+        "fps": choice.fps,
+        "stills": choice.stills,
+        "input_joints": list(FORMATS[fmt].joint_names),
+        "joints": list(results[0].joints),
+        "parents": list(MODEL_PARENTS),
+        "poses": output_rows(results, poses),
+        "skipped": skipped,
+    }
+
+
 def warn_about(results: Sequence[LiftResult], poses: Poses) -> None:
     """Say on stderr how many poses got a warning, with the first of each kind and where it was."""
     kinds: dict[str, list[int]] = {}
@@ -206,4 +249,14 @@ def warn_about(results: Sequence[LiftResult], poses: Poses) -> None:
         )
 
 
-__all__ = ["Choice", "LiftClientError", "RemoteBackend", "batch_of", "choose", "output_rows", "tracks_of"]
+__all__ = [
+    "Choice",
+    "LiftClientError",
+    "RemoteBackend",
+    "batch_of",
+    "choose",
+    "output_document",
+    "output_rows",
+    "stills_reason",
+    "tracks_of",
+]

@@ -20,7 +20,7 @@ from repnet.cli.lift import (
     batch_of,
     choose,
     local_backend,
-    output_rows,
+    output_document,
     say,
     tracks_of,
     warn_about,
@@ -31,7 +31,7 @@ from repnet.client.http import LiftClientError
 from repnet.core.contract import TEMPORAL_MODES
 from repnet.core.errors import ModelLoadError
 from repnet.core.format_hints import format_table
-from repnet.core.formats import FORMATS, MODEL_PARENTS
+from repnet.core.formats import FORMATS
 from repnet.io.output import WRITERS, Lifted, check_output, write_output
 from repnet.io.pose_file import load_poses, read_input
 from repnet.io.poses import InputFileError, Poses
@@ -99,17 +99,7 @@ def run_lift(args: argparse.Namespace) -> int:
     finally:
         if remote is not None:
             remote.close()
-    out = {
-        "model_id": results[0].model_id,
-        "format": fmt,
-        "temporal": choice.temporal,
-        "fps": choice.fps,
-        "input_joints": list(FORMATS[fmt].joint_names),
-        "joints": list(results[0].joints),
-        "parents": list(MODEL_PARENTS),
-        "poses": output_rows(results, poses),
-        "skipped": [s.to_json(original) for s in skipped],
-    }
+    out = output_document(results, poses, fmt, choice, [s.to_json(original) for s in skipped])
     warn_about(results, poses)
     n, frames = len(results), poses.frame_count
     if args.output is None:

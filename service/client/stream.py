@@ -13,6 +13,7 @@ import numpy as np
 
 from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 from repnet.client.result import ArrayLike, LiftClientError, LiftResult, as_poses
+from repnet.core.errors import SPLIT_HINT
 from repnet.core.formats import DEFAULT_FORMAT, MODEL_JOINTS
 
 DEFAULT_TARGET = "localhost:50051"
@@ -170,8 +171,20 @@ def _frame_result(answer: lifter_pb2.LiftFrameResult) -> FrameResult:
 
 def _rpc_error(err: grpc.RpcError) -> LiftClientError:
     if isinstance(err, grpc.Call):
-        return LiftClientError(err.details() or str(err), err.code().name)
+        details = err.details() or str(err)
+        if _too_large(err):  # gRPC's own words ("Received message larger than max (N vs. M)")
+            details = f"{details}: the request is over the service's message limit; {SPLIT_HINT}"
+        return LiftClientError(details, err.code().name)
     return LiftClientError(str(err))
+
+
+def _too_large(err: grpc.RpcError) -> bool:
+    """A call refused for its message size (RESOURCE_EXHAUSTED as an overload is, but no retry helps)."""
+    return (
+        isinstance(err, grpc.Call)
+        and err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        and "larger than max" in (err.details() or "")
+    )
 
 
 class StreamClient:
@@ -293,7 +306,7 @@ class StreamClient:
                 joints, model_id = response.joints, response.model_id
                 return [LiftResult.from_fields(proto_field(p), joints, model_id) for p in response.poses]
             except grpc.RpcError as err:
-                retry = isinstance(err, grpc.Call) and err.code() in _RETRY_CODES
+                retry = isinstance(err, grpc.Call) and err.code() in _RETRY_CODES and not _too_large(err)
                 if not retry or attempt == self.retries:
                     raise _rpc_error(err) from err
                 time.sleep(self.backoff * 2**attempt)

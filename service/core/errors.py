@@ -16,6 +16,11 @@ MAX_ECHO_CHARS = 100
 # The longest field name and reason a Violation keeps: the bound behind every echo, whatever built it.
 MAX_FIELD_CHARS = 200
 MAX_REASON_CHARS = 400
+# The way out named by every refusal of a request for its size (HTTP 413, too many poses, gRPC's
+# message limit, the page's file limit: static/page.js says the same): the clients that cut a clip.
+SPLIT_HINT = (
+    "`repnet lift FILE` and the Python client's LiftClient.lift_batch split a long clip into requests"
+)
 
 
 def echo(value: str) -> str:

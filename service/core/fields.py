@@ -72,9 +72,11 @@ FIELDS: tuple[ReplyField, ...] = (
         "warnings",
         (ANY,),
         str,
-        "Why this answer may be wrong although the input was accepted: today, that the keypoints look like "
-        'another format with as many joints ("format: these keypoints look like coco17, not h36m17 ...") '
-        "or that joints at exactly (0, 0) were read as missing. Empty when nothing looks wrong.",
+        "Why this answer may be wrong although the input was accepted: that the keypoints look like "
+        'another format with as many joints ("format: these keypoints look like coco17, not h36m17 ..."), '
+        "that joints at exactly (0, 0) were read as missing, or that the 3D pose looks implausible "
+        '(plausibility below 0.01: "plausibility: the 3D pose looks implausible ..."). Empty when nothing '
+        "looks wrong.",
     ),
     ReplyField(
         "temporal",

@@ -9,7 +9,7 @@ from functools import cache
 import numpy as np
 import numpy.typing as npt
 
-from repnet.core.errors import InvalidKeypoints, Violation, echo
+from repnet.core.errors import SPLIT_HINT, InvalidKeypoints, Violation, echo
 from repnet.core.format_hints import alias_of, hint_for, lookalike_of, nose_height
 from repnet.core.formats import (
     FORMAT_NAMES,
@@ -40,7 +40,7 @@ def check_request(count: int, threshold: float | None, limits: Limits) -> None:
             [Violation("poses", "the batch is empty; send at least one pose", "empty_batch")]
         )
     if count > limits.max_request_poses:
-        reason = f"{count} poses in one request, the limit is {limits.max_request_poses}"
+        reason = f"{count} poses in one request, the limit is {limits.max_request_poses}; {SPLIT_HINT}"
         raise InvalidKeypoints([Violation("poses", reason, "batch_too_large")])
 
 

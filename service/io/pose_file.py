@@ -106,15 +106,15 @@ def to_pixels(poses: Poses, image_size: tuple[float, float] | None) -> Poses:
     return replace(poses, points=points, image_size=None, landmarks=None)
 
 
-def _image_frames(ids: Sequence[Any]) -> np.ndarray:
+def _image_frames(ids: Sequence[Any]) -> tuple[np.ndarray, str]:
     """Frame numbers of COCO image ids: an integer id is its frame, a text id the last number in it;
-    else the ids in order of appearance."""
+    else the ids in order of appearance; and what they are (Poses.numbered_by)."""
     numbers = [
         i if isinstance(i, int) else (frame_number(Path(i)) if isinstance(i, str) else None) for i in ids
     ]
     if all(is_frame_number(n) for n in numbers):
-        return np.array(numbers, dtype=np.int64)
-    return np.unique([str(i) for i in ids], return_inverse=True)[1].astype(np.int64)
+        return np.array(numbers, dtype=np.int64), "image ids"
+    return np.unique([str(i) for i in ids], return_inverse=True)[1].astype(np.int64), "image names"
 
 
 def _coco(items: Sequence[Any], where: str) -> Poses:
@@ -134,14 +134,15 @@ def _coco(items: Sequence[Any], where: str) -> Poses:
         if flags:  # flags are no confidence
             pose[:, 2] = np.nan
         poses.append(pose)
-    frames = _image_frames([a.get("image_id", k) for k, a in enumerate(found)])
+    frames, by_ids = _image_frames([a.get("image_id", k) for k, a in enumerate(found)])
+    numbered_by = by_ids if any("image_id" in a for a in found) else None  # else the poses' order in the file
     order = np.argsort(frames, kind="stable")
     stacked = stack_poses([poses[k] for k in order], None, "coco17" if len(rows[0]) == 17 else None, where)
     person = np.zeros(len(order), np.int64)
     for k in range(1, len(order)):
         person[k] = person[k - 1] + 1 if frames[order[k]] == frames[order[k - 1]] else 0
     labels = tuple(_coco_label(found[k]) for k in order)
-    return replace(stacked, frame=frames[order], person=person, label=labels)
+    return replace(stacked, frame=frames[order], person=person, label=labels, numbered_by=numbered_by)
 
 
 def _coco_label(item: dict[str, Any]) -> str:
@@ -325,7 +326,9 @@ def load_frames(
         persons += range(len(rows))
         labels += [path.name] * len(rows)
     poses = stack_poses(parts, None, fmt, f"{len(files)} files")
-    return replace(poses, frame=np.array(frames), person=np.array(persons), label=tuple(labels))
+    return replace(
+        poses, frame=np.array(frames), person=np.array(persons), label=tuple(labels), numbered_by="file names"
+    )
 
 
 def read_input(spec: str, progress: Progress, image_size: tuple[float, float] | None = None) -> Poses:

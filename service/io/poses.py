@@ -38,6 +38,10 @@ class Poses:
     landmarks: np.ndarray | None = None  # (N,) the pose's rows were MediaPipe [x, y, z, visibility]
     # (N,) what the file calls each pose, where it names them (a COCO file: "image_id 397133, id 1768")
     label: tuple[str, ...] | None = None
+    # what the frame numbers are when they may be unrelated images' rather than a clip's: "image ids"
+    # (COCO), "file names" (a folder's), "image names" (ids with no number: frames in order of first
+    # appearance); None: the poses' order in the file, or its frame fields (a clip)
+    numbered_by: str | None = None
 
     @property
     def frame_count(self) -> int:

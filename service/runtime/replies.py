@@ -133,9 +133,26 @@ def build_replies(
     return Replies(columns, failed | non_finite_rows(rotation, reprojection, error))
 
 
+# A pose whose plausibility is below IMPLAUSIBLE_BELOW gets a warning. It is about the 1st percentile
+# of the bundled model's answers to Human3.6M validation poses with ground-truth 2D (0.009 on 4,000
+# of them; `python -m bench.plausibility_rank`, docs/RESULTS.md): 1.3 % of the answers to that
+# rightly read 2D are warned, 5.7 % with 20 px of noise, 31 % with 40 px, 2.9 % of SH detections'.
+IMPLAUSIBLE_BELOW = 0.01
+
+
 def _warnings(inputs: ModelInput, error: FloatArray, plausibility: FloatArray | None) -> list[list[str]]:
-    """Per pose, why its answer may be wrong: joints read as missing at (0, 0), a format mix-up."""
+    """Per pose, why its answer may be wrong: joints read as missing at (0, 0), a format mix-up, else
+    an implausible 3D pose (a mix-up's answer mostly is: its warning names the likelier cause)."""
     out = format_warnings(inputs, error, plausibility)
+    if plausibility is not None:
+        for i in np.flatnonzero(plausibility < IMPLAUSIBLE_BELOW).tolist():  # NaN: False
+            if out[i]:
+                continue
+            out[i].append(
+                f"plausibility: the 3D pose looks implausible (plausibility {float(plausibility[i]):.3g} < "
+                f"{IMPLAUSIBLE_BELOW:g}, below 99 % of the answers to real people's 2D): check the "
+                "format and the keypoints"
+            )
     for i in np.flatnonzero(inputs.zeroed).tolist():
         count = int(inputs.zeroed[i])
         out[i].insert(

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from bench import plausibility_rank
+from repnet.runtime.replies import IMPLAUSIBLE_BELOW
 from repnet.train import data
 from tests.training.conftest import STANDING
 
@@ -39,5 +40,10 @@ def test_a_plausibility_that_falls_as_the_error_grows_ranks_perfectly_and_a_rand
     shuffled = plausibility_rank.rank_shift(_lifter(error, noise), val)
     assert abs(shuffled["spearman"]) < 0.15 and 0.6 < shuffled["ratio"] < 1.6
     assert "| gt |" in plausibility_rank.table({"m": {"gt": good}})
+    # plausibility 1 - error / 400 over error 10..400: its 1st percentile, and the share the service warns
+    plausibility = 1.0 - error / 400.0
+    assert good["percentile_1"] == pytest.approx(np.percentile(plausibility, 1), abs=1e-6)
+    warned = (plausibility < IMPLAUSIBLE_BELOW).mean()
+    assert good["warned_share"] == pytest.approx(warned) and warned > 0
     with pytest.raises(ValueError, match="no plausibility output"):
         plausibility_rank.rank_shift(lambda p, v: (p, p, None), val)

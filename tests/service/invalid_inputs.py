@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from repnet._proto.repnet.v1 import lifter_pb2
+from repnet.core.errors import SPLIT_HINT
 from tests.conftest import POSE_2D
 
 NAN, INF = float("nan"), float("inf")
@@ -73,7 +74,7 @@ CASES = [
          "poses[0].keypoints", "degenerate", "at one point (321, 123)", pose=0),
     Case("empty_batch", {"poses": []}, "poses", "empty_batch", "the batch is empty"),
     Case("batch_too_large", {"poses": [good()] * 17}, "poses", "batch_too_large",
-         "17 poses in one request, the limit is 16"),
+         f"17 poses in one request, the limit is 16; {SPLIT_HINT}"),
     Case("unknown_format", {"poses": [good(format="openpose")]},
          "poses[0].format", "unknown_format", "unknown format 'openpose'", pose=0),
     Case("threshold_out_of_range", {"poses": [good()], "confidence_threshold": 2.0},

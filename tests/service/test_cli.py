@@ -16,6 +16,7 @@ import pytest
 
 from repnet.cli import local
 from repnet.cli import main as cli
+from repnet.cli.lift import stills_reason
 from repnet.cli.main import (
     EXIT_OK,
     EXIT_REJECTED,
@@ -532,6 +533,65 @@ def test_coco_results_are_read_by_image_with_every_person_tracked(tmp_path: Path
     left = [p["track_id"] for p in data["poses"] if p["input"]["keypoints"][11][0] < 600]
     right = [p["track_id"] for p in data["poses"] if p["input"]["keypoints"][11][0] > 600]
     assert len(set(left)) == len(set(right)) == 1 and left[0] != right[0]
+
+
+def _coco_images(tmp_path: Path, ids: list[int]) -> Path:
+    """COCO annotations of three people in each image `ids`."""
+    annotations = []
+    for k, image in enumerate(ids):
+        for person, shift in enumerate((0.0, 600.0, 1200.0)):
+            points, found = from_model_joints(FORMATS["coco17"], (POSE_2D + [shift + k, 0.0])[None])
+            flags = np.where(found[0], 2.0, 0.0)[:, None]
+            triples = np.concatenate([np.nan_to_num(points[0]), flags], axis=1).ravel().tolist()
+            annotations.append({"id": 10 * k + person, "image_id": image, "keypoints": triples})
+    path = tmp_path / f"coco_{len(ids)}.json"
+    path.write_text(json.dumps({"images": [{"id": i} for i in ids], "annotations": annotations}))
+    return path
+
+
+def test_unrelated_coco_images_are_lifted_one_by_one_and_numbered_ones_as_a_clip(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    stills = _coco_images(tmp_path, [397133, 37777, 252219, 87038])
+    data = _lifted(["lift", str(stills), "--local", "-o", str(tmp_path / "stills.json")])
+    err = capsys.readouterr().err
+    said = "4 still images (image ids not consecutive): lifted one by one; --fps N to treat them as a video"
+    assert said in err
+    assert "assuming" not in err and "fps" not in err.replace("--fps N", "")
+    assert data["temporal"] == "off" and data["fps"] is None and data["stills"] == "image ids not consecutive"
+    assert len(data["poses"]) == 12
+    assert all(p["track_id"] is None and not p["temporal"] for p in data["poses"])
+
+    video = _lifted(["lift", str(stills), "--local", "--fps", "25", "-o", str(tmp_path / "video.json")])
+    assert "still images" not in capsys.readouterr().err  # a frame rate makes them a video
+    assert video["temporal"] != "off" and video["fps"] == 25.0 and video["stills"] is None
+
+    clip = _coco_images(tmp_path, [1000, 1001, 1002, 1004, 1005])  # 1003: nobody found
+    data = _lifted(["lift", str(clip), "--local", "-o", str(tmp_path / "clip.json")])
+    err = capsys.readouterr().err
+    assert "still images" not in err and "5 frames (image ids in sequence): assuming 30 fps" in err
+    assert data["temporal"] != "off" and data["fps"] == 30.0 and data["stills"] is None
+    assert len({p["track_id"] for p in data["poses"]}) == 3
+
+
+@pytest.mark.parametrize(
+    ("numbered_by", "frames", "reason"),
+    [
+        ("image ids", [397133, 37777, 252219, 397133], "image ids not consecutive"),
+        ("image ids", [5, 9], "image ids not consecutive"),
+        ("image ids", [5, 6], None),
+        ("image ids", [0, 1, 2, 10, 11], None),  # most follow one another
+        ("image ids", [0, 2, 4, 6], "image ids not consecutive"),
+        ("file names", [3, 40, 41, 90], "file names not consecutive"),
+        ("image names", [0, 1, 2], "image ids not numbered"),
+        (None, [397133, 37777], None),  # the order in the file: a clip
+        ("image ids", [397133, 397133], None),  # one image
+    ],
+)
+def test_stills_reason_reads_the_numbering(
+    numbered_by: str | None, frames: list[int], reason: str | None
+) -> None:
+    assert stills_reason(numbered_by, frames) == reason
 
 
 def test_plot_animates_one_track_of_a_crowded_sequence(tmp_path: Path) -> None:

@@ -16,6 +16,9 @@ from grpc_reflection.v1alpha import reflection_pb2
 from prometheus_client import CollectorRegistry
 
 from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
+from repnet.client.result import LiftClientError
+from repnet.client.stream import StreamClient
+from repnet.core.errors import SPLIT_HINT
 from repnet.core.formats import FORMATS, from_model_joints
 from repnet.server.grpc.api import SERVICE_NAME
 from tests.conftest import POSE_2D, GrpcHandle
@@ -95,10 +98,17 @@ def test_lift_rejects_a_bad_layout(stub: Stub, pose: lifter_pb2.Pose2D, field: s
     assert (error.details() or "").startswith(f"{field}: expected") and reason in (error.details() or "")
 
 
-def test_lift_refuses_a_message_over_the_limit(stub: Stub) -> None:
+def test_lift_refuses_a_message_over_the_limit(stub: Stub, grpc_handle: GrpcHandle) -> None:
     pose = to_proto_pose(good())
     error = lift_error(stub, lifter_pb2.LiftRequest(poses=[pose] * 800))  # ~115 kB, limit 64 KiB
     assert error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    # The Python client names the way out, and does not retry what no retry can send.
+    with StreamClient(f"localhost:{grpc_handle.port}", retries=3, backoff=5.0) as client:
+        start = time.monotonic()
+        with pytest.raises(LiftClientError) as info:
+            client.lift_batch(np.stack([POSE_2D] * 800))
+    assert time.monotonic() - start < 5.0 and info.value.status == "RESOURCE_EXHAUSTED"
+    assert str(info.value).endswith(f"the request is over the service's message limit; {SPLIT_HINT}")
 
 
 def frames(count: int, bad_every: int) -> Iterator[lifter_pb2.LiftFrame]:

@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
+from repnet.core.errors import SPLIT_HINT
 from tests.conftest import POSE_2D
 from tests.service.invalid_inputs import CASES, Case, good
 
@@ -114,6 +115,7 @@ def test_lift_rejects_a_body_over_the_limit(client: TestClient) -> None:
     body = json.dumps({"poses": [good()] * 200})  # ~90 kB, limit 64 KiB
     item = only_item(post_raw(client, body), status=413)
     assert item["field"] == "body" and "the limit is 65536" in item["reason"]
+    assert item["reason"].endswith(f"; {SPLIT_HINT}") and "LiftClient.lift_batch" in item["message"]
 
 
 def test_lift_rejects_a_streamed_body_over_the_limit(client: TestClient) -> None:

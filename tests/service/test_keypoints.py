@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from repnet.core.errors import InvalidKeypoints
+from repnet.core.errors import SPLIT_HINT, InvalidKeypoints
 from repnet.core.formats import FORMATS, from_model_joints
 from repnet.core.inputs import Limits, ModelInput, PoseInput
 from repnet.core.keypoints import check_request, check_threshold, prepare_poses
@@ -129,7 +130,9 @@ def test_a_pose_may_bring_its_own_confidence_threshold() -> None:
 def test_request_rules_name_the_batch() -> None:
     with pytest.raises(InvalidKeypoints, match=r"^poses: the batch is empty"):
         check_request(0, None, LIMITS)
-    with pytest.raises(InvalidKeypoints, match=r"^poses: 17 poses in one request, the limit is 16$"):
+    with pytest.raises(
+        InvalidKeypoints, match=rf"^poses: 17 poses in one request, the limit is 16; {re.escape(SPLIT_HINT)}$"
+    ):
         check_request(17, None, replace(LIMITS, max_request_poses=16))
 
 

@@ -21,6 +21,7 @@ from fastapi.testclient import TestClient
 
 from repnet.client.http import LiftClient
 from repnet.client.tracker import assign_tracks
+from repnet.core.errors import SPLIT_HINT
 from repnet.core.formats import FORMATS, from_model_joints
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
@@ -442,7 +443,8 @@ def test_bad_inputs_show_the_api_error_next_to_the_field(driver: Any, page_url: 
     driver.find_element(By.ID, "file").send_keys(str(big))
     wait_for(driver, "return document.getElementById('file-error').textContent.length > 0")
     assert text_of(driver, "file-error") == (
-        f"file big.json has {big.stat().st_size} bytes, more than the {BODY_LIMIT}-byte limit of a /lift body"
+        f"file big.json has {big.stat().st_size} bytes, more than the {BODY_LIMIT}-byte limit of a /lift "
+        f"body; {SPLIT_HINT}"
     )
     driver.save_screenshot(str(SHOTS / "error-file-limit.png"))
 
@@ -550,6 +552,52 @@ def test_a_coco_file_with_unusable_people_lifts_the_others_and_names_the_skipped
     wait_for(driver, "return document.getElementById('status').textContent.includes('no pose')", 15)
     assert "0 of 17" in text_of(driver, "file-error")
     assert text_of(driver, "skipped") == ""
+
+
+STILLS_JS = """
+const done = arguments[arguments.length - 1];
+import("/ui/lift.js").then((m) => done(arguments[0].map((c) => m.stillsReason(c[0], c[1]))))
+  .catch((err) => done({error: String(err)}));
+"""
+
+
+def test_unrelated_images_are_lifted_one_by_one_and_numbered_ones_as_a_clip(
+    driver: Any, page_url: str, tmp_path: Path
+) -> None:
+    from selenium.webdriver.common.by import By
+
+    from repnet.cli.lift import stills_reason
+
+    cases = [
+        ["image ids", [397133, 37777, 252219]], ["image ids", [0, 1, 2, 10, 11]], ["image ids", [0, 2, 4]],
+        ["file names", [3, 40, 41, 90]], ["image names", [0, 1]], [None, [5, 90]], ["image ids", [7, 7]],
+    ]  # fmt: skip
+    open_page(driver, page_url)
+    assert driver.execute_async_script(STILLS_JS, cases) == [stills_reason(*c) for c in cases]
+    coco = detector_pose("coco17", 10.0)
+    for ids, name in (([397133, 37777, 252219, 87038], "stills.json"), ([40, 41, 42, 43], "clip.json")):
+        flat = [
+            np.concatenate([coco + [k + 600.0 * person, 0.0], np.full((17, 1), 0.9)], 1).ravel().tolist()
+            for k in range(len(ids))
+            for person in range(3)
+        ]
+        results = [
+            {"image_id": ids[n // 3], "category_id": 1, "score": 0.9, "keypoints": keypoints}
+            for n, keypoints in enumerate(flat)
+        ]
+        path = tmp_path / name
+        path.write_text(json.dumps(results))
+        before = lifts(driver)
+        driver.execute_script("document.getElementById('file').value = ''")
+        driver.find_element(By.ID, "file").send_keys(str(path))
+        wait_lift(driver, before)
+        status = text_of(driver, "status")
+        if name == "stills.json":
+            assert "4 still images (image ids not consecutive): lifted one by one" in status, status
+            assert page_mode(driver) == "off" and "track" not in status and "assuming" not in status
+        else:
+            assert "still images" not in status and page_mode(driver) != "off", status
+            assert "3 track(s)" in status and "4 frames (image ids in sequence): assuming 30 fps" in status
 
 
 # ---- sequences: tracks, the temporal control, clips cut into requests ----

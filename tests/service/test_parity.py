@@ -20,8 +20,9 @@ from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 from repnet.cli.main import EXIT_OK, main
 from repnet.client.http import LiftClient, build_request
 from repnet.client.stream import Frame, StreamClient
-from repnet.core.formats import FORMATS, from_model_joints
+from repnet.core.formats import FORMATS, MODEL_JOINTS, from_model_joints
 from repnet.io.pose_file import read_input
+from repnet.runtime.replies import IMPLAUSIBLE_BELOW
 from tests.conftest import POSE_2D, POSE_3D, LiveService, project
 from tests.service import test_page
 from tests.service.page_examples import detector_pose
@@ -297,6 +298,52 @@ def test_zero_joints_are_missing_with_the_same_warning_on_every_interface(live_s
                 list(frame.result.warnings)]  # fmt: skip
     assert all(w == warnings[0] for w in warnings) and len(warnings[0]) == 1
     assert warnings[0][0].startswith("keypoints: 1 joint at exactly (0, 0) without confidence counted as")
+
+
+def _stretched_arm() -> np.ndarray:
+    """POSE_2D with the left arm three times its length: an answer the bundled model's plausibility
+    puts below IMPLAUSIBLE_BELOW (0.007)."""
+    pose = POSE_2D.copy()
+    shoulder, elbow, wrist = (MODEL_JOINTS.index(f"left_{j}") for j in ("shoulder", "elbow", "wrist"))
+    pose[elbow] = pose[shoulder] + 3.0 * (POSE_2D[elbow] - POSE_2D[shoulder])
+    pose[wrist] = pose[elbow] + 3.0 * (POSE_2D[wrist] - POSE_2D[elbow])
+    return pose
+
+
+def test_an_implausible_pose_gets_the_same_warning_on_every_interface(
+    live_service: LiveService, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pose = _stretched_arm()
+    http = httpx.post(f"{live_service.http_url}/lift", json={"keypoints": pose.tolist()}, timeout=30).json()
+    with LiftClient(live_service.http_url) as client:
+        python = client.lift(pose)
+    with StreamClient(live_service.grpc_target, timeout=30) as stream:
+        (unary,) = stream.lift_batch(pose[None])
+        (frame,) = stream.stream([pose])
+    assert frame.result is not None
+    source = tmp_path / "pose.json"
+    source.write_text(json.dumps(pose.tolist()))
+    lifted = []
+    for where in (["--url", live_service.http_url], ["--local"]):
+        out = tmp_path / f"out{len(lifted)}.json"
+        assert main(["lift", str(source), *where, "-o", str(out)]) == EXIT_OK
+        lifted.append(json.loads(out.read_text())["poses"][0]["warnings"])
+    err = capsys.readouterr().err
+    warnings = [http["poses"][0]["warnings"], list(python.warnings), list(unary.warnings),
+                list(frame.result.warnings), *lifted]  # fmt: skip
+    assert all(w == warnings[0] for w in warnings) and len(warnings[0]) == 1
+    plausibility = http["poses"][0]["plausibility"]
+    assert plausibility < IMPLAUSIBLE_BELOW
+    assert warnings[0][0] == (
+        f"plausibility: the 3D pose looks implausible (plausibility {plausibility:.3g} < "
+        f"{IMPLAUSIBLE_BELOW:g}, below 99 % of the answers to real people's 2D): check the format and "
+        "the keypoints"
+    )
+    assert f"warning: 1 of 1 poses: {warnings[0][0]}" in err
+    normal = httpx.post(
+        f"{live_service.http_url}/lift", json={"keypoints": POSE_2D.tolist()}, timeout=30
+    ).json()
+    assert normal["poses"][0]["warnings"] == [] and normal["poses"][0]["plausibility"] >= IMPLAUSIBLE_BELOW
 
 
 # The page's cells: each shape as a user gives it to the page (pasted text or picked files), lifted

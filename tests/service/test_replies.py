@@ -16,10 +16,11 @@ from repnet.client import http as client
 from repnet.core import fields, geometry
 from repnet.core.errors import ModelOutputError
 from repnet.core.fields import ANY, FIELDS, NAMES
+from repnet.core.formats import FORMATS, from_model_joints
 from repnet.core.inputs import ModelInput, PoseInput
 from repnet.core.keypoints import prepare_poses
 from repnet.runtime.lifter import Lifter, Prediction
-from repnet.runtime.replies import Replies, build_replies
+from repnet.runtime.replies import IMPLAUSIBLE_BELOW, Replies, build_replies
 from repnet.server.app import limits_of
 from repnet.server.config import Settings
 from repnet.server.http.responses import PoseResult
@@ -131,6 +132,27 @@ def test_a_model_without_plausibility_leaves_it_out(lifter: Lifter) -> None:
     replies = build_replies(inputs, prediction)
     assert replies.to_json()[0]["plausibility"] is None
     assert not replies.to_proto()[0].HasField("plausibility")
+
+
+def test_a_pose_below_the_plausibility_threshold_is_warned_with_its_figure(lifter: Lifter) -> None:
+    inputs = model_input(None, None, None, None)
+    prediction = lifter.lift(inputs.keypoints_2d, inputs.visible)
+    scores = np.array([IMPLAUSIBLE_BELOW, 0.0084, 0.0, np.nan], np.float32)  # NaN: a failed pose's
+    warnings = build_replies(inputs, replace(prediction, plausibility=scores)).columns["warnings"]
+    assert warnings[0] == [] and warnings[3] == []
+    assert warnings[1] == [
+        "plausibility: the 3D pose looks implausible (plausibility 0.0084 < 0.01, below 99 % of the "
+        "answers to real people's 2D): check the format and the keypoints"
+    ]
+    assert warnings[2][0].startswith("plausibility: the 3D pose looks implausible (plausibility 0 < 0.01")
+    none = build_replies(inputs, replace(prediction, plausibility=None)).columns["warnings"]
+    assert none == [[], [], [], []]  # a model without plausibility warns of nothing
+    coco, present = from_model_joints(FORMATS["coco17"], POSE_2D[None])
+    mixed = prepare_poses([PoseInput(coco[0], present[0])], limits_of(Settings())).check()  # read as h36m17
+    reply = replies_of(lifter, mixed)
+    assert reply.columns["plausibility"][0] < IMPLAUSIBLE_BELOW
+    (only,) = reply.columns["warnings"][0]  # the mix-up's warning names the likelier cause alone
+    assert only.startswith("format: these keypoints look like coco17, not h36m17")
 
 
 def test_replies_refuse_columns_other_than_the_declared_fields() -> None:

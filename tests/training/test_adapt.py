@@ -16,7 +16,7 @@ from repnet.core import skeleton
 from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_OFFLINE, load_temporal_lifters
 from repnet.server.config import Settings
 from repnet.server.startup import load_lifter
-from repnet.train import adapt_report, checkpoint, lineage, metrics, prior, synthetic
+from repnet.train import adapt_cli, adapt_report, checkpoint, lineage, metrics, prior, synthetic
 from repnet.train.adapt import Adaptation, answer, split_holdout
 from repnet.train.adapt_report import Figures, worse
 from repnet.train.camera import masked_centre, project_weak_perspective
@@ -221,6 +221,43 @@ def test_the_command_refuses_a_depth_flipped_adaptation_and_says_why(
     err = capsys.readouterr().err
     assert not out.exists()
     assert "not written" in err and "parent's plausible answers lost" in err, err
+
+
+def test_the_caches_checkpoint_goes_on_success_and_stays_named_on_refusal_or_interruption(
+    poses_file: Path, parent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    monkeypatch.setenv(lineage.CACHE_ENV, str(tmp_path / "cache"))
+    runs = tmp_path / "cache" / "adapt"
+    out = tmp_path / "mine.onnx"
+    assert adapt(poses_file, parent, out, "--steps", "2", "--force") == 0
+    assert out.is_file() and not list(runs.rglob("adapt.pt"))  # written: nothing left behind
+    monkeypatch.setattr(adapt_report, "TOLERANCE", dict.fromkeys(adapt_report.TOLERANCE, -1e9))
+    assert adapt(poses_file, parent, tmp_path / "worse.onnx", "--steps", "2") == 1
+    err = capsys.readouterr().err
+    (state,) = runs.rglob("adapt.pt")
+    size = f"({state.stat().st_size / 1e6:.1f} MB)"
+    assert f"its checkpoint is kept in {state} {size}: --resume --force writes it" in err
+    assert "only 30 held-out poses: the decision needs at least 100" in err
+    assert "give about 1000 poses (1000 frames of one person, 33 s at 30 fps)" in err
+    assert adapt(poses_file, parent, tmp_path / "worse.onnx", "--steps", "2", "--resume", "--force") == 0
+    assert "at step 2 of 2" in capsys.readouterr().err and not list(runs.rglob("adapt.pt"))
+
+    def interrupted(*_args: object, **_kwargs: object) -> bool:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(adapt_cli.Adaptation, "run", interrupted)
+    assert adapt(poses_file, parent, tmp_path / "c.onnx", "--steps", "2") == 130
+    assert "interrupted; no checkpoint was written yet" in capsys.readouterr().err
+
+
+def test_more_data_is_asked_for_below_the_refusals_minimum() -> None:
+    assert adapt_report.MIN_HOLDOUT == 100  # one pose of 100 moves a share by a point
+    said = adapt_cli.more_data(3, 0.1)
+    assert said is not None and said.startswith("only 3 held-out poses: the decision needs at least 100")
+    assert "moves a share by 33 points, not at most 1" in said and "give about 1000 poses" in said
+    assert "give about 400 poses" in str(adapt_cli.more_data(5, 0.25))
+    assert adapt_cli.more_data(100, 0.1) is None
 
 
 def test_bad_flags_are_named(

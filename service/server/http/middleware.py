@@ -8,7 +8,7 @@ from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from repnet.core.errors import Violation
+from repnet.core.errors import SPLIT_HINT, Violation
 from repnet.server.auth import UNAUTHENTICATED_MESSAGE, ApiKeys
 from repnet.server.http.body import OFF_LOOP_BYTES, LargeBodies
 from repnet.server.metrics import (
@@ -36,9 +36,8 @@ class _BodyTooLarge(Exception):
 
 def body_violation(size: int, limit: int) -> Violation:
     """The violation of a body of at least `size` bytes over the `limit`."""
-    return Violation(
-        "body", f"the request body has {size} bytes or more, the limit is {limit}", "body_too_large"
-    )
+    reason = f"the request body has {size} bytes or more, the limit is {limit}; {SPLIT_HINT}"
+    return Violation("body", reason, "body_too_large")
 
 
 class BodyLimitMiddleware:

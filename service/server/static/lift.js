@@ -17,6 +17,16 @@ export function chooseMode(asked, sequence, model) {
   return { mode, note: "" };
 }
 
+// Why frames numbered so are unrelated still images rather than a clip, or null for a clip: ids with
+// no number, or numbers of which fewer than half follow the previous one by 1 (repnet.cli.lift.stills_reason).
+export function stillsReason(numberedBy, frames) {
+  const distinct = [...new Set(frames)].sort((a, b) => a - b);
+  if (numberedBy === null || numberedBy === undefined || distinct.length < 2) return null;
+  if (numberedBy === "image names") return "image ids not numbered";
+  const ones = distinct.slice(1).filter((f, i) => f - distinct[i] === 1).length;
+  return 2 * ones >= distinct.length - 1 ? null : `${numberedBy} not consecutive`;
+}
+
 // Each pose as it is sent: with its track and frame number when it has a track.
 function items(poses, trackIds, frames) {
   return poses.map((pose, i) => (trackIds && trackIds[i] !== null && trackIds[i] !== undefined

@@ -1,7 +1,7 @@
 // The page: read an input, POST it to /lift (same origin only), show the answer, step through frames.
 // Every value from a file or the API reaches the document through textContent, never as HTML.
 
-import { chooseMode, liftRequests } from "./lift.js";
+import { chooseMode, liftRequests, stillsReason } from "./lift.js";
 import { showSkipped, showWarnings, slotOf } from "./notes.js";
 import { InputError, parseFiles, parseJson, parseText } from "./parse.js";
 import { assignTracks } from "./track.js";
@@ -61,9 +61,12 @@ function showApiError(status, detail, send, frames, source) {
   }
 }
 
+// The way out of a size limit, as the service words it (repnet.core.errors.SPLIT_HINT).
+const SPLIT_HINT = "`repnet lift FILE` and the Python client's LiftClient.lift_batch split a long clip into requests";
+
 function tooLarge(bytes, what) {
   const limit = state.model.limits.max_body_bytes;
-  return bytes > limit ? `${what} has ${bytes} bytes, more than the ${limit}-byte limit of a /lift body` : null;
+  return bytes > limit ? `${what} has ${bytes} bytes, more than the ${limit}-byte limit of a /lift body; ${SPLIT_HINT}` : null;
 }
 
 // The frame rate of a lift: the page's field (as typed, for the API to judge), else the input's, else
@@ -85,14 +88,20 @@ function plan(parsed) {
   const extra = { ...(parsed.request ?? {}), format: chosen || parsed.format || state.model.rules.default_format };
   if (threshold !== undefined && threshold !== null) extra.confidence_threshold = threshold;
   const poses = parsed.poses.map((p) => (p && chosen && typeof p === "object" ? { ...p, format: undefined } : p));
-  const sequence = parsed.allFrames.length > 1;
-  const { mode, note } = chooseMode($("temporal").value || parsed.temporal || "", sequence, state.model);
+  const asked = $("temporal").value || parsed.temporal || "";
+  // Unrelated still images are lifted one by one unless a temporal mode, a frame rate or tracks make them a clip.
+  const clip = ["causal", "offline"].includes(asked) || $("rate").value.trim() || parsed.fps || parsed.trackIds !== null;
+  const stills = clip ? null : stillsReason(parsed.numberedBy, parsed.allFrames);
+  const sequence = parsed.allFrames.length > 1 && stills === null;
+  const { mode, note } = chooseMode(asked, sequence, state.model);
   const rate = frameRate(parsed, mode);
   const tracking = parsed.trackIds === null && (sequence || mode !== "off");
   const numeric = typeof rate.fps === "number" && rate.fps > 0 ? rate.fps : state.model.rules.assumed_fps;
   const gap = state.model.rules.max_gap_s;
   const tracks = tracking ? assignTracks(parsed.frames, poses, numeric, gap).map(String) : parsed.trackIds;
-  const notes = [note, mode === "off" ? "" : rate.note].filter(Boolean);
+  const still = stills && `${parsed.allFrames.length} still images (${stills}): lifted one by one; give a frame rate to treat them as a video`;
+  const video = rate.note && parsed.numberedBy ? `${parsed.allFrames.length} frames (${parsed.numberedBy} in sequence): ` : "";
+  const notes = [still, note, mode === "off" ? "" : video + rate.note].filter(Boolean);
   return { poses, extra, mode, fps: rate.fps, tracks, notes };
 }
 

@@ -1,12 +1,15 @@
 // Input files and pasted text -> poses for POST /lift. Values pass through as they are: the service,
 // not the page, judges them and words the error. Only the layout of each file kind is read here.
 //
-// parse*() return {poses, frames, people, labels, allFrames, trackIds, fps, temporal, format, threshold, request, note}:
+// parse*() return {poses, frames, people, labels, allFrames, trackIds, fps, temporal, numberedBy, format,
+// threshold, request, note}:
 // poses are /lift pose objects ({keypoints, confidence?, format?}); frames[i] is pose i's frame number
 // and people[i] its index in that frame; allFrames every frame number of the input in order (a frame
 // may have no person); labels (per pose) its name in the file's own identifiers (COCO: image and
-// annotation ids), else null; trackIds (per pose), fps and temporal what the input gives, else null; request:
-// the request-level fields of a POST /lift body that its poses default to (image_size, intrinsics).
+// annotation ids), else null; trackIds (per pose), fps and temporal what the input gives, else null;
+// request: the request-level fields of a POST /lift body that its poses default to (image_size,
+// intrinsics); numberedBy: what the frame numbers are where they may be unrelated images' ("image
+// ids", "file names", "image names"), else null (repnet.io.poses.Poses.numbered_by).
 
 export class InputError extends Error {}
 
@@ -51,7 +54,7 @@ function poseFromTriples(flat, format, cIsFlag) {
 function withFrames(parsed) {
   const frames = parsed.frames ?? parsed.poses.map((_, i) => i);
   return {
-    trackIds: null, fps: null, temporal: null, labels: null, people: parsed.poses.map(() => 0),
+    trackIds: null, fps: null, temporal: null, labels: null, numberedBy: null, people: parsed.poses.map(() => 0),
     allFrames: [...new Set(frames)].sort((a, b) => a - b), ...parsed, frames,
   };
 }
@@ -79,12 +82,12 @@ function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
 }
 
 // COCO image ids as frame numbers: an integer id is its frame, a text id the last number in it;
-// else the ids in order (repnet.io.pose_file).
+// else the ids in order (repnet.io.pose_file); with what they are ({numbers, numberedBy}).
 function imageFrames(ids) {
   const numbers = ids.map((id) => (Number.isInteger(id) ? id : (typeof id === "string" ? lastNumber(id) : null)));
-  if (numbers.every((n) => n !== null)) return numbers;
+  if (numbers.every((n) => n !== null)) return { numbers, numberedBy: "image ids" };
   const order = [...new Set(ids.map(String))].sort();
-  return ids.map((id) => order.indexOf(String(id)));
+  return { numbers: ids.map((id) => order.indexOf(String(id))), numberedBy: "image names" };
 }
 
 // The last run of digits in a name (OpenPose: video_000000000012_keypoints.json), or null.
@@ -95,7 +98,7 @@ export function lastNumber(name) {
 
 function cocoPoses(items, note) {
   const triples = items.filter((a) => a && Array.isArray(a.keypoints));
-  const frameOf = imageFrames(triples.map((a, k) => a.image_id ?? k));
+  const { numbers: frameOf, numberedBy } = imageFrames(triples.map((a, k) => a.image_id ?? k));
   const order = triples.map((a, k) => [frameOf[k], k]).sort((x, y) => x[0] - y[0] || x[1] - y[1]).map((x) => x[1]);
   // Ground-truth files flag each joint 0 (not labelled), 1 or 2; detector results give a score.
   const flags = triples.every((a) => a.keypoints.every((v, i) => i % 3 !== 2 || [0, 1, 2].includes(v)));
@@ -103,7 +106,8 @@ function cocoPoses(items, note) {
   const frames = order.map((k) => frameOf[k]);
   const people = frames.map((f, i) => frames.slice(0, i).filter((g) => g === f).length);
   const labels = order.map((k) => `image_id ${triples[k].image_id ?? k}${triples[k].id !== undefined ? `, id ${triples[k].id}` : ""}`);
-  return withFrames({ poses, frames, people, labels, format: "coco17", note: `${note}: ${poses.length} poses` });
+  const by = triples.some((a) => a.image_id !== undefined) ? numberedBy : null;  // else the file's order
+  return withFrames({ poses, frames, people, labels, numberedBy: by, format: "coco17", note: `${note}: ${poses.length} poses` });
 }
 
 // The tracks, frame numbers and temporal fields a POST /lift body or repnet lift output gives.
@@ -210,7 +214,8 @@ export async function parseFiles(files, maxBytes = Infinity) {
     frames.push(data);
   }
   const numbers = sorted.map((f) => lastNumber(f.name));
-  return openPoseFrames(frames, numbers.every((n) => n !== null) ? numbers : undefined);
+  const numbered = numbers.every((n) => n !== null);
+  return { ...openPoseFrames(frames, numbered ? numbers : undefined), numberedBy: numbered ? "file names" : null };
 }
 
 // ---- NPZ: a zip archive (stored or deflated, zip64 sizes as numpy writes them) of .npy arrays ----
