@@ -38,6 +38,8 @@ class Poses:
     landmarks: np.ndarray | None = None  # (N,) the pose's rows were MediaPipe [x, y, z, visibility]
     # (N,) what the file calls each pose, where it names them (a COCO file: "image_id 397133, id 1768")
     label: tuple[str, ...] | None = None
+    # the layout whose x, y are normalised to [0, 1] of the image, to scale by its size (YOLO labels)
+    normalised: str | None = None
 
     @property
     def frame_count(self) -> int:

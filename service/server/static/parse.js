@@ -7,7 +7,9 @@
 // may have no person); trackIds (per pose), fps and temporal what the input gives, else null; request:
 // the request-level fields of a POST /lift body that its poses default to (image_size, intrinsics).
 
-export class InputError extends Error {}
+import { FORMAT_BY_COUNT, InputError, parseDetector, parseYoloTxt, wholebodyTriples } from "./detectors.js";
+
+export { InputError };
 
 const isNumber = (v) => typeof v === "number";
 const isRow = (v) => Array.isArray(v) && v.length >= 2 && v.length <= 3;
@@ -92,16 +94,19 @@ export function lastNumber(name) {
   return digits ? Number(digits[digits.length - 1]) : null;
 }
 
+// COCO results or annotations, AlphaPose results, COCO-WholeBody annotations (parts joined): the format
+// by joint count (17 coco17, 26 halpe26, 133 wholebody133).
 function cocoPoses(items, note) {
-  const triples = items.filter((a) => a && Array.isArray(a.keypoints));
+  const triples = items.filter((a) => a && Array.isArray(a.keypoints)).map((a) => ({ ...a, keypoints: wholebodyTriples(a) }));
   const frameOf = imageFrames(triples.map((a, k) => a.image_id ?? k));
   const order = triples.map((a, k) => [frameOf[k], k]).sort((x, y) => x[0] - y[0] || x[1] - y[1]).map((x) => x[1]);
   // Ground-truth files flag each joint 0 (not labelled), 1 or 2; detector results give a score.
   const flags = triples.every((a) => a.keypoints.every((v, i) => i % 3 !== 2 || [0, 1, 2].includes(v)));
-  const poses = order.map((k) => poseFromTriples(triples[k].keypoints, "coco17", flags));
+  const format = FORMAT_BY_COUNT[(triples[0]?.keypoints.length ?? 0) / 3] ?? null;
+  const poses = order.map((k) => poseFromTriples(triples[k].keypoints, format, flags));
   const frames = order.map((k) => frameOf[k]);
   const people = frames.map((f, i) => frames.slice(0, i).filter((g) => g === f).length);
-  return withFrames({ poses, frames, people, format: "coco17", note: `${note}: ${poses.length} poses` });
+  return withFrames({ poses, frames, people, format, note: `${note}: ${poses.length} poses` });
 }
 
 // The tracks, frame numbers and temporal fields a POST /lift body or repnet lift output gives.
@@ -130,6 +135,8 @@ export function parseJson(data) {
   if (Array.isArray(data) && data.length && data.every((f) => f && typeof f === "object" && "people" in f)) {
     return openPoseFrames(data);
   }
+  const found = data && typeof data === "object" && "people" in data ? null : parseDetector(data);
+  if (found) return withFrames(found);
   if (data && typeof data === "object" && !Array.isArray(data)) {
     if ("people" in data) return openPoseFrames([data]);
     if (Array.isArray(data.annotations)) return cocoPoses(data.annotations, "COCO annotations");
@@ -171,7 +178,7 @@ export function parseJson(data) {
   if (Array.isArray(data) && data.length && data.some((r) => isRow(r) || r === null)) {
     return withFrames({ poses: [poseFromRows(data)], format: null, note: "one pose" });
   }
-  throw new InputError("expected a pose ([[x, y], …]), a list of poses, a POST /lift body, OpenPose, COCO keypoint or repnet lift JSON");
+  throw new InputError("expected a pose ([[x, y], …]), a list of poses, a POST /lift body, OpenPose, COCO, AlphaPose, MMPose, YOLO, MediaPipe or repnet lift JSON");
 }
 
 export function parseText(text) {
@@ -192,6 +199,8 @@ export async function parseFiles(files, maxBytes = Infinity) {
   if (sorted.length === 1 && sorted[0].name.toLowerCase().endsWith(".npz")) {
     return parseNpz(new Uint8Array(await sorted[0].arrayBuffer()), maxBytes);
   }
+  const numbers = sorted.map((f) => lastNumber(f.name));
+  if (sorted.every((f) => f.name.toLowerCase().endsWith(".txt"))) return yoloFiles(sorted, numbers);
   const frames = [];
   for (const file of sorted) {
     if (file.name.toLowerCase().endsWith(".npz")) throw new InputError(`${file.name}: pick an NPZ file on its own`);
@@ -207,8 +216,18 @@ export async function parseFiles(files, maxBytes = Infinity) {
     }
     frames.push(data);
   }
-  const numbers = sorted.map((f) => lastNumber(f.name));
   return openPoseFrames(frames, numbers.every((n) => n !== null) ? numbers : undefined);
+}
+
+// YOLO-pose label files (save_txt, name_<frame>.txt), numbered as OpenPose frames are.
+async function yoloFiles(files, numbers) {
+  const parts = [];
+  for (const file of files) parts.push(parseYoloTxt(await file.text(), file.name));
+  if (files.length === 1) return withFrames(parts[0]);
+  const at = numbers.every((n) => n !== null) ? numbers : files.map((_, i) => i);
+  const pick = (key) => parts.flatMap((p, f) => (key === "frames" ? p.poses.map(() => at[f]) : p[key]));
+  const note = `YOLO labels: ${files.length} files`;
+  return withFrames({ ...parts[0], poses: pick("poses"), frames: pick("frames"), people: pick("people"), labels: pick("labels"), note });
 }
 
 // ---- NPZ: a zip archive (stored or deflated, zip64 sizes as numpy writes them) of .npy arrays ----
