@@ -81,7 +81,8 @@ def _keypoint_list(item: dict[str, object]) -> str | None:
 
 def detector_file_hint(data: object) -> str | None:
     """What to do with one of these files posted as a body, or None for any other body."""
-    items = data.get("annotations") if isinstance(data, dict) and "poses" not in data else data
+    annotations = isinstance(data, dict) and isinstance(data.get("annotations"), list)
+    items = data["annotations"] if isinstance(data, dict) and annotations else data
     first = _first(items)
     if not isinstance(first, dict) or (isinstance(data, dict) and "poses" in data):
         return None
