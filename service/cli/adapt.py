@@ -7,7 +7,7 @@ import argparse
 import math
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from repnet.core.errors import echo
-from repnet.core.format_hints import alias_of, hint_for
+from repnet.core.format_hints import alias_of, alternatives_note, hint_for
 from repnet.core.formats import DEFAULT_FORMAT, FORMATS
 from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE, Limits, PoseInput
 from repnet.core.keypoints import prepare_poses
@@ -30,16 +30,27 @@ def format_error(name: str) -> str:
     return f"unknown format {echo(name)}; expected one of {', '.join(FORMATS)}{means}"
 
 
-def resolve_format(poses: Poses, given: str | None, source: str) -> str:
+def _as_flags(match: re.Match[str]) -> str:
+    """'send format "body25" or "body25b"' -> 'use --format body25 or --format body25b'."""
+    return "use " + re.sub(r'"(\w+)"', r"--format \1", match[1])
+
+
+def resolve_format(
+    poses: Poses, given: str | None, source: str, say: Callable[[str], None] | None = None
+) -> str:
     """The keypoint format of a file's poses: `given` (--format), else the file's, else h36m17;
-    InputFileError when the poses' joint count is not that format's, with a hint at the right one."""
+    InputFileError when the poses' joint count is not that format's, with a hint at the right one.
+    `say` is told when the file's format was chosen among formats with as many joints (body25 or
+    body25b: format_hints.alternatives_note)."""
     fmt = given or poses.format or DEFAULT_FORMAT
+    if given is None and fmt in FORMATS and say is not None and (note := alternatives_note(fmt)):
+        say(note)
     if fmt not in FORMATS:
         raise InputFileError(format_error(fmt))
     if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
         first = poses.points[0]
         hint = hint_for(first, ~np.isnan(first).any(axis=1), fmt) or "; pick the format with --format"
-        hint = re.sub(r'send format "(\w+)"', r"use --format \1", hint)
+        hint = re.sub(r'send format ("\w+"(?: or "\w+")*)', _as_flags, hint)
         raise InputFileError(
             f"{source}: poses have {poses.points.shape[1]} joints, format {fmt} has "
             f"{len(FORMATS[fmt].joint_names)}{hint}"

@@ -74,7 +74,7 @@ def run_lift(args: argparse.Namespace) -> int:
         check_output(args.output, args.overwrite)
     size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
     poses = original = read_input(args.input, lambda files: _progress(files, "file"), size)
-    fmt = resolve_format(poses, args.format, args.input)
+    fmt = resolve_format(poses, args.format, args.input, say)
     remote = (
         None
         if args.local

@@ -23,8 +23,13 @@ _HIPS = [COCO17.joint_names.index(j) for j in ("left_hip", "right_hip")]
 
 @cache
 def lookalike_of(name: str) -> str | None:
-    """The other format a pose in `name` is mistaken for: the one with as many joints, if any."""
+    """The other format a pose in `name` is mistaken for in the reply's format warning: the other
+    17-joint format (h36m17 and coco17 each other's), else None. The warning's geometry (nose_height,
+    on COCO's torso) and threshold are that pair's; body25 and body25b, the other shared count, are
+    told apart by suggest_format."""
     count = len(FORMATS[name].joint_names)
+    if count != len(COCO17.joint_names):
+        return None
     others = [f for f in FORMATS if f != name and len(FORMATS[f].joint_names) == count]
     return others[0] if len(others) == 1 else None
 
@@ -75,6 +80,13 @@ FORMAT_ALIASES: dict[str, str] = {
     "openpose": "body25",
     "openposebody25": "body25",
     "op25": "body25",
+    "openposecoco": "coco18",
+    "openpose18": "coco18",
+    "op18": "coco18",
+    "openposebody25b": "body25b",
+    "halpe": "halpe26",
+    "alphapose": "halpe26",
+    "pose2sim": "halpe26",
     "coco": "coco17",
     "yolo": "coco17",
     "yolopose": "coco17",
@@ -83,7 +95,10 @@ FORMAT_ALIASES: dict[str, str] = {
     "detectron2": "coco17",
     "rtmpose": "coco17",
     "vitpose": "coco17",
-    "cocowholebody": "coco17",
+    "cocowholebody": "wholebody133",
+    "wholebody": "wholebody133",
+    "rtmw": "wholebody133",
+    "dwpose": "wholebody133",
     "mediapipe": "mediapipe33",
     "blazepose": "mediapipe33",
     "mediapipepose": "mediapipe33",
@@ -105,11 +120,17 @@ def alias_of(name: str) -> str | None:
     return FORMAT_ALIASES.get(key) or FORMAT_ALIASES.get(key.replace(".", ""))
 
 
+def formats_with(count: int) -> tuple[str, ...]:
+    """The formats whose poses have `count` joints, in FORMATS order."""
+    return tuple(f.name for f in FORMATS.values() if len(f.joint_names) == count)
+
+
 def suggest_format(points: np.ndarray, present: np.ndarray) -> str | None:
     """The format a pose of (K, 2) points (present (K,): the joints given) looks like: the one format
-    with K joints; where two have K (h36m17 and coco17), the one joint 0's height above the
-    shoulders points to (nose_height: above, COCO's nose; below, Human3.6M's pelvis); else None."""
-    names = [f.name for f in FORMATS.values() if len(f.joint_names) == len(points)]
+    with K joints; where two have K, for 17 (h36m17 and coco17) the one joint 0's height above the
+    shoulders points to (nose_height: above, COCO's nose; below, Human3.6M's pelvis); else None
+    (body25 and body25b have the same joints in other places: suggest_formats names both)."""
+    names = formats_with(len(points))
     if len(names) < 2:
         return names[0] if names else None
     if len(points) != len(COCO17.joint_names):
@@ -121,14 +142,47 @@ def suggest_format(points: np.ndarray, present: np.ndarray) -> str | None:
     return COCO17.name if height > 0 else H36M17.name
 
 
-def hint_for(points: np.ndarray, present: np.ndarray, given: str | None) -> str:
-    """A hint for a pose that does not fit its format `given` (None: no format was sent): "; this
-    looks like body25 (OpenPose BODY_25): send format \"body25\"", or "" when nothing fits better."""
+def suggest_formats(points: np.ndarray, present: np.ndarray) -> tuple[str, ...]:
+    """The formats a pose of (K, 2) points may be in: suggest_format's one, else every format with K
+    joints where nothing tells them apart (25: body25 and body25b), else none."""
     found = suggest_format(points, present)
-    if found is None or found == given:
+    if found is not None:
+        return (found,)
+    return () if len(points) == len(COCO17.joint_names) else formats_with(len(points))
+
+
+def hint_for(points: np.ndarray, present: np.ndarray, given: str | None) -> str:
+    """A hint for a pose that does not fit its format `given` (None: no format was sent): "; 25
+    joints: this looks like body25 (OpenPose BODY_25) or body25b (...): send format \"body25\" or
+    \"body25b\"", or "" when nothing fits better."""
+    found = [name for name in suggest_formats(points, present) if name != given]
+    if not found:
         return ""
-    described = FORMATS[found].description
-    return f'; {len(points)} joints: this looks like {found} ({described}): send format "{found}"'
+    described = " or ".join(f"{name} ({FORMATS[name].description})" for name in found)
+    send = " or ".join(f'"{name}"' for name in found)
+    return f"; {len(points)} joints: this looks like {described}: send format {send}"
+
+
+def alternatives_note(name: str) -> str:
+    """For a format a file's joint count chose: the other formats with as many joints that a file
+    cannot tell from it, as a note ("25 joints read as body25 (OpenPose BODY_25); for OpenPose
+    BODY_25B ... use --format body25b"), else "" (17 joints: the reply's format warning tells)."""
+    count = len(FORMATS[name].joint_names)
+    others = [other for other in formats_with(count) if other != name]
+    if not others or count == len(COCO17.joint_names):
+        return ""
+    choices = "; ".join(f"for {FORMATS[o].description} use --format {o}" for o in others)
+    return f"{count} joints read as {name} ({FORMATS[name].description}); {choices}"
+
+
+def _openpose_formats(people: object) -> str:
+    """The format(s) of an OpenPose frame's people, by the first one's joint count: "coco18" for 18,
+    "body25" or "body25b" for 25 (and for a frame it cannot count)."""
+    first = people[0] if isinstance(people, list) and people else None
+    flat = first.get("pose_keypoints_2d") if isinstance(first, dict) else None
+    count = len(flat) // 3 if isinstance(flat, list) else 0
+    names = formats_with(count) if count in (18, 25) else formats_with(25)
+    return " or ".join(f'"{name}"' for name in names)
 
 
 def raw_output_hint(data: object) -> str | None:
@@ -141,7 +195,8 @@ def raw_output_hint(data: object) -> str | None:
     if isinstance(data, dict) and "people" in data and "poses" not in data:
         return (
             "this is OpenPose output (--write_json): use `repnet lift` on the file or folder, or send "
-            'each person\'s pose_keypoints_2d as {"keypoints": [[x, y, c], ...]} with format "body25"'
+            'each person\'s pose_keypoints_2d as {"keypoints": [[x, y, c], ...]} with format '
+            + _openpose_formats(data["people"])
         )
     items = data.get("annotations") if isinstance(data, dict) and "poses" not in data else data
     first = items[0] if isinstance(items, list) and items else None

@@ -23,7 +23,7 @@ MODEL_PARENTS: tuple[int, ...] = skeleton.PARENTS
 class KeypointFormat:
     """A detector's joint list and, for each model joint, the source joints that give it."""
 
-    name: str  # "h36m17", "mpii16", "coco17", "body25", "mediapipe33"
+    name: str  # "h36m17", "coco17", "body25", ...: the keys of FORMATS
     joint_names: tuple[str, ...]  # source joints, in the detector's order
     # For each of the 17 model joints: () none (imputed by the model), (i,) a joint,
     # (i, k) the midpoint of two joints.
@@ -68,6 +68,13 @@ _LIMBS = {
     "right_shoulder": ("right_shoulder",),
     "right_elbow": ("right_elbow",),
     "right_wrist": ("right_wrist",),
+}
+
+# Detectors with hips and shoulders but no pelvis or thorax point: the midpoints stand in for them.
+_COCO_TORSO = {
+    "pelvis": ("left_hip", "right_hip"),
+    "thorax": ("left_shoulder", "right_shoulder"),
+    "neck": ("nose",),
 }
 
 H36M17 = _format(
@@ -123,12 +130,7 @@ COCO17 = _format(
         "left_ankle",
         "right_ankle",
     ),
-    {
-        **_LIMBS,
-        "pelvis": ("left_hip", "right_hip"),
-        "thorax": ("left_shoulder", "right_shoulder"),
-        "neck": ("nose",),
-    },
+    {**_LIMBS, **_COCO_TORSO},
 )
 
 # OpenPose's Neck and MidHip are detector outputs (trained as the shoulder and hip midpoints).
@@ -203,15 +205,74 @@ MEDIAPIPE33 = _format(
         "left_foot_index",
         "right_foot_index",
     ),
-    {
-        **_LIMBS,
-        "pelvis": ("left_hip", "right_hip"),
-        "thorax": ("left_shoulder", "right_shoulder"),
-        "neck": ("nose",),
-    },
+    {**_LIMBS, **_COCO_TORSO},
 )
 
-FORMATS: dict[str, KeypointFormat] = {f.name: f for f in (H36M17, MPII16, COCO17, BODY25, MEDIAPIPE33)}
+# OpenPose's --model_pose COCO: BODY_25's joints without MidHip and the feet, in the same order
+# (OpenPose src/openpose/pose/poseParameters.cpp, POSE_COCO_BODY_PARTS). Its Neck is a detector
+# output as in BODY_25.
+COCO18 = _format(
+    "coco18",
+    "OpenPose COCO 18 keypoints (--model_pose COCO; older OpenPose, tf-pose-estimation, trt_pose)",
+    tuple(joint for joint in BODY25.joint_names[:19] if joint != "mid_hip"),
+    {**_LIMBS, "pelvis": ("left_hip", "right_hip"), "thorax": ("neck",), "neck": ("nose",)},
+)
+
+# The six foot points of BODY_25, BODY_25B and COCO-WholeBody, in that shared order.
+_FEET = BODY25.joint_names[19:]
+
+# OpenPose's experimental BODY_25B: COCO's 17, then UpperNeck, HeadTop and the feet (OpenPose
+# experimental_models/README.md; src/openpose/pose/poseParameters.cpp, POSE_BODY_25B_BODY_PARTS).
+# UpperNeck is MPII's upper neck, used as mpii16 uses it; the head top gives Human3.6M's head.
+BODY25B = _format(
+    "body25b",
+    "OpenPose BODY_25B, the experimental model with upper neck and head top",
+    (*COCO17.joint_names, "upper_neck", "head_top", *_FEET),
+    {**_LIMBS, **_COCO_TORSO, "neck": ("upper_neck",), "head": ("head_top",)},
+)
+
+# Halpe-FullBody's 26 body keypoints: COCO's 17, then Head (the top of the head), Neck, Hip (the
+# mid-hip) and the feet in their own order (Fang-Haoshu/Halpe-FullBody README, "Keypoints format").
+# Neck and Hip are trained points, read as BODY_25's Neck and MidHip are.
+HALPE26 = _format(
+    "halpe26",
+    "Halpe 26 body keypoints (AlphaPose halpe26, RTMPose body7 / halpe26, Pose2Sim)",
+    (
+        *COCO17.joint_names,
+        "head",
+        "neck",
+        "hip",
+        "left_big_toe",
+        "right_big_toe",
+        "left_small_toe",
+        "right_small_toe",
+        "left_heel",
+        "right_heel",
+    ),
+    {**_LIMBS, "pelvis": ("hip",), "thorax": ("neck",), "neck": ("nose",), "head": ("head",)},
+)
+
+# COCO-WholeBody's 133: COCO's 17 body keypoints, 6 foot, 68 face and 21 per hand (jin-s13/COCO-WholeBody
+# README; mmpose configs/_base_/datasets/coco_wholebody.py). Only the body is read, as coco17: no
+# face, hand or foot point is a Human3.6M joint (the ankles are the body's own).
+WHOLEBODY133 = _format(
+    "wholebody133",
+    "COCO-WholeBody 133 keypoints (RTMW, DWPose, RTMPose wholebody); the body's 17 are read as coco17, "
+    "the face, hands and feet are ignored",
+    (
+        *COCO17.joint_names,
+        *_FEET,
+        *(f"face_{i}" for i in range(68)),
+        *(f"left_hand_{i}" for i in range(21)),
+        *(f"right_hand_{i}" for i in range(21)),
+    ),
+    {**_LIMBS, **_COCO_TORSO},
+)
+
+# New formats go last: ModelInput.format_index counts in this order.
+FORMATS: dict[str, KeypointFormat] = {
+    f.name: f for f in (H36M17, MPII16, COCO17, BODY25, MEDIAPIPE33, COCO18, BODY25B, HALPE26, WHOLEBODY133)
+}
 DEFAULT_FORMAT = H36M17.name  # what a pose without a format is read as, on every transport and client
 FORMAT_NAMES: tuple[str, ...] = tuple(FORMATS)  # ModelInput.format_index points into this
 

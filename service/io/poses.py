@@ -107,9 +107,15 @@ def openpose_people(data: dict[str, Any]) -> list[np.ndarray]:
     return [np.where(p[:, 2:] > 0, p, np.nan) for p in people]
 
 
+# OpenPose's --write_json people by joint count: 18 is --model_pose COCO, 25 BODY_25 (the default
+# model). The experimental BODY_25B has 25 too, in another order: nothing in the file tells it, so
+# body25 is read and `repnet lift` says so (format_hints.alternatives_note); --format body25b reads it.
+OPENPOSE_FORMATS = {18: "coco18", 25: "body25"}
+
+
 def openpose_format(people: Sequence[np.ndarray]) -> str | None:
-    """The format of OpenPose people: body25 when they have 25 joints."""
-    return "body25" if people and len(people[0]) == 25 else None
+    """The format of OpenPose people by their joint count (OPENPOSE_FORMATS), else None."""
+    return OPENPOSE_FORMATS.get(len(people[0])) if people else None
 
 
 def frame_number(path: Path) -> int | None:

@@ -133,15 +133,41 @@ def test_rejected_pose_is_named_by_its_place_in_the_file(
     assert "frame 3, person 0: keypoints" in err and "one point" in err
 
 
-def test_openpose_json_is_read_as_body25(tmp_path: Path) -> None:
-    points, visible = from_model_joints(FORMATS["body25"], POSE_2D[None])
+def _openpose_file(path: Path, fmt: str) -> Path:
+    points, visible = from_model_joints(FORMATS[fmt], POSE_2D[None])
     flat = np.concatenate([np.nan_to_num(points[0]), visible[0, :, None].astype(float)], axis=1).ravel()
-    path = tmp_path / "frame_000000_keypoints.json"
     path.write_text(json.dumps({"version": 1.3, "people": [{"pose_keypoints_2d": flat.tolist()}]}))
+    return path
+
+
+def test_openpose_json_is_read_as_body25(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = _openpose_file(tmp_path / "frame_000000_keypoints.json", "body25")
     poses = load_poses(path)
     assert poses.format == "body25" and poses.points.shape == (1, 25, 2)
     assert np.isnan(poses.points[0, FORMATS["body25"].joint_names.index("left_ear")]).all()
     assert main(["lift", str(path), "--local", "-o", str(tmp_path / "out.json")]) == EXIT_OK
+    # BODY_25B has 25 joints too, in another order: the reading is said, with the other choice
+    err = capsys.readouterr().err
+    assert "25 joints read as body25 (OpenPose BODY_25); for OpenPose BODY_25B" in err
+    assert "use --format body25b" in err
+    out = tmp_path / "out_b.json"
+    assert main(["lift", str(path), "--local", "--format", "body25b", "-o", str(out)]) == EXIT_OK
+    assert "25 joints read as" not in capsys.readouterr().err  # chosen, not guessed
+    assert json.loads(out.read_text())["format"] == "body25b"
+
+
+def test_openpose_coco_json_with_18_joints_is_read_as_coco18(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = _openpose_file(tmp_path / "frame_000000_keypoints.json", "coco18")
+    poses = load_poses(path)
+    assert poses.format == "coco18" and poses.points.shape == (1, 18, 2)
+    assert main(["lift", str(path), "--local", "-o", str(out := tmp_path / "out.json")]) == EXIT_OK
+    assert "joints read as" not in capsys.readouterr().err  # 18 joints: one format
+    lifted = json.loads(out.read_text())
+    assert lifted["format"] == "coco18" and lifted["input_joints"] == list(FORMATS["coco18"].joint_names)
+    imputed = [j for j, flag in zip(lifted["joints"], lifted["poses"][0]["imputed"], strict=True) if flag]
+    assert imputed == ["spine", "head"]  # OpenPose COCO's neck and nose give thorax and neck
 
 
 def test_confidence_column_marks_low_joints_missing(tmp_path: Path) -> None:
@@ -581,7 +607,8 @@ def test_a_format_alias_and_a_joint_count_are_answered_with_the_format_they_mean
     path.write_text(json.dumps([[None if np.isnan(p).any() else p.tolist() for p in body[0]]]))
     assert main(["lift", str(path), "--local"]) == EXIT_USAGE
     err = capsys.readouterr().err
-    assert "25 joints: this looks like body25 (OpenPose BODY_25): use --format body25" in err
+    assert "25 joints: this looks like body25 (OpenPose BODY_25) or body25b (OpenPose BODY_25B" in err
+    assert "use --format body25 or --format body25b" in err
 
 
 @pytest.mark.parametrize(

@@ -42,7 +42,10 @@ def poses() -> np.ndarray:
 
 def test_formats_are_registered_with_their_joint_counts() -> None:
     counts = {name: len(fmt.joint_names) for name, fmt in FORMATS.items()}
-    assert counts == {"h36m17": 17, "mpii16": 16, "coco17": 17, "body25": 25, "mediapipe33": 33}
+    assert counts == {
+        "h36m17": 17, "mpii16": 16, "coco17": 17, "body25": 25, "mediapipe33": 33,
+        "coco18": 18, "body25b": 25, "halpe26": 26, "wholebody133": 133,
+    }  # fmt: skip
     for fmt in FORMATS.values():
         assert len(set(fmt.joint_names)) == len(fmt.joint_names)
         assert len(fmt.sources) == len(MODEL_JOINTS)
@@ -56,6 +59,66 @@ def test_published_joint_orders() -> None:
     assert (mp[0], mp[11], mp[16], mp[23], mp[28], mp[32]) == (
         "nose", "left_shoulder", "right_wrist", "left_hip", "right_ankle", "right_foot_index",
     )  # fmt: skip
+
+
+def test_published_joint_orders_of_the_openpose_halpe_and_wholebody_formats() -> None:
+    assert FORMATS["coco18"].joint_names == (
+        "nose", "neck", "right_shoulder", "right_elbow", "right_wrist", "left_shoulder", "left_elbow",
+        "left_wrist", "right_hip", "right_knee", "right_ankle", "left_hip", "left_knee", "left_ankle",
+        "right_eye", "left_eye", "right_ear", "left_ear",
+    )  # fmt: skip
+    feet = ("left_big_toe", "left_small_toe", "left_heel", "right_big_toe", "right_small_toe", "right_heel")
+    assert FORMATS["body25b"].joint_names == (*COCO_ORDER, "upper_neck", "head_top", *feet)
+    assert FORMATS["halpe26"].joint_names == (
+        *COCO_ORDER, "head", "neck", "hip", "left_big_toe", "right_big_toe", "left_small_toe",
+        "right_small_toe", "left_heel", "right_heel",
+    )  # fmt: skip
+    wholebody = FORMATS["wholebody133"].joint_names
+    assert wholebody[:23] == (*COCO_ORDER, *feet)
+    assert (wholebody[23], wholebody[90], wholebody[91], wholebody[111], wholebody[112], wholebody[132]) == (
+        "face_0", "face_67", "left_hand_0", "left_hand_20", "right_hand_0", "right_hand_20",
+    )  # fmt: skip
+
+
+# Per new format, the source joint(s) each model joint reads (None: imputed by the model).
+NEW_TABLES = {
+    "coco18": {"pelvis": ("left_hip", "right_hip"), "thorax": ("neck",), "neck": ("nose",), "head": None},
+    "body25b": {"pelvis": ("left_hip", "right_hip"), "thorax": ("left_shoulder", "right_shoulder"),
+                "neck": ("upper_neck",), "head": ("head_top",)},
+    "halpe26": {"pelvis": ("hip",), "thorax": ("neck",), "neck": ("nose",), "head": ("head",)},
+    "wholebody133": {"pelvis": ("left_hip", "right_hip"), "thorax": ("left_shoulder", "right_shoulder"),
+                     "neck": ("nose",), "head": None},
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(NEW_TABLES))
+def test_new_tables_map_each_source_joint_onto_its_model_joint(name: str) -> None:
+    """A pose whose every source joint holds its own index (x = k, y = 1000 + k) lands on the model
+    joints the table names: limbs by name, the torso and head as NEW_TABLES says, spine imputed."""
+    fmt = FORMATS[name]
+    k = np.arange(len(fmt.joint_names), dtype=np.float32)
+    points = np.stack([k, 1000 + k], axis=-1)[None]  # (1, K, 2)
+    out, visible, derived, imputed = to_model_joints(fmt, points, np.ones((1, len(k)), bool))
+    for j, joint in enumerate(MODEL_JOINTS):
+        sources = NEW_TABLES[name].get(joint, () if joint == "spine" else (joint,))
+        if not sources:
+            assert imputed[0, j] and not visible[0, j], joint
+            continue
+        want = np.mean([fmt.joint_names.index(s) for s in sources])
+        np.testing.assert_allclose(out[0, j], [want, 1000 + want], err_msg=f"{name} {joint}")
+        assert visible[0, j] and derived[0, j] == (len(sources) == 2), joint
+
+
+def test_wholebody_reads_only_the_body_as_coco17(poses: np.ndarray) -> None:
+    coco, coco_visible = from_model_joints(FORMATS["coco17"], poses)
+    rng = np.random.default_rng(1)
+    rest = rng.uniform(0, 1000, size=(8, 133 - 17, 2)).astype(np.float32)  # feet, face, hands: anything
+    wholebody = np.concatenate([np.nan_to_num(coco), rest], axis=1)
+    visible = np.concatenate([coco_visible, np.ones((8, 133 - 17), bool)], axis=1)
+    got = to_model_joints(FORMATS["wholebody133"], wholebody, visible)
+    want = to_model_joints(FORMATS["coco17"], np.nan_to_num(coco), coco_visible)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_mpii_table_matches_the_stacked_hourglass_mapping() -> None:

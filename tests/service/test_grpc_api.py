@@ -45,6 +45,18 @@ def test_lift_answers_like_http(stub: Stub, client: TestClient) -> None:
     assert reply.poses[1].imputed[5] and not reply.poses[0].imputed[5]
 
 
+@pytest.mark.parametrize("name", ["coco18", "body25b", "halpe26", "wholebody133"])
+def test_lift_takes_every_detector_format_as_http_does(stub: Stub, client: TestClient, name: str) -> None:
+    points, present = from_model_joints(FORMATS[name], POSE_2D[None])
+    pose = {"keypoints": [p.tolist() if ok else None for p, ok in zip(points[0], present[0], strict=True)]}
+    pose["format"] = name
+    (got,) = stub.Lift(to_proto_request({"poses": [pose]}), timeout=10).poses
+    (want,) = client.post("/lift", json={"poses": [pose]}).json()["poses"]
+    np.testing.assert_allclose(np.reshape(got.pose_3d, (17, 3)), want["pose_3d"], rtol=1e-5, atol=1e-3)
+    assert list(got.imputed) == want["imputed"] and list(got.derived) == want["derived"]
+    assert len(pose["keypoints"]) == len(FORMATS[name].joint_names) != 17
+
+
 def test_missing_flag_hides_the_joints_coordinates(stub: Stub) -> None:
     base = to_proto_pose(with_joint(5, None))
     nan = lifter_pb2.Pose2D()

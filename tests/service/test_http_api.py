@@ -13,7 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
-from repnet.core.formats import FORMATS, from_model_joints
+from repnet.core.formats import FORMATS, from_model_joints, to_model_joints
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
 from repnet.server.http.body import reply_json
@@ -244,6 +244,29 @@ def test_coco_keypoints_without_a_format_get_a_warning(client: TestClient, train
     assert len(warned) == 1 and "look like coco17, not h36m17" in warned[0]
     assert lift_one(client, keypoints, format="coco17")["poses"][0]["warnings"] == []
     assert lift_one(client, POSE_2D.tolist())["poses"][0]["warnings"] == []
+
+
+@pytest.mark.parametrize(
+    ("name", "imputed"),
+    [("coco18", ["spine", "head"]), ("body25b", ["spine"]), ("halpe26", ["spine"]),
+     ("wholebody133", ["spine", "head"])],
+)  # fmt: skip
+def test_detector_formats_lift_as_the_model_joints_their_tables_give(
+    client: TestClient, name: str, imputed: list[str]
+) -> None:
+    """A pose posted in a detector's format (its own joints and order) answers as the model joints its
+    table maps it to, posted as h36m17: the same 3D pose, derived and imputed joints."""
+    fmt = FORMATS[name]
+    points, present = from_model_joints(fmt, POSE_2D[None].astype(np.float32))
+    rows = [p.tolist() if ok else None for p, ok in zip(points[0], present[0], strict=True)]
+    got = lift_one(client, rows, format=name)["poses"][0]
+    model, visible, derived, _ = to_model_joints(fmt, points, present)
+    same = [p.tolist() if ok else None for p, ok in zip(model[0], visible[0], strict=True)]
+    want = lift_one(client, same)["poses"][0]
+    np.testing.assert_allclose(got["pose_3d"], want["pose_3d"], atol=1e-4)
+    joints = FORMATS["h36m17"].joint_names
+    assert [j for j, flag in zip(joints, got["imputed"], strict=True) if flag] == imputed
+    assert got["derived"] == derived[0].tolist()
 
 
 def test_triplets_give_the_confidence(client: TestClient) -> None:

@@ -169,6 +169,15 @@ def test_raw_openpose_output_is_told_how_to_send_it(client: TestClient) -> None:
     assert "pose_keypoints_2d" in item["reason"] and '"body25"' in item["reason"]
 
 
+@pytest.mark.parametrize(("values", "named"), [(54, '"coco18"'), (75, '"body25" or "body25b"')])
+def test_raw_openpose_output_is_told_the_format_of_its_joint_count(
+    client: TestClient, values: int, named: str
+) -> None:
+    person = {"person_id": [-1], "pose_keypoints_2d": [0.0] * values}
+    item = only_item(client.post("/lift", json={"version": 1.3, "people": [person]}))
+    assert (item["code"], item["reason"].endswith(f"with format {named}")) == ("detector_output", True)
+
+
 def test_raw_coco_results_are_told_how_to_send_them(client: TestClient) -> None:
     results = [{"image_id": 1, "category_id": 1, "keypoints": [1.0, 2.0, 0.9] * 17, "score": 0.9}]
     for body in (results, {"images": [], "annotations": results}):

@@ -146,11 +146,24 @@ def test_long_lists_of_violations_are_cut_in_the_message() -> None:
     assert len(info.value.violations) == 17 and str(info.value).endswith("; and 7 more")
 
 
-@pytest.mark.parametrize("name", ["mpii16", "body25", "mediapipe33"])
+@pytest.mark.parametrize("name", ["mpii16", "coco18", "halpe26", "mediapipe33", "wholebody133"])
 def test_a_pose_sent_without_its_format_is_told_which_format_it_looks_like(name: str) -> None:
     points, present = from_model_joints(FORMATS[name], POSE_2D[None])
     (message,) = violations(pose(np.nan_to_num(points[0]), present[0]))
-    assert f"this looks like {name}" in message and f'send format "{name}"' in message
+    count = len(FORMATS[name].joint_names)
+    assert f"got {count}; {count} joints: this looks like {name} ({FORMATS[name].description})" in message
+    assert message.endswith(f'send format "{name}"')
+
+
+@pytest.mark.parametrize("name", ["body25", "body25b"])
+def test_a_25_joint_pose_without_its_format_is_told_both_25_joint_formats(name: str) -> None:
+    """BODY_25 and BODY_25B have the same count and nothing in the joints tells them apart: both are named."""
+    points, present = from_model_joints(FORMATS[name], POSE_2D[None])
+    (message,) = violations(pose(np.nan_to_num(points[0]), present[0]))
+    assert "25 joints: this looks like body25 (OpenPose BODY_25) or body25b (OpenPose BODY_25B" in message
+    assert message.endswith('send format "body25" or "body25b"')
+    (message,) = violations(pose(np.nan_to_num(points[0]), present[0], format="mpii16"))
+    assert "format mpii16 has 16 joints, got 25; 25 joints: this looks like body25 (" in message
 
 
 def test_a_correctly_labelled_pose_gets_no_hint_and_a_17_joint_mix_up_is_told_by_geometry() -> None:
@@ -163,7 +176,10 @@ def test_a_correctly_labelled_pose_gets_no_hint_and_a_17_joint_mix_up_is_told_by
 
 
 @pytest.mark.parametrize(("given", "means"), [("openpose", "body25"), ("BODY_25", "body25"),
-                                              ("MediaPipe", "mediapipe33"), ("yolo", "coco17")])  # fmt: skip
+                                              ("MediaPipe", "mediapipe33"), ("yolo", "coco17"),
+                                              ("OpenPose-COCO", "coco18"), ("BODY_25B", "body25b"),
+                                              ("AlphaPose", "halpe26"), ("COCO-WholeBody", "wholebody133"),
+                                              ("RTMW", "wholebody133")])  # fmt: skip
 def test_a_format_alias_names_the_format_it_means(given: str, means: str) -> None:
     (message,) = violations(pose(format=given))
     assert f"unknown format {given!r}" in message and f'send format "{means}"' in message
