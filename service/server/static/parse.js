@@ -57,6 +57,9 @@ function withFrames(parsed) {
   };
 }
 
+// OpenPose's models by joint count (repnet.io.poses OPENPOSE_FORMATS): COCO 18, BODY_25.
+const OPENPOSE_FORMATS = { 18: "coco18", 25: "body25" };
+
 // OpenPose frames: every person of every frame; numbers: each frame's number.
 function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
   const poses = [];
@@ -66,7 +69,7 @@ function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
     const found = Array.isArray(frame.people) ? frame.people : [];
     found.forEach((person, k) => {
       const flat = person.pose_keypoints_2d;
-      poses.push(poseFromTriples(flat, Array.isArray(flat) && flat.length === 75 ? "body25" : null, false));
+      poses.push(poseFromTriples(flat, Array.isArray(flat) ? OPENPOSE_FORMATS[flat.length / 3] ?? null : null, false));
       at.push(numbers[f]);
       people.push(k);
     });
@@ -76,7 +79,8 @@ function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
   const notes = [`OpenPose: ${frames.length} frame${frames.length === 1 ? "" : "s"}`];
   if (crowded) notes.push(`${crowded} with several people`);
   if (empty) notes.push(`${empty} without a person`);
-  return withFrames({ poses, frames: at, people, allFrames: [...new Set(numbers)].sort((a, b) => a - b), format: "body25", note: notes.join(", ") });
+  const format = poses.find((p) => p.format)?.format ?? "body25";
+  return withFrames({ poses, frames: at, people, allFrames: [...new Set(numbers)].sort((a, b) => a - b), format, note: notes.join(", ") });
 }
 
 // COCO image ids as frame numbers: an integer id is its frame, a text id the last number in it;
