@@ -50,7 +50,7 @@ class Poses:
 ROW_HINT = (
     "each joint is [x, y] or [x, y, confidence] in pixels, MediaPipe's [x, y, z, visibility] (with "
     "--image-size W H, or image_size in a POST /lift body), or null; `repnet lift --help` lists the "
-    "files it reads (OpenPose, COCO results, POST /lift bodies, NPZ)"
+    "files it reads (OpenPose, COCO, MMPose, YOLO, MediaPipe, AlphaPose, POST /lift bodies, NPZ)"
 )
 
 
