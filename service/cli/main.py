@@ -164,9 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     lift = sub.add_parser("lift", help="lift the poses of a detector's file (.json, .npz, .txt) to 3D")
     lift.add_argument(
         "input",
-        help=".json, .npz or .txt file of one or many poses (OpenPose, COCO, COCO-WholeBody, AlphaPose, "
-        "MMPose inferencer, YOLO-pose JSON or label .txt, MediaPipe PoseLandmarker, POST /lift bodies), or "
-        "a folder or glob of per-frame files (OpenPose --write_json, YOLO save_txt), taken by frame number",
+        help="a detector's .json, .npz or .txt file (README: the files read), or a folder or glob of "
+        "per-frame files (OpenPose --write_json, YOLO save_txt labels), taken by frame number",
     )
     lift.add_argument(
         "--format",
