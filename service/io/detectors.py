@@ -78,7 +78,10 @@ def _mmpose_pose(item: Any, where: str) -> np.ndarray:
     scores = _numbers(item["keypoint_scores"], f"{where}.keypoint_scores")
     if len(scores) != len(rows):
         raise InputFileError(f"{where}.keypoint_scores: expected {len(rows)} scores, got {len(scores)}")
-    return np.concatenate([np.asarray(rows, np.float64).reshape(-1, 2), np.asarray(scores)[:, None]], axis=1)
+    # RTMPose's scores are SimCC maxima, not probabilities, and pass 1 (mmpose issues 2755, 3122): above
+    # 1 is read as sure, so that a confidence threshold keeps its meaning and the range rule holds.
+    sure = np.minimum(np.asarray(scores), 1.0)
+    return np.concatenate([np.asarray(rows, np.float64).reshape(-1, 2), sure[:, None]], axis=1)
 
 
 def read_mmpose(data: list[Any]) -> Poses:

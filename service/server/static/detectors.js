@@ -53,7 +53,8 @@ function mmposePose(item, where) {
   }
   const scores = numbers(item.keypoint_scores, `${where}.keypoint_scores`);
   if (scores.length !== item.keypoints.length) throw new InputError(`${where}.keypoint_scores: expected ${item.keypoints.length} scores, got ${scores.length}`);
-  return { keypoints: item.keypoints, confidence: scores };
+  // RTMPose's scores are SimCC maxima and pass 1 (mmpose issues 2755, 3122): above 1 is read as sure.
+  return { keypoints: item.keypoints, confidence: scores.map((v) => Math.min(v, 1)) };
 }
 
 function readMmpose(data) {
