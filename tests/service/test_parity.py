@@ -142,7 +142,28 @@ DETECTOR_SHAPES = {"mmpose video": "mmpose_video.json", "mmpose image": "mmpose_
                    "mediapipe results": "mediapipe_python.json", "alphapose": "alphapose-results.json",
                    "coco wholebody": "coco_wholebody.json",
                    "openpose coco18": "openpose_coco18_000000000000_keypoints.json"}  # fmt: skip
-SHAPES = {s.name: s for s in _shapes()} | {n: _detector_shape(n, f) for n, f in DETECTOR_SHAPES.items()}
+
+
+def _mmpose_images() -> Shape:
+    """MMPose's pred_out_dir of an image folder: one instances file per image, read as frames."""
+    want = BUILDERS["mmpose image"]()
+    (item,) = json.loads(want.files["mmpose_image.json"])
+    points = np.stack([want.points[0], want.points[0] + [40.0, -10.0]])
+    conf = np.concatenate([want.confidence, want.confidence[:, ::-1]])  # type: ignore[index]
+
+    def write(folder: Path) -> Path:
+        (images := folder / "predictions").mkdir()
+        for i, (p, c) in enumerate(zip(points, conf, strict=True)):
+            instance = {**item, "keypoints": p.tolist(), "keypoint_scores": c.tolist()}
+            (images / f"frame_{i:04d}.json").write_text(json.dumps([instance]))
+        return images
+
+    return Shape("mmpose image folder", points, conf, want.format, write)
+
+
+SHAPES = {s.name: s for s in [*_shapes(), _mmpose_images()]} | {
+    n: _detector_shape(n, f) for n, f in DETECTOR_SHAPES.items()
+}
 # How each interface takes each shape: "direct" where it reads the shape as the user has it, else
 # the documented conversion path (README "Input formats").
 CELLS: dict[str, dict[str, str]] = {
@@ -156,6 +177,8 @@ CELLS: dict[str, dict[str, str]] = {
         "pose_keypoints_2d as [x, y, c] rows with format body25",
         "npz": "the client reads it: np.load(...)['keypoints'] rows (NaN -> null)",
         "pairs with (0, 0)": "direct: (0, 0) is missing, with a warning",
+        "mmpose image folder": "each file's instances as rows with format halpe26 (a file posted raw: "
+        "422 detector_output)",
         **{
             name: "the file posted raw: 422 detector_output naming what it is, `repnet lift` and its format; "
             "else each pose's keypoints as [x, y] rows (in pixels) with its confidence and format"
@@ -171,6 +194,7 @@ CELLS: dict[str, dict[str, str]] = {
         "openpose folder": "per person: x, y and c",
         "npz": "the array's rows",
         "pairs with (0, 0)": "direct: (0, 0) is missing, with a warning",
+        "mmpose image folder": "per pose: x, y and the keypoint scores",
         **{
             name: "per pose: x, y in pixels and the confidence (read_input reads the file)"
             for name in DETECTOR_SHAPES
@@ -340,7 +364,8 @@ PAGE_INPUTS = {"h36m17 pairs": "paste", "triplets": "paste", "coco results": "fi
                "openpose folder": "files", "mediapipe rows": "paste", "npz": "file",
                "pairs with (0, 0)": "paste", "mmpose video": "file", "mmpose image": "paste",
                "yolo summary": "file", "yolo labels": "files", "mediapipe results": "file",
-               "alphapose": "file", "coco wholebody": "paste", "openpose coco18": "files"}  # fmt: skip
+               "alphapose": "file", "coco wholebody": "paste", "openpose coco18": "files",
+               "mmpose image folder": "files"}  # fmt: skip
 
 
 @pytest.mark.parametrize("shape", list(PAGE_INPUTS))

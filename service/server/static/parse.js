@@ -204,10 +204,13 @@ export async function parseFiles(files, maxBytes = Infinity) {
     return parseNpz(new Uint8Array(await sorted[0].arrayBuffer()), maxBytes);
   }
   const numbers = sorted.map((f) => lastNumber(f.name));
-  if (sorted.every((f) => f.name.toLowerCase().endsWith(".txt"))) return yoloFiles(sorted, numbers);
-  const frames = [];
+  const parts = [];
   for (const file of sorted) {
     if (file.name.toLowerCase().endsWith(".npz")) throw new InputError(`${file.name}: pick an NPZ file on its own`);
+    if (file.name.toLowerCase().endsWith(".txt")) {
+      parts.push(parseYoloTxt(await file.text(), file.name));
+      continue;
+    }
     let data;
     try {
       data = JSON.parse(await file.text());
@@ -215,23 +218,30 @@ export async function parseFiles(files, maxBytes = Infinity) {
       throw new InputError(`${file.name}: not JSON: ${err.message}`);
     }
     if (sorted.length === 1) return parseJson(data);
-    if (!data || typeof data !== "object" || !("people" in data)) {
-      throw new InputError(`${file.name}: several files must each be one OpenPose frame (with "people")`);
-    }
-    frames.push(data);
+    parts.push(data && typeof data === "object" && "people" in data ? { openpose: data } : parseJson(data));
   }
-  return openPoseFrames(frames, numbers.every((n) => n !== null) ? numbers : undefined);
+  if (sorted.length === 1) return withFrames(parts[0]);
+  if (parts.every((p) => p.openpose)) {
+    return openPoseFrames(parts.map((p) => p.openpose), numbers.every((n) => n !== null) ? numbers : undefined);
+  }
+  return frameFiles(parts, sorted, numbers);
 }
 
-// YOLO-pose label files (save_txt, name_<frame>.txt), numbered as OpenPose frames are.
-async function yoloFiles(files, numbers) {
-  const parts = [];
-  for (const file of files) parts.push(parseYoloTxt(await file.text(), file.name));
-  if (files.length === 1) return withFrames(parts[0]);
-  const at = numbers.every((n) => n !== null) ? numbers : files.map((_, i) => i);
-  const pick = (key) => parts.flatMap((p, f) => (key === "frames" ? p.poses.map(() => at[f]) : p[key]));
-  const note = `YOLO labels: ${files.length} files`;
-  return withFrames({ ...parts[0], poses: pick("poses"), frames: pick("frames"), people: pick("people"), labels: pick("labels"), note });
+// Several files of poses as the frames of one video (repnet.io.pose_file.load_frames): every pose of a
+// file has the file's number (else its place), people by their place in the file, labels from the file.
+function frameFiles(parts, files, numbers) {
+  const at = numbers.map((n, f) => n ?? f);
+  const flat = parts.map((p, f) => {
+    if (p.body || Object.keys(p.request ?? {}).length) throw new InputError(`${files[f].name}: pick a POST /lift body on its own`);
+    return p.openpose ? openPoseFrames([p.openpose]) : p;
+  });
+  const poses = flat.flatMap((p) => p.poses);
+  const frames = flat.flatMap((p, f) => p.poses.map(() => at[f]));
+  const people = flat.flatMap((p) => p.poses.map((_, k) => k));
+  const labels = flat.flatMap((p, f) => (files[f].name.endsWith(".txt") ? p.labels : p.poses.map(() => files[f].name)));
+  const normalised = flat.find((p) => p.normalised)?.normalised;
+  const format = flat.find((p) => p.format)?.format ?? null;
+  return withFrames({ poses, frames, people, labels, format, normalised, note: `${files.length} files: ${poses.length} poses` });
 }
 
 // ---- NPZ: a zip archive (stored or deflated, zip64 sizes as numpy writes them) of .npy arrays ----
