@@ -250,6 +250,14 @@ def _frame_files(spec: str) -> list[Path]:
     return sorted(files, key=lambda f: (frame_number(f) is None, frame_number(f) or 0, f.name))
 
 
+def _blank(path: Path) -> bool:
+    """A text file with nothing but white space in it."""
+    try:
+        return not path.read_text().strip()
+    except (OSError, ValueError) as err:
+        raise InputFileError(f"{path}: {err}") from err
+
+
 def load_frames(
     files: Sequence[Path], progress: Progress, image_size: tuple[float, float] | None = None
 ) -> Poses:
@@ -263,7 +271,10 @@ def load_frames(
     for index, path in enumerate(progress(files)):
         data = read_json(path) if path.suffix == ".json" else None
         number = frame_number(path)
-        if isinstance(data, dict) and "people" in data:
+        rows: list[np.ndarray] = []
+        if path.suffix == ".txt" and _blank(path):  # a frame's label file without a person
+            pass
+        elif isinstance(data, dict) and "people" in data:
             try:
                 people = openpose_people(data)
             except (KeyError, ValueError, TypeError) as err:

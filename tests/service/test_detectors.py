@@ -171,3 +171,10 @@ def test_each_file_posted_whole_is_told_what_it_is(name: str, said: str, fmt: st
     hint = raw_output_hint(json.loads((FIXTURES / name).read_text()))
     assert hint is not None and said in hint and f'"{fmt}"' in hint and "repnet lift FILE" in hint
     assert 'POST /lift takes {"poses": [...]}' in hint
+
+
+def test_an_empty_label_file_is_a_frame_without_a_person(tmp_path: Path) -> None:
+    shutil.copytree(FIXTURES / "yolo_labels", tmp_path / "labels")
+    (tmp_path / "labels" / "clip_1.txt").write_text("\n")
+    poses = read(str(tmp_path / "labels"), IMAGE_SIZE)
+    assert poses.frame.tolist() == [0, 2, 2] and len(poses.points) == 3
