@@ -62,10 +62,6 @@ def test_each_detector_file_is_read_as_its_tool_writes_it(name: str) -> None:
 
 def test_openpose_coco18_frames_read_as_coco18() -> None:
     """OpenPose's COCO model writes 18 joints per person (item 5 of issue 31)."""
-    from repnet.core.formats import FORMATS
-
-    if "coco18" not in FORMATS:
-        pytest.skip("the coco18 format is not in this branch yet (i31-formats)")
     want = BUILDERS["openpose coco18"]()
     assert_read_as(read(str(FIXTURES / READ["openpose coco18"])), want)
 

@@ -220,6 +220,7 @@ export async function parseFiles(files, maxBytes = Infinity) {
     if (sorted.length === 1) return parseJson(data);
     parts.push(data && typeof data === "object" && "people" in data ? { openpose: data } : parseJson(data));
   }
+  if (!parts.some((p) => p.openpose || p.poses.length)) throw new InputError(`${sorted.map((f) => f.name).join(", ")}: no poses`);
   if (sorted.length === 1) return withFrames(parts[0]);
   if (parts.every((p) => p.openpose)) {
     return openPoseFrames(parts.map((p) => p.openpose), numbers.every((n) => n !== null) ? numbers : undefined);
