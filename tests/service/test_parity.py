@@ -393,3 +393,44 @@ def test_the_page_gives_the_same_answer_for_every_shape_it_reads(
     wait_lift(driver, before)
     assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
     assert page_mode(driver) == "off"
+
+
+# The page's reader on its own: parse.js and detectors.js, run in chromium on each detector's file,
+# give the poses, frames and people repnet lift reads (pixels: normalised x, y times the image size).
+PAGE_READ = """
+const [files, done] = [arguments[0], arguments[arguments.length - 1]];
+import("/ui/parse.js").then((parse) => parse.parseFiles(files.map(([name, text]) => new File([text], name))))
+  .then((r) => done({poses: r.poses, frames: r.frames, people: r.people, normalised: r.normalised ?? null}),
+        (err) => done({error: String(err)}));
+"""
+
+
+def _page_poses(
+    read: dict[str, Any], size: tuple[float, float] | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The page's /lift poses as (N, J, 2) px (NaN: missing) and (N, J) confidence (None: none)."""
+    scale = np.asarray(size if read["normalised"] else (1.0, 1.0))
+    points = np.array([[[np.nan] * 2 if r is None else r[:2] for r in p["keypoints"]] for p in read["poses"]])
+    conf = [p.get("confidence") or ([r[3] for r in p["keypoints"]] if len(p["keypoints"][0]) == 4 else None)
+            for p in read["poses"]]  # fmt: skip
+    return points * scale, None if conf[0] is None else np.array(conf, dtype=np.float64)
+
+
+@pytest.mark.parametrize("shape", [*DETECTOR_SHAPES, "mmpose image folder"])
+def test_the_page_reads_each_detector_file_as_repnet_lift_does(
+    driver: Any, live_service: LiveService, tmp_path: Path, shape: str
+) -> None:
+    path = SHAPES[shape].write(tmp_path)
+    files = sorted(path.glob("*.json")) or sorted(path.glob("*.txt")) if path.is_dir() else [path]
+    open_page(driver, live_service.http_url)
+    read = driver.execute_async_script(PAGE_READ, [[f.name, f.read_text()] for f in files])
+    assert "error" not in read, read
+    poses = read_input(str(path), lambda found: found, SHAPES[shape].image_size)
+    assert (read["frames"], read["people"]) == (poses.frame.tolist(), poses.person.tolist())
+    assert {p.get("format") for p in read["poses"]} == {poses.format}
+    points, conf = _page_poses(read, SHAPES[shape].image_size)
+    np.testing.assert_allclose(points, poses.points, rtol=1e-12)
+    if poses.confidence is None:
+        assert conf is None
+    else:
+        np.testing.assert_allclose(np.asarray(conf), poses.confidence)
