@@ -172,12 +172,14 @@ def read_yolo_txt(text: str, name: str) -> Poses:
             continue
         try:
             values = [float(v) for v in line.split()]
+            if not np.isfinite(values).all():
+                raise ValueError
         except ValueError:
-            raise InputFileError(f"line {n}: expected numbers, got {shown(line)}") from None
+            raise InputFileError(f"line {n}: expected finite numbers, got {shown(line)}") from None
         extra = len(values) - 5 - 3 * YOLO_JOINTS  # with visibility: 0, 1 or 2 values after the joints
         width = 3 if 0 <= extra <= 2 else 2
         extra = extra if width == 3 else len(values) - 5 - 2 * YOLO_JOINTS
-        if not 0 <= extra <= 2 or not np.isfinite(values).all():
+        if not 0 <= extra <= 2:
             raise InputFileError(
                 f"line {n}: expected class cx cy w h and {YOLO_JOINTS} keypoints of x y [visibility] "
                 f"({5 + 2 * YOLO_JOINTS} to {7 + 3 * YOLO_JOINTS} numbers), got {len(values)} values"

@@ -131,7 +131,8 @@ def test_broken_mmpose_files_are_refused_by_field(tmp_path: Path) -> None:
 def test_broken_yolo_files_are_refused_by_line_and_field(tmp_path: Path) -> None:
     short = "0 0.5 0.5 0.1 0.1 " + " ".join(["0.3"] * 20)
     assert "line 1: expected class cx cy w h and 17 keypoints" in _broken(short, tmp_path, "a_1.txt")
-    assert "line 2: expected numbers" in _broken("\n0 0.5 x", tmp_path, "a_2.txt")
+    assert "line 2: expected finite numbers" in _broken("\n0 0.5 x", tmp_path, "a_2.txt")
+    assert "line 1: expected finite numbers" in _broken(short.replace("0.3", "nan", 1), tmp_path, "a_3.txt")
     data = json.loads((FIXTURES / "yolo_summary.json").read_text())
     data[1]["keypoints"]["visible"] = ["high"] * 17
     assert "[1].keypoints.visible: expected a list of numbers" in _broken(data, tmp_path)

@@ -125,7 +125,7 @@ export function parseYoloTxt(text, name) {
     let width = 3;
     let extra = values.length - 5 - 3 * YOLO_JOINTS;
     if (extra < 0 || extra > 2) [width, extra] = [2, values.length - 5 - 2 * YOLO_JOINTS];
-    if (!values.every(isNumber)) throw new InputError(`${name}: line ${i + 1}: expected numbers`);
+    if (!values.every(isNumber)) throw new InputError(`${name}: line ${i + 1}: expected finite numbers`);
     if (extra < 0 || extra > 2) {
       throw new InputError(`${name}: line ${i + 1}: expected class cx cy w h and ${YOLO_JOINTS} keypoints of x y [visibility] (${5 + 2 * YOLO_JOINTS} to ${7 + 3 * YOLO_JOINTS} numbers), got ${values.length} values`);
     }
