@@ -303,7 +303,11 @@ def read_input(spec: str, progress: Progress, image_size: tuple[float, float] | 
     (normalised coordinates multiplied by their image size: the file's, else `image_size`)."""
     path = Path(spec)
     if path.is_file():
-        return to_pixels(load_poses(path), image_size)
+        poses = load_poses(path)
+        try:
+            return to_pixels(poses, image_size)
+        except InputFileError as err:  # named by its file
+            raise InputFileError(f"{path}: {err}") from None
     if path.is_dir() or any(c in spec for c in "*?["):
         return load_frames(_frame_files(spec), progress, image_size)
     raise InputFileError(f"{spec}: No such file or folder")

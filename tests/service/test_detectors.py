@@ -5,6 +5,7 @@ by an InputFileError naming the file and the field."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -77,6 +78,9 @@ def test_the_js_tasks_api_result_reads_as_the_python_one() -> None:
 
 @pytest.mark.parametrize("name", ["yolo labels", "mediapipe results"])
 def test_normalised_files_need_the_image_size(name: str) -> None:
+    where = re.escape(str(FIXTURES / READ[name]))  # the file, or the folder's first file
+    with pytest.raises(InputFileError, match=rf"^{where}(/clip_0\.txt)?: poses\[0\]: "):
+        read(str(FIXTURES / READ[name]))
     with pytest.raises(
         InputFileError, match=r"normalised to \[0, 1\]: give the image size with --image-size W H"
     ):
