@@ -151,11 +151,11 @@ def build_parser() -> argparse.ArgumentParser:
         "serve", help="run the HTTP and gRPC server (python -m repnet serve; see --help)", add_help=False
     )
     serve.add_argument("args", nargs=argparse.REMAINDER)
-    lift = sub.add_parser("lift", help="lift the poses of a .json or .npz file to 3D")
+    lift = sub.add_parser("lift", help="lift the poses of a detector's file (.json, .npz, .txt) to 3D")
     lift.add_argument(
         "input",
-        help=".json or .npz file of one or many poses, or a folder or glob "
-        "of per-frame .json files (OpenPose --write_json), taken by frame number",
+        help="a detector's .json, .npz or .txt file (README: the files read), or a folder or glob of "
+        "per-frame files (OpenPose --write_json, YOLO save_txt labels), taken by frame number",
     )
     lift.add_argument(
         "--format",
@@ -169,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
         nargs=2,
         metavar=("W", "H"),
         help="the image's width and height in px when x, y are normalised to [0, 1] "
-        "(MediaPipe [x, y, z, visibility] rows): they are multiplied by it",
+        "(MediaPipe landmarks, YOLO label files): they are multiplied by it",
     )
     lift.add_argument("--url", default=DEFAULT_URL, help=f"service URL (default {DEFAULT_URL})")
     lift.add_argument("--local", action="store_true", help="run the ONNX model in this process, no service")

@@ -8,6 +8,7 @@ from functools import cache
 import numpy as np
 import numpy.typing as npt
 
+from repnet.core.file_hints import detector_file_hint
 from repnet.core.formats import COCO17, FORMATS, H36M17, MODEL_JOINTS, KeypointFormat
 
 # COCO's nose, shoulders and hips; Human3.6M has its pelvis, knee, ankle, shoulder and elbow there.
@@ -185,7 +186,10 @@ def _openpose_formats(people: object) -> str:
 def raw_output_hint(data: object) -> str | None:
     """What to do with a detector's own output file posted as a POST /lift body, or None for any
     other body: an OpenPose --write_json frame ({"version", "people": [{"pose_keypoints_2d"}]}) or
-    COCO keypoint results / annotations ([{"image_id", "keypoints": [x, y, s, ...]}])."""
+    COCO keypoint results / annotations ([{"image_id", "keypoints": [x, y, s, ...]}]), or one of
+    the files core.file_hints knows (MMPose, YOLO, MediaPipe, AlphaPose, COCO-WholeBody)."""
+    if (hint := detector_file_hint(data)) is not None:
+        return hint
     if isinstance(data, dict) and "people" in data and "poses" not in data:
         return (
             "this is OpenPose output (--write_json): use `repnet lift` on the file or folder, or send "

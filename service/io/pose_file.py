@@ -12,6 +12,16 @@ from typing import Any
 import numpy as np
 
 from repnet.core.contract import MAX_FRAME, is_frame_number
+from repnet.io.coco import boxes_only, is_coco, read_coco
+from repnet.io.detectors import (
+    is_mediapipe_result,
+    is_mmpose,
+    is_yolo_summary,
+    read_mediapipe_result,
+    read_mmpose,
+    read_yolo_summary,
+    read_yolo_txt,
+)
 from repnet.io.poses import (
     InputFileError,
     Poses,
@@ -96,85 +106,16 @@ def to_pixels(poses: Poses, image_size: tuple[float, float] | None) -> Poses:
     if image_size is not None:
         size = np.where(np.isnan(size), np.asarray(image_size, np.float64), size)
     unscaled = np.isnan(size).any(axis=1)  # (N,)
-    if poses.landmarks is not None and (poses.landmarks & unscaled).any():
-        first = int(np.flatnonzero(poses.landmarks & unscaled)[0])
+    normalised = np.full(n, poses.normalised is not None) if poses.landmarks is None else poses.landmarks
+    if (normalised & unscaled).any():
+        first = int(np.flatnonzero(normalised & unscaled)[0])
+        what = poses.normalised or "rows of 4 values are MediaPipe landmarks [x, y, z, visibility]"
         raise InputFileError(
-            f"poses[{first}]: rows of 4 values are MediaPipe landmarks [x, y, z, visibility] with x, y "
-            "normalised to [0, 1]: give the image size with --image-size W H (or image_size in the file)"
+            f"poses[{first}]: {what} with x, y normalised to [0, 1]: give the image size with "
+            "--image-size W H (or image_size in the file)"
         )
     points = np.where(unscaled[:, None, None], poses.points, poses.points * size[:, None, :])
-    return replace(poses, points=points, image_size=None, landmarks=None)
-
-
-def _image_frames(ids: Sequence[Any]) -> tuple[np.ndarray, str]:
-    """Frame numbers of COCO image ids: an integer id is its frame, a text id the last number in it;
-    else the ids in order of appearance; and what they are (Poses.numbered_by)."""
-    numbers = [
-        i if isinstance(i, int) else (frame_number(Path(i)) if isinstance(i, str) else None) for i in ids
-    ]
-    if all(is_frame_number(n) for n in numbers):
-        return np.array(numbers, dtype=np.int64), "image ids"
-    return np.unique([str(i) for i in ids], return_inverse=True)[1].astype(np.int64), "image names"
-
-
-def _coco(items: Sequence[Any], where: str) -> Poses:
-    """COCO keypoint results ([{image_id, keypoints: [x, y, score, ...]}]) or annotations (a third
-    value 0, 1 or 2 flags a joint; 0 is missing), ordered by image; a joint with 0 is missing."""
-    found = [a for a in items if isinstance(a, dict) and isinstance(a.get("keypoints"), list)]
-    if not found:
-        boxes = (
-            " (boxes only: a person detector's output, not a pose detector's)" if _boxes_only(items) else ""
-        )
-        raise InputFileError(f"{where}: no keypoints{boxes}")
-    rows = [np.asarray(a["keypoints"], dtype=np.float64).reshape(-1, 3) for a in found]
-    flags = all(np.isin(r[:, 2], (0, 1, 2)).all() for r in rows)
-    poses = []
-    for r in rows:
-        pose = np.where(r[:, 2:] > 0, r, np.nan)  # (K, 3) a joint with 0 is missing
-        if flags:  # flags are no confidence
-            pose[:, 2] = np.nan
-        poses.append(pose)
-    frames, by_ids = _image_frames([a.get("image_id", k) for k, a in enumerate(found)])
-    numbered_by = by_ids if any("image_id" in a for a in found) else None  # else the poses' order in the file
-    order = np.argsort(frames, kind="stable")
-    stacked = stack_poses([poses[k] for k in order], None, "coco17" if len(rows[0]) == 17 else None, where)
-    person = np.zeros(len(order), np.int64)
-    for k in range(1, len(order)):
-        person[k] = person[k - 1] + 1 if frames[order[k]] == frames[order[k - 1]] else 0
-    labels = tuple(_coco_label(found[k]) for k in order)
-    return replace(stacked, frame=frames[order], person=person, label=labels, numbered_by=numbered_by)
-
-
-def _coco_label(item: dict[str, Any]) -> str:
-    """A COCO detection or annotation as the file names it: its image id, and its own id if any."""
-    named = [
-        f"{key} {shown(item[key]) if isinstance(item[key], str) else item[key]}"
-        for key in ("image_id", "id")
-        if key in item
-    ]
-    return ", ".join(named) or "no id"
-
-
-def _boxes_only(data: Any) -> bool:
-    """COCO detections or annotations that have boxes and no keypoints."""
-    return (
-        isinstance(data, list)
-        and bool(data)
-        and all(isinstance(a, dict) and "bbox" in a and "keypoints" not in a for a in data)
-    )
-
-
-def _is_coco(data: Any) -> bool:
-    return (
-        isinstance(data, list)
-        and bool(data)
-        and all(
-            isinstance(a, dict)
-            and isinstance(a.get("keypoints"), list)
-            and all(isinstance(v, int | float) for v in a["keypoints"])
-            for a in data
-        )
-    )
+    return replace(poses, points=points, image_size=None, landmarks=None, normalised=None)
 
 
 def _read_json(data: Any) -> Poses:
@@ -184,15 +125,21 @@ def _read_json(data: Any) -> Poses:
         return replace(poses, frame=np.zeros(len(people), int), person=np.arange(len(people)))
     if isinstance(data, list) and data and all(isinstance(f, dict) and "people" in f for f in data):
         return _openpose_frames(data)
-    if _is_coco(data):  # detector results
-        return _coco(data, "results")
-    if _boxes_only(data):
+    if is_mmpose(data):
+        return read_mmpose(data)
+    if is_yolo_summary(data):
+        return read_yolo_summary(data)
+    if is_mediapipe_result(data):
+        return read_mediapipe_result(data)
+    if is_coco(data):  # detector results
+        return read_coco(data, "results")
+    if boxes_only(data):
         raise InputFileError(
             "COCO detections with boxes and no keypoints: this is a person detector's output; lift the "
             "output of a pose (keypoint) detector instead"
         )
     if isinstance(data, dict) and isinstance(data.get("annotations"), list):
-        return _coco(data["annotations"], "annotations")
+        return read_coco(data["annotations"], "annotations")
     if isinstance(data, dict) and "poses" in data:  # the POST /lift body
         return _lift_body(data)
     body = data if isinstance(data, dict) else {"keypoints": data}
@@ -234,38 +181,46 @@ def check_input_size(path: Path) -> None:
                 f"{path}: its arrays hold {inflated} bytes once inflated, more than {MAX_NPZ_ARRAY_BYTES}; "
                 "split the input into several files"
             )
-    elif path.suffix == ".json" and (size := path.stat().st_size) > MAX_JSON_BYTES:
+    elif path.suffix in (".json", ".txt") and (size := path.stat().st_size) > MAX_JSON_BYTES:
         raise InputFileError(
-            f"{path}: {size} bytes of JSON, more than {MAX_JSON_BYTES}; write it as an .npz (binary, "
-            "10x smaller) or split it into several files"
+            f"{path}: {size} bytes of {path.suffix[1:].upper()}, more than {MAX_JSON_BYTES}; write it as "
+            "an .npz (binary, 10x smaller) or split it into several files"
         )
 
 
+def _load_npz(path: Path) -> Poses:
+    """Poses of an NPZ: `keypoints` (N, J, 2|3|4) or (J, 2|3|4), optional confidence, format, fps."""
+    with np.load(path, allow_pickle=False) as npz:
+        if "keypoints" not in npz:
+            raise InputFileError(f"{path}: no 'keypoints' array (has {', '.join(npz.files)})")
+        raw = npz["keypoints"]
+        if raw.dtype.kind not in "iuf":  # complex, bool, text, ...: no coordinates
+            raise InputFileError(f"{path}: 'keypoints' must hold real numbers, got dtype {raw.dtype}")
+        keypoints = np.asarray(raw, dtype=np.float64)
+        conf = npz["confidence"] if "confidence" in npz else None
+        fmt = npz["format"] if "format" in npz else None
+        fps = float(npz["fps"]) if "fps" in npz else None
+    keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
+    if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3, 4):
+        raise InputFileError(f"expected keypoints (N, J, 2|3|4), got {keypoints.shape}")
+    landmarks = np.full(len(keypoints), keypoints.shape[-1] == 4)  # MediaPipe [x, y, z, visibility]
+    keypoints = keypoints[..., [0, 1, 3]] if keypoints.shape[-1] == 4 else keypoints
+    padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
+    poses = stack_poses(list(padded), conf, fmt, str(path))
+    return replace(poses, fps=_fps({"fps": fps}), landmarks=landmarks if landmarks.any() else None)
+
+
 def load_poses(path: Path) -> Poses:
-    """Poses from a .json (a pose, a list of poses, a POST /lift body or OpenPose output) or .npz
+    """Poses from a .json (a pose, a list of poses, a POST /lift body, OpenPose, COCO, AlphaPose,
+    MMPose, YOLO or MediaPipe results: repnet.io.detectors), a YOLO label .txt or an .npz
     (`keypoints` (N, J, 2|3|4) or (J, 2|3|4) with NaN for missing joints, optional `confidence`,
     `format`; 4 values are MediaPipe's [x, y, z, visibility], to scale by an image size)."""
     try:
         check_input_size(path)
         if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as npz:
-                if "keypoints" not in npz:
-                    raise InputFileError(f"{path}: no 'keypoints' array (has {', '.join(npz.files)})")
-                raw = npz["keypoints"]
-                if raw.dtype.kind not in "iuf":  # complex, bool, text, ...: no coordinates
-                    raise InputFileError(f"{path}: 'keypoints' must hold real numbers, got dtype {raw.dtype}")
-                keypoints = np.asarray(raw, dtype=np.float64)
-                conf = npz["confidence"] if "confidence" in npz else None
-                fmt = npz["format"] if "format" in npz else None
-                fps = float(npz["fps"]) if "fps" in npz else None
-            keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
-            if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3, 4):
-                raise InputFileError(f"expected keypoints (N, J, 2|3|4), got {keypoints.shape}")
-            landmarks = np.full(len(keypoints), keypoints.shape[-1] == 4)  # MediaPipe [x, y, z, visibility]
-            keypoints = keypoints[..., [0, 1, 3]] if keypoints.shape[-1] == 4 else keypoints
-            padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
-            poses = stack_poses(list(padded), conf, fmt, str(path))
-            return replace(poses, fps=_fps({"fps": fps}), landmarks=landmarks if landmarks.any() else None)
+            return _load_npz(path)
+        if path.suffix == ".txt":  # a YOLO-pose label file (save_txt)
+            return read_yolo_txt(path.read_text(), path.name)
         if path.suffix == ".json":
             data = read_json(path)
             poses = _read_json(data)
@@ -278,21 +233,29 @@ def load_poses(path: Path) -> Poses:
         raise InputFileError(f"{path}: {err}") from None
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
         raise InputFileError(f"{path}: {err}") from err
-    raise InputFileError(f"{path}: expected a .json or .npz file")
+    raise InputFileError(f"{path}: expected a .json, .npz or .txt (YOLO labels) file")
 
 
 def _frame_files(spec: str) -> list[Path]:
     """The .json files of a folder, or the files a glob pattern matches, by frame number then name."""
     path = Path(spec)
     if path.is_dir():
-        files = sorted(path.glob("*.json"))
-        where = f"{path}: no .json files in the folder"
+        files = sorted(path.glob("*.json")) or sorted(path.glob("*.txt"))  # OpenPose's, else YOLO labels
+        where = f"{path}: no .json or .txt files in the folder"
     else:
         files = [Path(p) for p in glob.glob(spec)]
         where = f"{spec}: no file matches"
     if not files:
         raise InputFileError(where)
     return sorted(files, key=lambda f: (frame_number(f) is None, frame_number(f) or 0, f.name))
+
+
+def _blank(path: Path) -> bool:
+    """A text file with nothing but white space in it."""
+    try:
+        return not path.read_text().strip()
+    except (OSError, ValueError) as err:
+        raise InputFileError(f"{path}: {err}") from err
 
 
 def load_frames(
@@ -306,9 +269,12 @@ def load_frames(
     labels: list[str] = []  # the file each pose came from
     fmt: str | None = None
     for index, path in enumerate(progress(files)):
-        data = read_json(path)
+        data = read_json(path) if path.suffix == ".json" else None
         number = frame_number(path)
-        if isinstance(data, dict) and "people" in data:
+        rows: list[np.ndarray] = []
+        if path.suffix == ".txt" and _blank(path):  # a frame's label file without a person
+            pass
+        elif isinstance(data, dict) and "people" in data:
             try:
                 people = openpose_people(data)
             except (KeyError, ValueError, TypeError) as err:
@@ -317,14 +283,17 @@ def load_frames(
             scale = np.array([*(image_size or (1.0, 1.0)), 1.0])  # --keypoint_scale 3 writes [0, 1]
             rows = [p * scale for p in people]
         else:
-            poses = to_pixels(load_poses(path), image_size)
+            try:
+                poses = to_pixels(load_poses(path), image_size)
+            except InputFileError as err:  # named by its file
+                raise InputFileError(err if str(path) in str(err) else f"{path}: {err}") from None
             fmt = fmt or poses.format
             conf = np.full(poses.points.shape[:2], np.nan) if poses.confidence is None else poses.confidence
             rows = list(np.concatenate([poses.points, conf[..., None]], axis=-1))
         parts += rows
         frames += [index if number is None else number] * len(rows)
         persons += range(len(rows))
-        labels += [path.name] * len(rows)
+        labels += list(poses.label) if data is None and poses.label else [path.name] * len(rows)
     poses = stack_poses(parts, None, fmt, f"{len(files)} files")
     return replace(
         poses, frame=np.array(frames), person=np.array(persons), label=tuple(labels), numbered_by="file names"
@@ -336,7 +305,11 @@ def read_input(spec: str, progress: Progress, image_size: tuple[float, float] | 
     (normalised coordinates multiplied by their image size: the file's, else `image_size`)."""
     path = Path(spec)
     if path.is_file():
-        return to_pixels(load_poses(path), image_size)
+        poses = load_poses(path)
+        try:
+            return to_pixels(poses, image_size)
+        except InputFileError as err:  # named by its file
+            raise InputFileError(f"{path}: {err}") from None
     if path.is_dir() or any(c in spec for c in "*?["):
         return load_frames(_frame_files(spec), progress, image_size)
     raise InputFileError(f"{spec}: No such file or folder")

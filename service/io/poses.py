@@ -42,6 +42,8 @@ class Poses:
     # (COCO), "file names" (a folder's), "image names" (ids with no number: frames in order of first
     # appearance); None: the poses' order in the file, or its frame fields (a clip)
     numbered_by: str | None = None
+    # the layout whose x, y are normalised to [0, 1] of the image, to scale by its size (YOLO labels)
+    normalised: str | None = None
 
     @property
     def frame_count(self) -> int:
@@ -52,7 +54,7 @@ class Poses:
 ROW_HINT = (
     "each joint is [x, y] or [x, y, confidence] in pixels, MediaPipe's [x, y, z, visibility] (with "
     "--image-size W H, or image_size in a POST /lift body), or null; `repnet lift --help` lists the "
-    "files it reads (OpenPose, COCO results, POST /lift bodies, NPZ)"
+    "files it reads (OpenPose, COCO, MMPose, YOLO, MediaPipe, AlphaPose, POST /lift bodies, NPZ)"
 )
 
 

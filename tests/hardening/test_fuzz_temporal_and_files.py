@@ -83,9 +83,12 @@ JSON_VALUES = st.recursive(
     st.one_of(NUMBERS, st.text(max_size=6)),
     lambda inner: st.one_of(st.lists(inner, max_size=20), st.dictionaries(
         st.sampled_from(["keypoints", "poses", "people", "pose_keypoints_2d", "format", "fps", "frame",
-                         "track_id", "confidence", "x"]), inner, max_size=5)),
+                         "track_id", "confidence", "x", "y", "frame_id", "instances", "keypoint_scores",
+                         "box", "visible", "pose_landmarks", "landmarks", "image_id", "foot_kpts",
+                         "annotations"]), inner, max_size=5)),
     max_leaves=60,
 )  # fmt: skip
+DETECTOR_FILES = sorted((Path(__file__).resolve().parents[1] / "fixtures" / "detectors").glob("*.json"))
 
 
 @given(value=JSON_VALUES)
@@ -93,6 +96,52 @@ JSON_VALUES = st.recursive(
 def test_any_json_value_is_read_or_refused_with_the_files_name(tmp_path_factory: Any, value: Any) -> None:
     path = tmp_path_factory.mktemp("fuzz") / "input.json"
     path.write_text(json.dumps(value, allow_nan=True))
+    read_or_refused(path)
+
+
+@st.composite
+def mutated_detector_files(draw: st.DrawFn) -> Any:
+    """A detector's file (tests/fixtures/detectors) with one value somewhere in it replaced."""
+    data = json.loads(draw(st.sampled_from(DETECTOR_FILES)).read_text())
+    parent, key = None, None
+    node = data
+    while isinstance(node, list | dict) and node and draw(st.integers(0, 5)) > 0:
+        keys = list(range(len(node))) if isinstance(node, list) else list(node)
+        parent, key = node, draw(st.sampled_from(keys))
+        node = node[key]
+    replacement = draw(JSON_VALUES)
+    if parent is None:
+        return replacement
+    parent[key] = replacement
+    return data
+
+
+@given(value=mutated_detector_files())
+@FUZZ
+def test_any_detector_file_changed_is_read_or_refused_with_the_files_name(
+    tmp_path_factory: Any, value: Any
+) -> None:
+    path = tmp_path_factory.mktemp("fuzz") / "input.json"
+    path.write_text(json.dumps(value, allow_nan=True))
+    read_or_refused(path)
+
+
+LABEL_TOKENS = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(str), st.integers().map(str),
+                         st.sampled_from(["0", "0.5", "1", "x", "", "1e400", "-0"]))  # fmt: skip
+
+
+LABEL_LINES = st.sampled_from([0, 5, 39, 40, 41, 42, 56, 57, 58, 59]).flatmap(
+    lambda n: st.lists(LABEL_TOKENS, min_size=n, max_size=n).map(" ".join)
+)  # YOLO-pose line lengths: 17 keypoints of 2 or 3 values after the box, 0 to 2 values after them
+
+
+@given(lines=st.lists(LABEL_LINES, max_size=4))
+@FUZZ
+def test_any_yolo_label_file_is_read_or_refused_with_the_files_name(
+    tmp_path_factory: Any, lines: list[str]
+) -> None:
+    path = tmp_path_factory.mktemp("fuzz") / "frame_3.txt"
+    path.write_text("\n".join(lines))
     read_or_refused(path)
 
 

@@ -395,7 +395,7 @@ def test_plot_to_mp4_without_ffmpeg_says_so(tmp_path: Path, capsys: pytest.Captu
 
 def test_an_empty_folder_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["lift", str(tmp_path), "--local"]) == EXIT_USAGE
-    assert "no .json files" in capsys.readouterr().err
+    assert "no .json or .txt files" in capsys.readouterr().err
 
 
 # ---- sequences: the temporal mode, the frame rate, tracks, clips cut into requests ----

@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 
 from repnet.core.errors import SPLIT_HINT
 from tests.conftest import POSE_2D
+from tests.service.detector_files import FIXTURES
 from tests.service.invalid_inputs import CASES, Case, good
 
 
@@ -178,6 +179,26 @@ def test_raw_openpose_output_is_told_the_format_of_its_joint_count(
     person = {"person_id": [-1], "pose_keypoints_2d": [0.0] * values}
     item = only_item(client.post("/lift", json={"version": 1.3, "people": [person]}))
     assert (item["code"], item["reason"].endswith(f"with format {named}")) == ("detector_output", True)
+
+
+@pytest.mark.parametrize(
+    ("name", "said"),
+    [("mmpose_video.json", "MMPose inferencer file"), ("yolo_summary.json", "Ultralytics YOLO results"),
+     ("mediapipe_python.json", "MediaPipe PoseLandmarker"), ("alphapose-results.json", "AlphaPose results"),
+     ("coco_wholebody.json", "COCO-WholeBody")],
+)  # fmt: skip
+def test_a_detectors_file_posted_whole_is_a_422_saying_what_it_is(
+    client: TestClient, name: str, said: str
+) -> None:
+    """Not "Input should be a valid dictionary": what the body looks like, and what to do."""
+    body = json.loads((FIXTURES / name).read_text())
+    item = only_item(client.post("/lift", json=body))
+    assert (item["field"], item["code"]) == ("body", "detector_output")
+    assert (
+        said in item["reason"]
+        and "repnet lift FILE" in item["reason"]
+        and "valid dictionary" not in item["reason"]
+    )
 
 
 def test_raw_coco_results_are_told_how_to_send_them(client: TestClient) -> None:

@@ -25,6 +25,7 @@ from repnet.io.pose_file import read_input
 from repnet.runtime.replies import IMPLAUSIBLE_BELOW
 from tests.conftest import POSE_2D, POSE_3D, LiveService, project
 from tests.service import test_page
+from tests.service.detector_files import BUILDERS, Expected
 from tests.service.page_examples import detector_pose
 from tests.service.test_page import (
     assert_numbers_match,
@@ -53,6 +54,8 @@ class Shape:
     # The poses the reference lifts, where they differ from `points`: exact (0, 0) joints of pairs
     # without confidence are missing (the input rule of repnet.core.keypoints), on every interface.
     same_as: np.ndarray | None = None
+    image_size: tuple[float, float] | None = None  # what x, y are normalised by (--image-size, the page's)
+    raw: bool = False  # a detector's own JSON file: posted whole to /lift, it is told what it is
 
 
 def _json(name: str, data: Any) -> Callable[[Path], Path]:
@@ -120,7 +123,48 @@ def _shapes() -> list[Shape]:
     ]
 
 
-SHAPES = {s.name: s for s in _shapes()}
+def _detector_shape(name: str, read: str) -> Shape:
+    """A detector's file (tests/fixtures/detectors), written as its tool writes it."""
+    want: Expected = BUILDERS[name]()
+
+    def write(folder: Path) -> Path:
+        for file, text in want.files.items():
+            (folder / file).parent.mkdir(parents=True, exist_ok=True)
+            (folder / file).write_text(text)
+        return folder / read
+
+    raw = read.endswith(".json")
+    return Shape(name, want.points, want.confidence, want.format, write, image_size=want.image_size, raw=raw)
+
+
+# The detectors' files (issue 31): each read as its tool writes it, by repnet lift and the page.
+DETECTOR_SHAPES = {"mmpose video": "mmpose_video.json", "mmpose image": "mmpose_image.json",
+                   "yolo summary": "yolo_summary.json", "yolo labels": "yolo_labels",
+                   "mediapipe results": "mediapipe_python.json", "alphapose": "alphapose-results.json",
+                   "coco wholebody": "coco_wholebody.json",
+                   "openpose coco18": "openpose_coco18_000000000000_keypoints.json"}  # fmt: skip
+
+
+def _mmpose_images() -> Shape:
+    """MMPose's pred_out_dir of an image folder: one instances file per image, read as frames."""
+    want = BUILDERS["mmpose image"]()
+    (item,) = json.loads(want.files["mmpose_image.json"])
+    points = np.stack([want.points[0], want.points[0] + [40.0, -10.0]])
+    conf = np.concatenate([want.confidence, want.confidence[:, ::-1]])  # type: ignore[index]
+
+    def write(folder: Path) -> Path:
+        (images := folder / "predictions").mkdir()
+        for i, (p, c) in enumerate(zip(points, conf, strict=True)):
+            instance = {**item, "keypoints": p.tolist(), "keypoint_scores": c.tolist()}
+            (images / f"frame_{i:04d}.json").write_text(json.dumps([instance]))
+        return images
+
+    return Shape("mmpose image folder", points, conf, want.format, write)
+
+
+SHAPES = {s.name: s for s in [*_shapes(), _mmpose_images()]} | {
+    n: _detector_shape(n, f) for n, f in DETECTOR_SHAPES.items()
+}
 # How each interface takes each shape: "direct" where it reads the shape as the user has it, else
 # the documented conversion path (README "Input formats").
 CELLS: dict[str, dict[str, str]] = {
@@ -134,7 +178,14 @@ CELLS: dict[str, dict[str, str]] = {
         "pose_keypoints_2d as [x, y, c] rows with format body25",
         "npz": "the client reads it: np.load(...)['keypoints'] rows (NaN -> null)",
         "pairs with (0, 0)": "direct: (0, 0) is missing, with a warning",
-    },
+        "mmpose image folder": "each file's instances as rows with format halpe26 (a file posted raw: "
+        "422 detector_output)",
+        **{
+            name: "the file posted raw: 422 detector_output naming what it is, `repnet lift` and its format; "
+            "else each pose's keypoints as [x, y] rows (in pixels) with its confidence and format"
+            for name in DETECTOR_SHAPES
+        },
+    },  # fmt: skip
     "grpc unary": {
         "h36m17 pairs": "direct",
         "triplets": "x, y in keypoints, c in confidence (flat triplets: "
@@ -144,7 +195,12 @@ CELLS: dict[str, dict[str, str]] = {
         "openpose folder": "per person: x, y and c",
         "npz": "the array's rows",
         "pairs with (0, 0)": "direct: (0, 0) is missing, with a warning",
-    },
+        "mmpose image folder": "per pose: x, y and the keypoint scores",
+        **{
+            name: "per pose: x, y in pixels and the confidence (read_input reads the file)"
+            for name in DETECTOR_SHAPES
+        },
+    },  # fmt: skip
     "grpc stream": {
         name: "StreamClient frames of (J, 2) or (J, 3) [x, y, c] arrays (read_input for files)"
         for name in SHAPES
@@ -182,7 +238,7 @@ def via_http(live: LiveService, shape: Shape, folder: Path) -> np.ndarray:
     url = f"{live.http_url}/lift"
     if shape.name == "mediapipe rows":
         body = json.loads(shape.write(folder).read_text())
-    elif shape.name in ("coco results", "openpose folder"):
+    elif shape.name in ("coco results", "openpose folder") or shape.raw:
         path = shape.write(folder)
         raw = json.loads((sorted(path.glob("*.json"))[0] if path.is_dir() else path).read_text())
         error = httpx.post(url, json=raw, timeout=30)
@@ -191,8 +247,9 @@ def via_http(live: LiveService, shape: Shape, folder: Path) -> np.ndarray:
             error.status_code == 422 and item["code"] == "detector_output" and "repnet lift" in item["reason"]
         )
         assert f'"{shape.format}"' in item["reason"], item
+        conf = [None] * len(shape.points) if shape.confidence is None else shape.confidence
         body = {"format": shape.format, "poses": [{"keypoints": rows_of(p, c)} for p, c in
-                zip(shape.points, shape.confidence, strict=True)]}  # fmt: skip
+                zip(shape.points, conf, strict=True)]}  # fmt: skip
     else:
         conf = [None] * len(shape.points) if shape.confidence is None else shape.confidence
         body = {"format": shape.format, "poses": [{"keypoints": rows_of(p, c)} for p, c in
@@ -234,7 +291,7 @@ def via_grpc_unary(live: LiveService, shape: Shape, folder: Path) -> np.ndarray:
 
 def _arrays(shape: Shape, folder: Path) -> tuple[np.ndarray, str]:
     """A file's poses as the Python clients take them: (N, J, 3) [x, y, c] or (N, J, 2) arrays."""
-    poses = read_input(str(shape.write(folder)), lambda files: files)
+    poses = read_input(str(shape.write(folder)), lambda files: files, shape.image_size)
     fmt = poses.format or shape.format
     if poses.confidence is None:
         return poses.points, fmt
@@ -260,6 +317,8 @@ def via_python_client(live: LiveService, shape: Shape, folder: Path) -> np.ndarr
 def via_cli(live: LiveService, shape: Shape, folder: Path) -> np.ndarray:
     out = folder / "out.json"
     args = ["lift", str(shape.write(folder)), "--url", live.http_url, "--temporal", "off", "-o", str(out)]
+    if shape.image_size is not None:
+        args += ["--image-size", *(str(v) for v in shape.image_size)]
     assert main(args) == EXIT_OK
     return answers(json.loads(out.read_text())["poses"])
 
@@ -350,7 +409,10 @@ def test_an_implausible_pose_gets_the_same_warning_on_every_interface(
 # with the temporal control off (each pose alone, as the reference), its numbers those of the API.
 PAGE_INPUTS = {"h36m17 pairs": "paste", "triplets": "paste", "coco results": "file",
                "openpose folder": "files", "mediapipe rows": "paste", "npz": "file",
-               "pairs with (0, 0)": "paste"}  # fmt: skip
+               "pairs with (0, 0)": "paste", "mmpose video": "file", "mmpose image": "paste",
+               "yolo summary": "file", "yolo labels": "files", "mediapipe results": "file",
+               "alphapose": "file", "coco wholebody": "paste", "openpose coco18": "files",
+               "mmpose image folder": "files"}  # fmt: skip
 
 
 @pytest.mark.parametrize("shape", list(PAGE_INPUTS))
@@ -365,13 +427,57 @@ def test_the_page_gives_the_same_answer_for_every_shape_it_reads(
     reply = httpx.post(f"{live_service.http_url}/lift", json=body, timeout=30).json()
     open_page(driver, live_service.http_url)
     driver.execute_script("document.getElementById('temporal').value = 'off'")
+    if SHAPES[shape].image_size is not None:  # the size the file's x, y are normalised by
+        size = ", ".join(f"{v:g}" for v in SHAPES[shape].image_size)
+        driver.execute_script("document.getElementById('image-size').value = arguments[0]", size)
     before = lifts(driver)
     if PAGE_INPUTS[shape] == "paste":
         driver.execute_script("document.getElementById('paste').value = arguments[0]", path.read_text())
         driver.find_element(By.ID, "lift-paste").click()
     else:
-        files = sorted(path.glob("*.json")) if path.is_dir() else [path]
+        files = sorted(path.glob("*.json")) or sorted(path.glob("*.txt")) if path.is_dir() else [path]
         driver.find_element(By.ID, "file").send_keys("\n".join(str(f) for f in files))
     wait_lift(driver, before)
     assert_numbers_match(shown_numbers(driver), reply["poses"][0], reply["joints"])
     assert page_mode(driver) == "off"
+
+
+# The page's reader on its own: parse.js and detectors.js, run in chromium on each detector's file,
+# give the poses, frames and people repnet lift reads (pixels: normalised x, y times the image size).
+PAGE_READ = """
+const [files, done] = [arguments[0], arguments[arguments.length - 1]];
+import("/ui/parse.js").then((parse) => parse.parseFiles(files.map(([name, text]) => new File([text], name))))
+  .then((r) => done({poses: r.poses, frames: r.frames, people: r.people, normalised: r.normalised ?? null}),
+        (err) => done({error: String(err)}));
+"""
+
+
+def _page_poses(
+    read: dict[str, Any], size: tuple[float, float] | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The page's /lift poses as (N, J, 2) px (NaN: missing) and (N, J) confidence (None: none)."""
+    scale = np.asarray(size if read["normalised"] else (1.0, 1.0))
+    points = np.array([[[np.nan] * 2 if r is None else r[:2] for r in p["keypoints"]] for p in read["poses"]])
+    conf = [p.get("confidence") or ([r[3] for r in p["keypoints"]] if len(p["keypoints"][0]) == 4 else None)
+            for p in read["poses"]]  # fmt: skip
+    return points * scale, None if conf[0] is None else np.array(conf, dtype=np.float64)
+
+
+@pytest.mark.parametrize("shape", [*DETECTOR_SHAPES, "mmpose image folder"])
+def test_the_page_reads_each_detector_file_as_repnet_lift_does(
+    driver: Any, live_service: LiveService, tmp_path: Path, shape: str
+) -> None:
+    path = SHAPES[shape].write(tmp_path)
+    files = sorted(path.glob("*.json")) or sorted(path.glob("*.txt")) if path.is_dir() else [path]
+    open_page(driver, live_service.http_url)
+    read = driver.execute_async_script(PAGE_READ, [[f.name, f.read_text()] for f in files])
+    assert "error" not in read, read
+    poses = read_input(str(path), lambda found: found, SHAPES[shape].image_size)
+    assert (read["frames"], read["people"]) == (poses.frame.tolist(), poses.person.tolist())
+    assert {p.get("format") for p in read["poses"]} == {poses.format}
+    points, conf = _page_poses(read, SHAPES[shape].image_size)
+    np.testing.assert_allclose(points, poses.points, rtol=1e-12)
+    if poses.confidence is None:
+        assert conf is None
+    else:
+        np.testing.assert_allclose(np.asarray(conf), poses.confidence)

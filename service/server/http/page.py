@@ -19,6 +19,7 @@ ASSETS = {
     "page.css": "text/css; charset=utf-8",
     "page.js": "text/javascript; charset=utf-8",
     "parse.js": "text/javascript; charset=utf-8",
+    "detectors.js": "text/javascript; charset=utf-8",
     "lift.js": "text/javascript; charset=utf-8",
     "notes.js": "text/javascript; charset=utf-8",
     "track.js": "text/javascript; charset=utf-8",

@@ -9,6 +9,7 @@ export function slotOf(field, source) {
   if (field === "fps") return "rate";
   if (/(^|\.)intrinsics(\.|$)/.test(field)) return "intrinsics";
   if (/(^|\.)person_height_m$/.test(field)) return "height";
+  if (/(^|\.)image_size$/.test(field)) return "image-size";
   return source;
 }
 

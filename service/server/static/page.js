@@ -9,7 +9,7 @@ import { cameraFields, drawTrajectory, rootsOf } from "./trajectory.js";
 import { View3D, draw2d, sideOf } from "./view.js";
 
 const $ = (id) => document.getElementById(id);
-const SLOTS = ["example", "file", "paste", "format", "threshold", "temporal", "rate", "intrinsics", "height"];
+const SLOTS = ["example", "file", "paste", "format", "threshold", "temporal", "rate", "intrinsics", "height", "image-size"];
 const NUMBERS = ["num-model", "num-scale", "num-rotation", "num-error", "num-plausibility", "num-imputed", "num-derived", "num-track", "num-root"];
 // poses: what was sent, results: their answers, tracks: each pose's track, frames: the input's frame
 // numbers in order, byFrame: frame number -> its poses, shown: the track the player follows ("": the
@@ -87,6 +87,8 @@ function plan(parsed) {
     : (Number.isFinite(Number(thresholdText)) ? Number(thresholdText) : thresholdText);
   const extra = { ...(parsed.request ?? {}), format: chosen || parsed.format || state.model.rules.default_format };
   if (threshold !== undefined && threshold !== null) extra.confidence_threshold = threshold;
+  const size = $("image-size").value.trim();  // as typed, for the API to judge; the input's own wins
+  if (size && extra.image_size === undefined) extra.image_size = size.split(/[\s,]+/).map((v) => (Number.isFinite(Number(v)) ? Number(v) : v));
   const poses = parsed.poses.map((p) => (p && chosen && typeof p === "object" ? { ...p, format: undefined } : p));
   const asked = $("temporal").value || parsed.temporal || "";
   // Unrelated still images are lifted one by one unless a temporal mode, a frame rate or tracks make them a clip.
@@ -115,6 +117,10 @@ async function lift(parsed, source) {
     return;
   }
   Object.assign(extra, camera.extra);
+  if (parsed.normalised && extra.image_size === undefined) {
+    addError("image-size", `${parsed.normalised}: x, y are normalised to [0, 1]; give the image size (width, height in px)`);
+    return;
+  }
   let batches;
   try {
     // A file's poses that break an input rule are skipped and said, the others lifted (a pasted
@@ -383,7 +389,7 @@ async function start() {
     $("example").append(option);
   });
   $("example").addEventListener("change", liftExample);
-  for (const id of ["format", "threshold", "temporal", "rate", "intrinsics", "height"]) {  // lift the last input again with the new setting
+  for (const id of ["format", "threshold", "temporal", "rate", "intrinsics", "height", "image-size"]) {  // lift the last input again with the new setting
     $(id).addEventListener("change", () => { if (state.last) lift(state.last.parsed, state.last.source); });
   }
   $("file").addEventListener("change", liftFiles);

@@ -11,7 +11,9 @@
 // intrinsics); numberedBy: what the frame numbers are where they may be unrelated images' ("image
 // ids", "file names", "image names"), else null (repnet.io.poses.Poses.numbered_by).
 
-export class InputError extends Error {}
+import { FORMAT_BY_COUNT, InputError, parseDetector, parseYoloTxt, wholebodyTriples } from "./detectors.js";
+
+export { InputError };
 
 const isNumber = (v) => typeof v === "number";
 const isRow = (v) => Array.isArray(v) && v.length >= 2 && v.length <= 3;
@@ -59,6 +61,9 @@ function withFrames(parsed) {
   };
 }
 
+// OpenPose's models by joint count (repnet.io.poses OPENPOSE_FORMATS): COCO 18, BODY_25.
+const OPENPOSE_FORMATS = { 18: "coco18", 25: "body25" };
+
 // OpenPose frames: every person of every frame; numbers: each frame's number.
 function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
   const poses = [];
@@ -68,7 +73,7 @@ function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
     const found = Array.isArray(frame.people) ? frame.people : [];
     found.forEach((person, k) => {
       const flat = person.pose_keypoints_2d;
-      poses.push(poseFromTriples(flat, Array.isArray(flat) && flat.length === 75 ? "body25" : null, false));
+      poses.push(poseFromTriples(flat, Array.isArray(flat) ? OPENPOSE_FORMATS[flat.length / 3] ?? null : null, false));
       at.push(numbers[f]);
       people.push(k);
     });
@@ -78,7 +83,8 @@ function openPoseFrames(frames, numbers = frames.map((_, i) => i)) {
   const notes = [`OpenPose: ${frames.length} frame${frames.length === 1 ? "" : "s"}`];
   if (crowded) notes.push(`${crowded} with several people`);
   if (empty) notes.push(`${empty} without a person`);
-  return withFrames({ poses, frames: at, people, allFrames: [...new Set(numbers)].sort((a, b) => a - b), format: "body25", note: notes.join(", ") });
+  const format = poses.find((p) => p.format)?.format ?? "body25";
+  return withFrames({ poses, frames: at, people, allFrames: [...new Set(numbers)].sort((a, b) => a - b), format, note: notes.join(", ") });
 }
 
 // COCO image ids as frame numbers: an integer id is its frame, a text id the last number in it;
@@ -96,18 +102,21 @@ export function lastNumber(name) {
   return digits ? Number(digits[digits.length - 1]) : null;
 }
 
+// COCO results or annotations, AlphaPose results, COCO-WholeBody annotations (parts joined): the format
+// by joint count (17 coco17, 26 halpe26, 133 wholebody133).
 function cocoPoses(items, note) {
-  const triples = items.filter((a) => a && Array.isArray(a.keypoints));
+  const triples = items.filter((a) => a && Array.isArray(a.keypoints)).map((a) => ({ ...a, keypoints: wholebodyTriples(a) }));
   const { numbers: frameOf, numberedBy } = imageFrames(triples.map((a, k) => a.image_id ?? k));
   const order = triples.map((a, k) => [frameOf[k], k]).sort((x, y) => x[0] - y[0] || x[1] - y[1]).map((x) => x[1]);
   // Ground-truth files flag each joint 0 (not labelled), 1 or 2; detector results give a score.
   const flags = triples.every((a) => a.keypoints.every((v, i) => i % 3 !== 2 || [0, 1, 2].includes(v)));
-  const poses = order.map((k) => poseFromTriples(triples[k].keypoints, "coco17", flags));
+  const format = FORMAT_BY_COUNT[(triples[0]?.keypoints.length ?? 0) / 3] ?? null;
+  const poses = order.map((k) => poseFromTriples(triples[k].keypoints, format, flags));
   const frames = order.map((k) => frameOf[k]);
   const people = frames.map((f, i) => frames.slice(0, i).filter((g) => g === f).length);
   const labels = order.map((k) => `image_id ${triples[k].image_id ?? k}${triples[k].id !== undefined ? `, id ${triples[k].id}` : ""}`);
   const by = triples.some((a) => a.image_id !== undefined) ? numberedBy : null;  // else the file's order
-  return withFrames({ poses, frames, people, labels, numberedBy: by, format: "coco17", note: `${note}: ${poses.length} poses` });
+  return withFrames({ poses, frames, people, labels, numberedBy: by, format, note: `${note}: ${poses.length} poses` });
 }
 
 // The tracks, frame numbers and temporal fields a POST /lift body or repnet lift output gives.
@@ -136,6 +145,8 @@ export function parseJson(data) {
   if (Array.isArray(data) && data.length && data.every((f) => f && typeof f === "object" && "people" in f)) {
     return openPoseFrames(data);
   }
+  const found = data && typeof data === "object" && "people" in data ? null : parseDetector(data);
+  if (found) return withFrames(found);
   if (data && typeof data === "object" && !Array.isArray(data)) {
     if ("people" in data) return openPoseFrames([data]);
     if (Array.isArray(data.annotations)) return cocoPoses(data.annotations, "COCO annotations");
@@ -177,7 +188,7 @@ export function parseJson(data) {
   if (Array.isArray(data) && data.length && data.some((r) => isRow(r) || r === null)) {
     return withFrames({ poses: [poseFromRows(data)], format: null, note: "one pose" });
   }
-  throw new InputError("expected a pose ([[x, y], …]), a list of poses, a POST /lift body, OpenPose, COCO keypoint or repnet lift JSON");
+  throw new InputError("expected a pose ([[x, y], …]), a list of poses, a POST /lift body, OpenPose, COCO, AlphaPose, MMPose, YOLO, MediaPipe or repnet lift JSON");
 }
 
 export function parseText(text) {
@@ -198,9 +209,14 @@ export async function parseFiles(files, maxBytes = Infinity) {
   if (sorted.length === 1 && sorted[0].name.toLowerCase().endsWith(".npz")) {
     return parseNpz(new Uint8Array(await sorted[0].arrayBuffer()), maxBytes);
   }
-  const frames = [];
+  const numbers = sorted.map((f) => lastNumber(f.name));
+  const parts = [];
   for (const file of sorted) {
     if (file.name.toLowerCase().endsWith(".npz")) throw new InputError(`${file.name}: pick an NPZ file on its own`);
+    if (file.name.toLowerCase().endsWith(".txt")) {
+      parts.push(parseYoloTxt(await file.text(), file.name));
+      continue;
+    }
     let data;
     try {
       data = JSON.parse(await file.text());
@@ -208,14 +224,33 @@ export async function parseFiles(files, maxBytes = Infinity) {
       throw new InputError(`${file.name}: not JSON: ${err.message}`);
     }
     if (sorted.length === 1) return parseJson(data);
-    if (!data || typeof data !== "object" || !("people" in data)) {
-      throw new InputError(`${file.name}: several files must each be one OpenPose frame (with "people")`);
-    }
-    frames.push(data);
+    parts.push(data && typeof data === "object" && "people" in data ? { openpose: data } : parseJson(data));
   }
-  const numbers = sorted.map((f) => lastNumber(f.name));
+  if (!parts.some((p) => p.openpose || p.poses.length)) throw new InputError(`${sorted.map((f) => f.name).join(", ")}: no poses`);
+  if (sorted.length === 1) return withFrames(parts[0]);
   const numbered = numbers.every((n) => n !== null);
-  return { ...openPoseFrames(frames, numbered ? numbers : undefined), numberedBy: numbered ? "file names" : null };
+  const numberedBy = numbered ? "file names" : null;  // unrelated images or a clip: cli.lift's stills rule
+  if (parts.every((p) => p.openpose)) {
+    return { ...openPoseFrames(parts.map((p) => p.openpose), numbered ? numbers : undefined), numberedBy };
+  }
+  return { ...frameFiles(parts, sorted, numbers), numberedBy };
+}
+
+// Several files of poses as the frames of one video (repnet.io.pose_file.load_frames): every pose of a
+// file has the file's number (else its place), people by their place in the file, labels from the file.
+function frameFiles(parts, files, numbers) {
+  const at = numbers.map((n, f) => n ?? f);
+  const flat = parts.map((p, f) => {
+    if (p.body || Object.keys(p.request ?? {}).length) throw new InputError(`${files[f].name}: pick a POST /lift body on its own`);
+    return p.openpose ? openPoseFrames([p.openpose]) : p;
+  });
+  const poses = flat.flatMap((p) => p.poses);
+  const frames = flat.flatMap((p, f) => p.poses.map(() => at[f]));
+  const people = flat.flatMap((p) => p.poses.map((_, k) => k));
+  const labels = flat.flatMap((p, f) => (files[f].name.endsWith(".txt") ? p.labels : p.poses.map(() => files[f].name)));
+  const normalised = flat.find((p) => p.normalised)?.normalised;
+  const format = flat.find((p) => p.format)?.format ?? null;
+  return withFrames({ poses, frames, people, labels, format, normalised, note: `${files.length} files: ${poses.length} poses` });
 }
 
 // ---- NPZ: a zip archive (stored or deflated, zip64 sizes as numpy writes them) of .npy arrays ----
