@@ -62,6 +62,11 @@ TOLERANCE = {
     "plausible_lost_pct": 50.0,
     "depth_mm": 1.5,
 }
+# Jitter is judged where the held-out runs are sequences: the parent's answers to consecutive frames
+# of a video at 25 fps or more move less than this (mm / pose^2: its single-frame answers to
+# Human3.6M's SH detections at 25 Hz have an acceleration error of about 33); unrelated or
+# subsampled poses move more (the adaptation benchmark's input of every few frames: 89).
+SEQUENCE_JITTER_MM = 50.0
 IMPLAUSIBLE = 0.05  # the service's meaning: fewer than 1 in 20 real poses look as implausible
 # The fewest held-out poses on which the refusal can tell a worse model from chance: below, one
 # answer moves the shares (plausible answers lost, implausible answers) by more than a point and a
@@ -172,6 +177,8 @@ WORDS = {
 def _broken(key: str, was: float, now: float) -> bool:
     """Whether figure `key` went from `was` to `now` beyond its TOLERANCE."""
     tolerance = TOLERANCE[key]
+    if key == "jitter_mm" and was >= SEQUENCE_JITTER_MM:  # not a sequence: reported, not judged
+        return False
     if key in ("reprojection_px", "jitter_mm"):  # by a share of the parent's
         return now > was * (1 + tolerance) + 1e-9
     if key == "plausible_lost_pct":  # an upper limit

@@ -4,6 +4,7 @@ bit, the refusal of a worse model, and the pieces (holdout split, residuals, the
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,8 @@ def test_worse_names_each_figure_that_got_worse_the_furthest_first() -> None:
     # a mean nearer 0.5, more implausible answers and a few lost plausible ones are no sign alone
     assert worse(before, Figures(10.9, 0.4, 9.9, 5.9, 3.9, 140.0, 4.9, plausible_lost_pct=40.0)) == []
     found = worse(before, Figures(11.5, 0.7, 3.5, 7.0, 4.5, 60.0, 6.0, plausible_lost_pct=60.0))
+    unordered = replace(before, jitter_mm=90.0)  # not a sequence: its jitter is not judged
+    assert worse(unordered, replace(unordered, jitter_mm=200.0)) == []
     order = ["symmetry", "jitter", "reprojection", "bone-length", "parent's", "depth"]  # by excess
     assert [r.split()[0] for r in found] == order
     assert "(at most 50 %)" in found[4] and "0.60x the parent's" in found[5]
