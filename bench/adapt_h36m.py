@@ -1,7 +1,7 @@
 """`repnet adapt` on Human3.6M domain shifts, scored against the 3D truth it never sees.
 
     python -m bench.adapt_h36m --shift sh [--poses 50000] [--threads 2] [-- ADAPT FLAGS...]
-    python -m bench.adapt_h36m --shift high ...
+    python -m bench.adapt_h36m --shift high ...   (or proportions, coco-hips)
 
 Shifts (the adapted-on 2D is always of S1 S5 S6 S7's training frames, never their 3D; the
 validation tails, repnet.train.data.build_training_sets, are never adapted on):
@@ -10,6 +10,9 @@ validation tails, repnet.train.data.build_training_sets, are never adapted on):
 - high: GT 3D of those frames seen from high cameras (45-65 degrees down instead of -10..30, a
   view the bundled model was not trained on, + N(0, 2 px)). Scored on the tails seen the same way
   (other draws), and on GT 2D of the tails (the source).
+- proportions, coco-hips: GT 3D of those frames with other proportions, or with the hips where COCO
+  puts them, seen from the training cameras + N(0, 2 px) (SHIFTS, below). Scored on the tails
+  changed the same way, and on GT 2D of the tails.
 
 It writes the 2D to an NPZ the command reads as a user's file, runs `repnet adapt` on it (the
 command and its report are printed), then scores the bundled and the adapted model: P-II, P-I along
@@ -32,6 +35,7 @@ if __package__ in (None, ""):  # `python bench/adapt_h36m.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from repnet.cli.main import main as repnet
+from repnet.core import skeleton
 from repnet.runtime.loading import BUNDLED_MODEL
 from repnet.train import data, metrics, sequences, synthetic
 from repnet.train.config import TrainConfig
@@ -42,10 +46,13 @@ SOURCE = ("S1", "S5", "S6", "S7")
 HIGH_DEG = (45.0, 65.0)
 
 
-def high_views(world: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(N, J, 3) world poses (mm, pelvis at the origin) seen from random high cameras: pixels (N, J, 2)
-    and the poses in each camera's frame (mm, pelvis at the origin)."""
-    rot, position = synthetic.random_views(len(world), torch.Generator().manual_seed(seed), HIGH_DEG)
+def high_views(
+    world: np.ndarray, seed: int, elevation: tuple[float, float] = HIGH_DEG
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, J, 3) world poses (mm, pelvis at the origin) seen from random cameras looking down by
+    U(elevation) degrees (default: high ones): pixels (N, J, 2) and the poses in each camera's frame
+    (mm, pelvis at the origin)."""
+    rot, position = synthetic.random_views(len(world), torch.Generator().manual_seed(seed), elevation)
     w = torch.from_numpy(world).double()
     pixels = synthetic.project(w, rot, position).numpy()
     camera = synthetic.to_camera(w, rot, position).numpy() * 1000.0
@@ -107,6 +114,77 @@ def high_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict
     return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high_tails(train)}
 
 
+# Shifts built from Human3.6M's 3D, stand-ins for a new dataset's people and a detector's joint
+# definitions (issue 32), chosen before their results. proportions: a build the bundled model never
+# saw, its limbs 15 % shorter and its spine and thorax 10 % longer (every bone scaled from the
+# pelvis out). coco-hips: the hips where COCO annotators put them, on the outside of the pelvis (25 %
+# wider) and higher (8 % of the pelvis-thorax length), the pelvis their midpoint; the people are
+# unchanged, so the answers are scored against the true joints.
+BONE_SCALE = {"right_knee": 0.85, "right_ankle": 0.85, "left_knee": 0.85, "left_ankle": 0.85,
+              "left_elbow": 0.85, "left_wrist": 0.85, "right_elbow": 0.85, "right_wrist": 0.85,
+              "spine": 1.1, "thorax": 1.1}  # fmt: skip
+
+
+def rescaled(world: np.ndarray) -> np.ndarray:
+    """(N, J, 3) poses with each joint's bone to its parent scaled by BONE_SCALE (parents first)."""
+    out = world.copy()
+    for j, parent in enumerate(skeleton.PARENTS):
+        if parent >= 0:
+            scale = BONE_SCALE.get(skeleton.JOINT_NAMES[j], 1.0)
+            out[:, j] = out[:, parent] + scale * (world[:, j] - world[:, parent])
+    return out
+
+
+def coco_hips(world: np.ndarray) -> np.ndarray:
+    """(N, J, 3) world poses (Z up) whose hips are where COCO puts them and pelvis their midpoint."""
+    out = world.copy()
+    pelvis, thorax = world[:, 0], world[:, skeleton.JOINT_NAMES.index("thorax")]
+    up = np.linalg.norm(thorax - pelvis, axis=-1, keepdims=True) * 0.08
+    for name in ("right_hip", "left_hip"):
+        j = skeleton.JOINT_NAMES.index(name)
+        out[:, j] = world[:, j] + 0.25 * (world[:, j] - pelvis)
+        out[:, j, 2] += up[:, 0]
+    out[:, 0] = out[
+        :, [skeleton.JOINT_NAMES.index("right_hip"), skeleton.JOINT_NAMES.index("left_hip")]
+    ].mean(1)
+    return out
+
+
+def built_shift(name: str, change: Any, truth_changes: bool) -> Any:
+    """A shift of the source subjects' training frames changed by `change` (seen by the training
+    cameras, + N(0, 2 px)), scored on the tails changed the same way, against the changed 3D when
+    `truth_changes` (other people) else the true 3D (another detector)."""
+
+    def shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
+        train = data.load_poses(data_dir, "train")
+        heads = [
+            seq[: data.sequence_split(len(seq), 0.1)]
+            for key, seq in sorted(train.items())
+            if key.split("/")[0] in SOURCE
+        ]
+        world = np.concatenate(heads)
+        world = world[:: max(1, len(world) // poses)]
+        pixels, _ = high_views(change(world - world[:, :1]), seed=1, elevation=synthetic.ELEVATION_DEG)
+        pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
+        tail = np.concatenate(
+            [seq[data.sequence_split(len(seq), 0.1) :: 10] for _, seq in sorted(train.items())]
+        )
+        tail = tail - tail[:, :1]
+        seen, truth = high_views(change(tail), seed=2, elevation=synthetic.ELEVATION_DEG)
+        if not truth_changes:
+            _, truth = high_views(tail, seed=2, elevation=synthetic.ELEVATION_DEG)
+        tails = data.ValidationSet(truth, seen, np.ones(seen.shape[:2], np.float32))
+        return pixels, np.ones(pixels.shape[:2], np.float32), {name: tails}
+
+    return shift
+
+
+SHIFTS = {
+    "proportions": built_shift("proportions", rescaled, truth_changes=True),
+    "coco-hips": built_shift("coco_hips", coco_hips, truth_changes=False),
+}
+
+
 def score(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[str, float]]:
     """A model's validation figures (repnet.train.validation.validate on its generator, mirror-averaged
     as both the bundled and the adapted model are exported)."""
@@ -148,7 +226,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--shift", choices=["sh", "high"], default="sh")
+    parser.add_argument("--shift", choices=["sh", "high", *SHIFTS], default="sh")
     parser.add_argument("--poses", type=int, default=50_000, help="2D poses to adapt on (default 50000)")
     parser.add_argument(
         "--data-dir", help="Human3.6M folder (default: $REPNET_H36M_DIR or ../shared/data/h36m)"
@@ -161,7 +239,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     data_dir = data.resolve_data_dir(args.data_dir)
-    points, visible, extra = (sh_shift if args.shift == "sh" else high_shift)(data_dir, args.poses)
+    build = {"sh": sh_shift, "high": high_shift, **SHIFTS}[args.shift]
+    points, visible, extra = build(data_dir, args.poses)
     work = args.work_dir / args.shift
     work.mkdir(parents=True, exist_ok=True)
     keypoints = np.where(visible[..., None] > 0.5, points, np.nan)

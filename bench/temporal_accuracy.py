@@ -55,7 +55,9 @@ def run(settings: Settings, data_dir: Path, kinds: tuple[str, ...], modes: tuple
     engine = build_batcher(lifter, registry, settings)
     results: dict[str, Any] = {}
     try:
-        with TestClient(build_app(engine, registry, settings, temporal)) as client:
+        with TestClient(
+            build_app(engine, registry, settings, temporal), base_url="http://localhost"
+        ) as client:
             for kind in kinds:
                 clips = sequences.validation_clips(data_dir, kind)
                 results[kind] = {}

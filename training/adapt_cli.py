@@ -160,8 +160,9 @@ def run(
     print(render(before, after, len(test[0])))
     reasons = worse(before, after)
     if reasons and not args.force:
+        also = f"; also {'; '.join(reasons[1:])}" if reasons[1:] else ""
         say(
-            "not written: the adapted model is worse on the held-out poses (" + "; ".join(reasons) + "); "
+            f"not written: the adapted model is worse on the held-out poses; decided by: {reasons[0]}{also}. "
             f"--force writes it anyway ({kept(state)}: --resume --force writes it without adapting again)"
         )
         if (advice := more_data(len(test[0]), args.holdout_fraction)) is not None:
@@ -188,16 +189,34 @@ def run(
     critic = None if isinstance(scorer.score, Critic) else adaptation.trainer.critic.eval()
     diff = export_adapted(adaptation.trainer.generator, scorer, meta, args.output, record, mirror, critic)
     took = time.monotonic() - start
-    model = record["model_id"]
-    say(
-        f"wrote {args.output} (model {model}, torch vs onnxruntime {diff:.1e} mm, {took:.1f} s): "
-        "serve it with --model-path or from REPNET_MODEL_DIR"
-    )
-    if done and args.run_dir is None:  # the cache's checkpoint has served (a --run-dir is the user's)
-        state.unlink(missing_ok=True)
-        with contextlib.suppress(OSError):
-            folder.rmdir()  # when empty
+    written(args.output, record["model_id"], reasons, f"torch vs onnxruntime {diff:.1e} mm, {took:.1f} s")
+    settle_checkpoint(state, deleted=done and args.run_dir is None)  # a --run-dir is the user's
     return 0
+
+
+def settle_checkpoint(state: Path, deleted: bool) -> None:
+    """Delete the cache's checkpoint of a finished, written run (and its folder when empty), or say
+    where it is kept."""
+    if not deleted:
+        say(kept(state))
+        return
+    state.unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        state.parent.rmdir()  # when empty
+    say(f"its checkpoint {state} is deleted: the model holds what it learned")
+
+
+def written(output: Path, model: str, reasons: list[str], check: str) -> None:
+    """Say what was decided and why, and where the model is."""
+    why = (
+        f"written because of --force, though {'; '.join(reasons)}"
+        if reasons
+        else "written: no figure got worse beyond its limit (docs/TRAINING.md, Report)"
+    )
+    say(
+        f"{why}. Wrote {output} (model {model}, {check}): serve it with --model-path or from "
+        "REPNET_MODEL_DIR; the temporal models of its parent run over it (GET /v1/models lists them)"
+    )
 
 
 def _output_problem(args: argparse.Namespace) -> str | None:
