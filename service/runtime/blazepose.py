@@ -1,0 +1,231 @@
+"""BlazePose's pre- and post-processing in numpy: the detector's anchors, box decoding and weighted NMS,
+the region of interest (ROI) a detection or the previous frame's landmarks give, the affine crop the
+models read, and the 39 landmarks' decoding with their heatmap refinement.
+
+Each step follows the graph configs and calculators of MediaPipe (github.com/google-ai-edge/mediapipe,
+Apache-2.0), named in each function; the numbers are the configs'. Pixels everywhere: an ROI is a
+square (centre, side, rotation) in the frame's pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DETECTOR_SIZE = 224  # pose_detection_cpu.pbtxt: ImageToTensorCalculator 224 x 224
+LANDMARK_SIZE = 256  # pose_landmark_by_roi_cpu.pbtxt: 256 x 256
+HEATMAP_SIZE = 64  # pose_landmark_full's heatmap output (64, 64, 39)
+LANDMARKS = 39  # tensors_to_pose_landmarks_and_segmentation.pbtxt: 33 of the pose + 2 auxiliary + 4 unused
+POSE_LANDMARKS = 33
+MIN_SCORE = 0.5  # TensorsToDetectionsCalculator min_score_thresh
+NMS_IOU = 0.3  # NonMaxSuppressionCalculator min_suppression_threshold (INTERSECTION_OVER_UNION, WEIGHTED)
+ROI_SCALE = 1.25  # RectTransformationCalculator scale_x, scale_y (square_long) of both ROI graphs
+REFINE_KERNEL = 7  # RefineLandmarksFromHeatmapCalculator kernel_size
+REFINE_MIN_CONFIDENCE = 0.5  # its min_confidence_to_refine (the proto's default)
+
+
+@dataclass(frozen=True)
+class Roi:
+    """A square region of the frame the landmark model reads: centre (px), side (px), rotation
+    (radians, clockwise on screen: the image's y points down)."""
+
+    x: float
+    y: float
+    size: float
+    rotation: float
+
+    def corners(self) -> np.ndarray:
+        """(4, 2) px: the square's corners."""
+        unit = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+        return self.to_frame(unit + 0.5)
+
+    def to_frame(self, points: np.ndarray) -> np.ndarray:
+        """(..., 2) points in [0, 1] of the ROI -> px of the frame (LandmarkProjectionCalculator:
+        centred, rotated, scaled by the side, moved to the centre)."""
+        c, s = np.cos(self.rotation), np.sin(self.rotation)
+        d = (points - 0.5) * self.size
+        x = c * d[..., 0] - s * d[..., 1]
+        y = s * d[..., 0] + c * d[..., 1]
+        return np.stack([x + self.x, y + self.y], axis=-1)
+
+
+def ssd_anchors() -> np.ndarray:
+    """(2254, 2) the detector's anchor centres in [0, 1] (SsdAnchorsCalculator with pose_detection_cpu's
+    options: 5 layers of strides 8, 16, 32, 32, 32, aspect ratio 1 plus the interpolated scale, offset
+    0.5, fixed anchor size: consecutive layers of one stride share a grid, 2 anchors each per cell)."""
+    strides = (8, 16, 32, 32, 32)
+    out = []
+    layer = 0
+    while layer < len(strides):
+        same = 0
+        while layer + same < len(strides) and strides[layer + same] == strides[layer]:
+            same += 1
+        cells = int(np.ceil(DETECTOR_SIZE / strides[layer]))
+        ys, xs = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+        centres = np.stack([(xs + 0.5) / cells, (ys + 0.5) / cells], axis=-1).reshape(-1, 1, 2)
+        out.append(np.repeat(centres, 2 * same, axis=1).reshape(-1, 2))
+        layer += same
+    return np.concatenate(out)  # (2254, 2)
+
+
+ANCHORS = ssd_anchors()
+
+
+@dataclass(frozen=True)
+class Detections:
+    """The detector's people in one frame, in px, best first."""
+
+    boxes: np.ndarray  # (D, 4) xmin, ymin, xmax, ymax
+    keypoints: np.ndarray  # (D, 4, 2): hip centre, full-body scale point, shoulder centre, upper-body point
+    scores: np.ndarray  # (D,)
+
+
+def letterbox(width: int, height: int) -> Roi:
+    """The ROI the detector reads a whole frame through: the frame's centre, its longer side
+    (ImageToTensorCalculator keep_aspect_ratio: the shorter side is padded evenly)."""
+    return Roi(width / 2, height / 2, float(max(width, height)), 0.0)
+
+
+def decode_detections(raw: np.ndarray, logits: np.ndarray, frame: Roi) -> Detections:
+    """The detector's outputs (2254, 12) and (2254, 1) -> its people in px (TensorsToDetectionsCalculator:
+    offsets of 224 px units from each anchor's centre, box centre and size then 4 keypoints, scores a
+    sigmoid of logits clipped to +-100; kept from MIN_SCORE; then weighted NMS and the letterbox's
+    removal, which `frame`, the letterbox ROI, undoes)."""
+    scores = sigmoid(np.clip(logits[:, 0].astype(np.float64), -100.0, 100.0))
+    keep = scores >= MIN_SCORE
+    if not keep.any():
+        return Detections(np.zeros((0, 4)), np.zeros((0, 4, 2)), np.zeros(0))
+    values, anchors = raw[keep] / DETECTOR_SIZE, ANCHORS[keep]
+    centre, size = values[:, 0:2] + anchors, values[:, 2:4]
+    boxes = np.concatenate([centre - size / 2, centre + size / 2], axis=1)  # (K, 4) in [0, 1]
+    keypoints = values[:, 4:12].reshape(-1, 4, 2) + anchors[:, None, :]  # (K, 4, 2)
+    boxes, keypoints, kept_scores = weighted_nms(boxes, keypoints, scores[keep])
+    corners = frame.to_frame(boxes.reshape(-1, 2, 2)).reshape(-1, 4)
+    return Detections(corners, frame.to_frame(keypoints), kept_scores)
+
+
+def iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(K,) intersection over union of `box` (4,) with each of `boxes` (K, 4), xmin, ymin, xmax, ymax."""
+    lo = np.maximum(box[:2], boxes[:, :2])
+    hi = np.minimum(box[2:], boxes[:, 2:])
+    inter = np.prod(np.clip(hi - lo, 0, None), axis=1)
+    area = np.prod(box[2:] - box[:2])
+    areas = np.prod(boxes[:, 2:] - boxes[:, :2], axis=1)
+    union = area + areas - inter
+    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
+
+
+def weighted_nms(
+    boxes: np.ndarray, keypoints: np.ndarray, scores: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NonMaxSuppressionCalculator's WEIGHTED algorithm: from the best remaining detection, every
+    detection overlapping it by more than NMS_IOU (itself included) is merged into one whose box and
+    keypoints are their score-weighted means and whose score is the best's."""
+    order = np.argsort(-scores, kind="stable")
+    boxes, keypoints, scores = boxes[order], keypoints[order], scores[order]
+    out_boxes, out_points, out_scores = [], [], []
+    remaining = np.arange(len(scores))
+    while remaining.size:
+        best = remaining[0]
+        near = iou(boxes[best], boxes[remaining]) > NMS_IOU
+        group = remaining[near]
+        w = scores[group][:, None]
+        out_boxes.append((boxes[group] * w).sum(axis=0) / w.sum())
+        out_points.append((keypoints[group] * w[:, :, None]).sum(axis=0) / w.sum())
+        out_scores.append(scores[best])
+        remaining = remaining[~near]
+    return np.stack(out_boxes), np.stack(out_points), np.array(out_scores)
+
+
+def alignment_roi(centre: np.ndarray, scale_point: np.ndarray) -> Roi:
+    """The ROI of two points in px (AlignmentPointsRectsCalculator then RectTransformationCalculator, as
+    pose_detection_to_roi.pbtxt and pose_landmarks_to_roi.pbtxt set them): centred on the first, of
+    side twice their distance times ROI_SCALE, turned so that the second is straight above the first
+    (rotation_vector_target_angle_degrees 90, DetectionsToRectsCalculator::ComputeRotation)."""
+    dx, dy = scale_point - centre
+    angle = np.pi / 2 - np.arctan2(-dy, dx)
+    angle = angle - 2 * np.pi * np.floor((angle + np.pi) / (2 * np.pi))  # NormalizeRadians
+    size = 2.0 * float(np.hypot(dx, dy)) * ROI_SCALE
+    return Roi(float(centre[0]), float(centre[1]), size, float(angle))
+
+
+def crop(image: np.ndarray, roi: Roi, side: int, zero_border: bool) -> np.ndarray:
+    """(side, side, 3) float32 in [0, 1]: the ROI of the RGB uint8 `image` (H, W, 3) resampled
+    bilinearly (ImageToTensorConverterOpenCV: the ROI's corners onto the tensor's, cv::warpPerspective
+    with INTER_LINEAR; outside the frame zero with BORDER_ZERO, else the nearest edge pixel)."""
+    height, width = image.shape[:2]
+    grid = (np.arange(side, dtype=np.float64) / side)[None, :]
+    u, v = np.broadcast_to(grid, (side, side)), np.broadcast_to(grid.T, (side, side))
+    src = roi.to_frame(np.stack([u, v], axis=-1))  # (side, side, 2) px
+    x0f, y0f = np.floor(src[..., 0]), np.floor(src[..., 1])
+    fx, fy = (src[..., 0] - x0f)[..., None], (src[..., 1] - y0f)[..., None]
+    x0, y0 = x0f.astype(np.intp), y0f.astype(np.intp)
+    flat = image.reshape(-1, image.shape[2]).astype(np.float32)
+
+    def at(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        xc, yc = np.clip(x, 0, width - 1), np.clip(y, 0, height - 1)
+        pixels = flat[yc * width + xc]  # (side, side, 3)
+        if zero_border:
+            inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+            pixels = pixels * inside[..., None]
+        return np.asarray(pixels)
+
+    top = at(x0, y0) * (1 - fx) + at(x0 + 1, y0) * fx
+    bottom = at(x0, y0 + 1) * (1 - fx) + at(x0 + 1, y0 + 1) * fx
+    return np.asarray((top * (1 - fy) + bottom * fy) / 255.0, dtype=np.float32)
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    """The logistic function."""
+    return np.asarray(1.0 / (1.0 + np.exp(-x)))
+
+
+def refine_from_heatmap(points: np.ndarray, heatmap: np.ndarray) -> np.ndarray:
+    """(39, 2) landmarks in [0, 1] of the ROI, moved to the confidence-weighted mean cell of their
+    heatmap's REFINE_KERNEL window where its best confidence reaches REFINE_MIN_CONFIDENCE
+    (RefineLandmarksFromHeatmapCalculator: the window around the landmark's cell, cut at the edges,
+    confidence a sigmoid of the heatmap; a landmark outside the heatmap is kept)."""
+    side = heatmap.shape[0]
+    out = np.array(points, dtype=np.float64)
+    half = (REFINE_KERNEL - 1) // 2
+    cells = (points * side).astype(np.int64)  # C++ float -> int: towards zero
+    for j, (col, row) in enumerate(cells):
+        if not (0 <= col < side and 0 <= row < side):
+            continue
+        rows = slice(max(0, row - half), min(side, row + half + 1))
+        cols = slice(max(0, col - half), min(side, col + half + 1))
+        confidence = sigmoid(heatmap[rows, cols, j].astype(np.float64))  # (r, c)
+        total = confidence.sum()
+        if confidence.max() >= REFINE_MIN_CONFIDENCE and total > 0:
+            rr, cc = np.mgrid[rows, cols]
+            out[j] = [(cc * confidence).sum() / side / total, (rr * confidence).sum() / side / total]
+    return out
+
+
+@dataclass(frozen=True)
+class Landmarks:
+    """One person's landmarks in a frame."""
+
+    points: np.ndarray  # (33, 2) px
+    visibility: np.ndarray  # (33,) in [0, 1]
+    presence: np.ndarray  # (33,) in [0, 1]
+    auxiliary: np.ndarray  # (2, 2) px: the hip centre and the scale point the next ROI is made of
+    score: float  # the pose flag: the model's confidence that a person is in the ROI
+
+
+def decode_landmarks(raw: np.ndarray, flag: float, heatmap: np.ndarray, roi: Roi) -> Landmarks:
+    """The landmark model's outputs (195,), its pose flag and heatmap (64, 64, 39) -> the person's
+    landmarks in px (TensorsToLandmarksCalculator: 39 rows of x, y, z, visibility, presence in 256 px
+    units of the ROI, visibility and presence through a sigmoid; refined from the heatmap; projected
+    into the frame through the ROI)."""
+    rows = raw.reshape(LANDMARKS, 5).astype(np.float64)
+    points = refine_from_heatmap(rows[:, :2] / LANDMARK_SIZE, heatmap)
+    frame_points = roi.to_frame(points)
+    return Landmarks(
+        points=frame_points[:POSE_LANDMARKS],
+        visibility=sigmoid(rows[:POSE_LANDMARKS, 3]),
+        presence=sigmoid(rows[:POSE_LANDMARKS, 4]),
+        auxiliary=frame_points[POSE_LANDMARKS : POSE_LANDMARKS + 2],
+        score=float(flag),
+    )
