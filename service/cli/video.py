@@ -47,6 +47,15 @@ def add_parser(sub: Any) -> None:
         help="run the person detector every N frames to find people who came in (default 10; 0: only "
         "when someone is lost); between, each person is followed from the previous frame",
     )
+    video.add_argument(
+        "--zoom",
+        type=int,
+        choices=(0, 1, 2),
+        default=1,
+        help="the person detector's closer views of a frame: 0 the whole frame (MediaPipe's), 1 also "
+        "squares of its height (default; a wide frame's people), 2 also of half its height (smaller "
+        "people, slower detection)",
+    )
     video.add_argument("--max-frames", type=int, help="stop after this many frames (a camera: else Ctrl-C)")
     video.add_argument("--threads", type=int, default=2, help="threads of the detector's models (default 2)")
     add_lift_options(
@@ -96,7 +105,7 @@ def detect_poses(
     from repnet.runtime.detector import PoseDetector
 
     detector = PoseDetector(
-        max_people=args.max_people, redetect_every=args.redetect_every, threads=args.threads
+        max_people=args.max_people, redetect_every=args.redetect_every, zoom=args.zoom, threads=args.threads
     )
     points, conf, frame, person, kept = [], [], [], [], []
     total = (

@@ -87,6 +87,42 @@ def letterbox(width: int, height: int) -> Roi:
     return Roi(width / 2, height / 2, float(max(width, height)), 0.0)
 
 
+def detector_views(width: int, height: int, zoom: int) -> list[Roi]:
+    """The squares the detector reads a frame through: the whole frame (letterbox), then for each
+    zoom level k = 1, 2.. squares of side (the shorter side) / 2**(k - 1) covering the frame with
+    even overlaps. The detector finds a person by the face and upper body at 224 px: a person less
+    than about a sixth of the letterboxed side is missed, and a closer view finds them (a departure
+    from MediaPipe, which reads the whole frame only)."""
+    views = [letterbox(width, height)]
+    for level in range(1, zoom + 1):
+        side = min(width, height) / 2 ** (level - 1)
+        if side >= max(width, height):
+            continue  # the whole frame already
+        xs, ys = _spread(width, side), _spread(height, side)
+        views += [Roi(float(x), float(y), float(side), 0.0) for y in ys for x in xs]
+    return views
+
+
+def _spread(length: int, side: float) -> np.ndarray:
+    """The centres of the fewest squares of `side` that cover `length`, evenly spaced."""
+    count = int(np.ceil(length / side - 1e-9))
+    return np.array([length / 2]) if count <= 1 else np.linspace(side / 2, length - side / 2, count)
+
+
+def merge_detections(found: list[Detections]) -> Detections:
+    """Detections of several views of one frame as one: the same person seen in two views merged by
+    weighted NMS (in px: the overlap does not depend on the unit)."""
+    found = [f for f in found if len(f.scores)]
+    if len(found) <= 1:
+        return found[0] if found else Detections(np.zeros((0, 4)), np.zeros((0, 4, 2)), np.zeros(0))
+    boxes, points, scores = weighted_nms(
+        np.concatenate([f.boxes for f in found]),
+        np.concatenate([f.keypoints for f in found]),
+        np.concatenate([f.scores for f in found]),
+    )
+    return Detections(boxes, points, scores)
+
+
 def decode_detections(raw: np.ndarray, logits: np.ndarray, frame: Roi) -> Detections:
     """The detector's outputs (2254, 12) and (2254, 1) -> its people in px (TensorsToDetectionsCalculator:
     offsets of 224 px units from each anchor's centre, box centre and size then 4 keypoints, scores a

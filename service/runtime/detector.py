@@ -25,8 +25,9 @@ from repnet.runtime.blazepose import (
     crop,
     decode_detections,
     decode_landmarks,
+    detector_views,
     iou,
-    letterbox,
+    merge_detections,
 )
 from repnet.runtime.session import SessionOptions, open_session
 
@@ -51,6 +52,7 @@ class PoseDetector:
 
     max_people: int = 4
     redetect_every: int = 10  # frames; 0: only when a person is lost or none is followed
+    zoom: int = 1  # the detector's closer views of a frame (blazepose.detector_views)
     threads: int = 2
     detection_model: Path = DETECTION_MODEL
     landmark_model: Path = LANDMARK_MODEL
@@ -64,12 +66,16 @@ class PoseDetector:
         self._detector_input = self._detector.get_inputs()[0].name
         self._landmark_input = self._landmarker.get_inputs()[0].name
 
-    def detect(self, image: np.ndarray) -> Detections:
-        """The people the detector finds in an RGB frame (H, W, 3) uint8, best first."""
-        frame = letterbox(image.shape[1], image.shape[0])
-        tensor = crop(image, frame, DETECTOR_SIZE, zero_border=True) * 2.0 - 1.0  # range [-1, 1]
-        raw, logits = self._detector.run(None, {self._detector_input: tensor[None]})
-        return decode_detections(raw[0], logits[0], frame)
+    def detect(self, image: np.ndarray, zoom: int | None = None) -> Detections:
+        """The people the detector finds in an RGB frame (H, W, 3) uint8, best first: in the whole
+        frame and its closer views up to `zoom` (default: the detector's; blazepose.detector_views)."""
+        views = detector_views(image.shape[1], image.shape[0], self.zoom if zoom is None else zoom)
+        found = []
+        for view in views:
+            tensor = crop(image, view, DETECTOR_SIZE, zero_border=True) * 2.0 - 1.0  # range [-1, 1]
+            raw, logits = self._detector.run(None, {self._detector_input: tensor[None]})
+            found.append(decode_detections(raw[0], logits[0], view))
+        return merge_detections(found)
 
     def landmarks(self, image: np.ndarray, roi: Roi) -> Landmarks:
         """The landmark model's person in the ROI of an RGB frame."""
@@ -80,7 +86,7 @@ class PoseDetector:
     def single(self, image: np.ndarray) -> Landmarks | None:
         """MediaPipe Pose's still-image mode: the best detection's landmarks, None when the detector
         finds no one or the landmark model says no person is there."""
-        found = self.detect(image)
+        found = self.detect(image, zoom=0)
         if not len(found.scores):
             return None
         keypoints = found.keypoints[0]

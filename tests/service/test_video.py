@@ -37,6 +37,21 @@ def test_a_clip_is_lifted_as_a_tracked_sequence_at_its_frame_rate(lifted: dict) 
     assert all(p["temporal"] for p in poses)
 
 
+def test_closer_views_find_the_smaller_people_and_each_is_a_track(tmp_path: Path) -> None:
+    out = tmp_path / "out.json"
+    assert main(["video", str(CLIP), "--local", "-o", str(out), "--zoom", "2"]) == EXIT_OK
+    document = json.loads(out.read_text())
+    poses = document["poses"]
+    # 3 people in each of 5 frames; the one cut by the frame's right edge shows too few joints to lift
+    assert len(poses) == 10 and len({p["track_id"] for p in poses}) == 2
+    assert len(document["skipped"]) == 5 and all(s["person"] == 2 for s in document["skipped"])
+    for track in {p["track_id"] for p in poses}:
+        mine = [p for p in poses if p["track_id"] == track]
+        assert [p["frame"] for p in mine] == [0, 1, 2, 3, 4]
+        hips = np.array([np.nanmean(np.array(p["input"]["keypoints"][23:25], float), axis=0) for p in mine])
+        assert np.abs(np.diff(hips[:, 0])).max() < 40  # px: one person followed, not a jump to another
+
+
 def test_intrinsics_give_the_root_trajectory(tmp_path: Path) -> None:
     out = tmp_path / "out.json"
     args = ["video", str(CLIP), "--local", "-o", str(out), "--intrinsics", "500,500,320,180"]
