@@ -242,7 +242,7 @@ EXTRAS = {
         "server",
     ),
     **dict.fromkeys(["matplotlib", "tqdm"], "cli"),
-    **dict.fromkeys(["av", "PIL"], "video"),
+    **dict.fromkeys(["av", "PIL", "cv2"], "video"),
     **dict.fromkeys(["torch", "sklearn", "onnx"], "train"),
 }
 
