@@ -82,58 +82,61 @@ def check_args(args: argparse.Namespace) -> str | None:
 
 
 def _frames(clip: Clip, limit: int | None, bar: Any) -> Iterator[np.ndarray]:
-    """The clip's frames, a camera's until Ctrl-C, the bar advanced with frames/s."""
+    """The clip's frames, the bar advanced with frames/s."""
     start = time.perf_counter()
-    try:
-        for i, image in enumerate(clip.frames(limit)):
-            yield image
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(f"{(i + 1) / (time.perf_counter() - start):.1f} frames/s", refresh=False)
-    except KeyboardInterrupt:
-        if not clip.live:
-            raise
-        say("camera stopped (Ctrl-C): lifting the frames read")
+    for i, image in enumerate(clip.frames(limit)):
+        yield image
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"{(i + 1) / (time.perf_counter() - start):.1f} frames/s", refresh=False)
 
 
 def detect_poses(
     clip: Clip, args: argparse.Namespace, progress_bar: Bar, keep: bool
 ) -> tuple[Poses, list[np.ndarray]]:
     """Every frame's people (BlazePose, followed from frame to frame) as poses of `FORMAT`, x, y in
-    px and each landmark's visibility as its confidence; the frames themselves when `keep`.
-    InputFileError when no frame has a person."""
+    px and each landmark's visibility as its confidence; the frames themselves when `keep`. A camera
+    is read until Ctrl-C (or --max-frames): the frames done by then are kept. InputFileError when no
+    frame has a person."""
     from repnet.runtime.detector import PoseDetector
 
     detector = PoseDetector(
         max_people=args.max_people, redetect_every=args.redetect_every, zoom=args.zoom, threads=args.threads
     )
-    points, conf, frame, person, kept = [], [], [], [], []
+    found: list[tuple[np.ndarray, list[Any]]] = []  # each frame, as one append: Ctrl-C leaves it whole
     total = (
         args.max_frames
         if clip.frame_count is None
         else min(clip.frame_count, args.max_frames or clip.frame_count)
     )
     bar = progress_bar(total or 0, "frame")
-    count = 0
     try:
-        for count, image in enumerate(_frames(clip, args.max_frames, bar), start=1):
-            if keep:
-                kept.append(image)
-            for k, found in enumerate(detector.track(image)):
-                points.append(found.points)
-                conf.append(found.visibility)
-                frame.append(count - 1)
-                person.append(k)
+        for image in _frames(clip, args.max_frames, bar):
+            people = detector.track(image)
+            found.append((image if keep else np.empty(0), people))
+    except KeyboardInterrupt:
+        if not clip.live:
+            raise
+        say(f"camera stopped (Ctrl-C) after {len(found)} frames: lifting them")
     finally:
         if bar is not None:
             bar.close()
+    count = len(found)
     if count == 0:
         raise InputFileError(f"{clip.source}: the video has no frames")
-    if not points:
+    rows = [(i, k, person) for i, (_, people) in enumerate(found) for k, person in enumerate(people)]
+    if not rows:
         raise InputFileError(f"{clip.source}: no person found in its {count} frame{'s' * (count != 1)}")
-    poses = Poses(np.stack(points), np.stack(conf), FORMAT, np.array(frame), np.array(person), fps=clip.fps)
-    say(f"found {len(points)} poses in {count} frames ({clip.width} x {clip.height}, {clip.fps:g} fps)")
-    return poses, kept
+    poses = Poses(
+        np.stack([p.points for _, _, p in rows]),
+        np.stack([p.visibility for _, _, p in rows]),
+        FORMAT,
+        np.array([i for i, _, _ in rows]),
+        np.array([k for _, k, _ in rows]),
+        fps=clip.fps,
+    )
+    say(f"found {len(rows)} poses in {count} frames ({clip.width} x {clip.height}, {clip.fps:g} fps)")
+    return poses, [image for image, _ in found] if keep else []
 
 
 def run(args: argparse.Namespace, progress_bar: Bar) -> int:

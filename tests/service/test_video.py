@@ -42,12 +42,15 @@ def test_closer_views_find_the_smaller_people_and_each_is_a_track(tmp_path: Path
     assert main(["video", str(CLIP), "--local", "-o", str(out), "--zoom", "2"]) == EXIT_OK
     document = json.loads(out.read_text())
     poses = document["poses"]
-    # 3 people in each of 5 frames; the one cut by the frame's right edge shows too few joints to lift
-    assert len(poses) == 10 and len({p["track_id"] for p in poses}) == 2
-    assert len(document["skipped"]) == 5 and all(s["person"] == 2 for s in document["skipped"])
-    for track in {p["track_id"] for p in poses}:
+    # 3 people in each of 5 frames; the one cut by the frame's right edge (person 2) mostly shows too
+    # few joints to lift (skipped, named); the two others are each one track of the 5 frames
+    skipped = document["skipped"]
+    assert len(poses) + len(skipped) == 15 and len(skipped) >= 3 and all(s["person"] == 2 for s in skipped)
+    whole = [t for t in {p["track_id"] for p in poses} if sum(p["track_id"] == t for p in poses) == 5]
+    assert len(whole) == 2
+    for track in whole:
         mine = [p for p in poses if p["track_id"] == track]
-        assert [p["frame"] for p in mine] == [0, 1, 2, 3, 4]
+        assert [p["frame"] for p in mine] == [0, 1, 2, 3, 4] and {p["person"] for p in mine} in ({0}, {1})
         hips = np.array([np.nanmean(np.array(p["input"]["keypoints"][23:25], float), axis=0) for p in mine])
         assert np.abs(np.diff(hips[:, 0])).max() < 40  # px: one person followed, not a jump to another
 
@@ -127,3 +130,18 @@ def test_a_missing_extra_names_its_install(
 def test_flags_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
     _fails(["video", str(CLIP), "--max-people", "0"], capsys, "--max-people must be at least 1")
     _fails(["video", str(CLIP), "-o", "out.txt"], capsys, "unknown output suffix")
+
+
+def test_the_readmes_video_command_runs_as_written(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """README "From a video": its `repnet video` line on the test clip named as the README names it."""
+    from tests.service.test_docs import README, fenced
+
+    lines = [line.split("#")[0].split() for line in fenced(README, "## From a video", "bash").splitlines()]
+    commands = [words for words in lines if words[:2] == ["repnet", "video"]]
+    assert len(commands) == 1
+    (tmp_path / commands[0][2]).write_bytes(CLIP.read_bytes())
+    monkeypatch.chdir(tmp_path)
+    assert main(commands[0][1:]) == EXIT_OK
+    out = Path(commands[0][commands[0].index("-o") + 1])
+    with av.open(str(out)) as container:
+        assert sum(1 for _ in container.decode(video=0)) == 5
