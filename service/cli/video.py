@@ -5,6 +5,7 @@ repnet.runtime.detector), tracked and lifted as `repnet lift` lifts a file (thro
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -121,6 +122,8 @@ def detect_poses(
     finally:
         if bar is not None:
             bar.close()
+    if clip.broken is not None:
+        say(f"warning: {clip.broken}; the frames before it are used")
     count = len(found)
     if count == 0:
         raise InputFileError(f"{clip.source}: the video has no frames")
@@ -161,8 +164,6 @@ def run(args: argparse.Namespace, progress_bar: Bar) -> int:
         "frames": int(poses.frame.max()) + 1,
     }  # fmt: skip
     if out is None:
-        import json
-
         print(json.dumps(lifted.document, allow_nan=False))
         return 0
     if not video_out:

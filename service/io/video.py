@@ -4,7 +4,6 @@ libraries; the `video` extra), its frame rate and size read from the stream."""
 from __future__ import annotations
 
 import re
-import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,9 +26,12 @@ def _av() -> Any:
 
 
 def device_path(source: str) -> str | None:
-    """The v4l2 device `source` names (/dev/video0, or 0), None for a file."""
+    """The v4l2 device `source` names (/dev/video0, or 0 where no file of that name is here), None
+    for a file."""
     found = _DEVICE.fullmatch(source)
-    return None if found is None else f"/dev/video{found.group(2)}"
+    if found is None or (found.group(1) is None and Path(source).is_file()):
+        return None
+    return f"/dev/video{found.group(2)}"
 
 
 @dataclass
@@ -44,10 +46,12 @@ class Clip:
     height: int
     frame_count: int | None  # as the container says, if it does
     live: bool  # a camera: frames until it stops, read once
+    broken: str | None = None  # why decoding stopped before the stream's end, if it did
 
     def frames(self, limit: int | None = None) -> Iterator[np.ndarray]:
-        """The decoded frames, at most `limit`; InputFileError naming the file when the stream
-        breaks off (a truncated or damaged file)."""
+        """The decoded frames, at most `limit`; InputFileError naming the file when not one frame
+        decodes; a stream that breaks off later (a truncated or damaged file) ends there, said in
+        `broken`."""
         av = _av()
         count = 0
         try:
@@ -59,9 +63,7 @@ class Clip:
         except av.FFmpegError as err:
             if count == 0:
                 raise InputFileError(f"{self.source}: cannot decode its video: {err}") from None
-            print(
-                f"repnet: warning: {self.source}: decoding stopped at frame {count}: {err}", file=sys.stderr
-            )
+            self.broken = f"{self.source}: decoding stopped at frame {count}: {err}"
 
     def close(self) -> None:
         """Close the file or device."""
