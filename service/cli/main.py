@@ -209,7 +209,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
     except ImportError as err:
-        extra = EXTRAS.get((err.name or "").split(".")[0], "cli")
+        # `repnet video` needs its whole extra (PyAV, OpenCV, Pillow and onnxruntime for its detector)
+        extra = "video" if args.command == "video" else EXTRAS.get((err.name or "").split(".")[0], "cli")
         print(f"repnet: error: {err.name or err} is needed: {install_hint(extra)}", file=sys.stderr)
         return EXIT_USAGE
 
