@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from repnet.core.formats import FORMATS
+from repnet.runtime.blazepose import Roi
 from repnet.runtime.detector import PoseDetector
 
 VIDEO = Path(__file__).resolve().parents[1] / "fixtures" / "video"
@@ -64,6 +65,23 @@ def test_landmarks_agree_with_mediapipes_own_python(
         errors.append(np.linalg.norm(person.points - rows[:, :2] * size, axis=1)[visible])
         np.testing.assert_allclose(person.visibility, rows[:, 3], atol=0.1)
     assert np.concatenate(errors).mean() <= AGREEMENT_PX
+
+
+def test_each_stage_agrees_with_mediapipes_given_the_same_input(
+    frames: list[np.ndarray], detector: PoseDetector, reference: dict
+) -> None:
+    """The detector's keypoints within 1 px of MediaPipe's; the landmark stage, given MediaPipe's own
+    region, within 0.3 px on average (what is left is onnxruntime's and OpenCV's arithmetic)."""
+    width, height = reference["width"], reference["height"]
+    for image, expected in zip(frames, reference["frames"], strict=True):
+        found = detector.detect(image, zoom=0)
+        keypoints = np.array(expected["detection_keypoints"]) * [width, height]
+        assert np.abs(found.keypoints[0] - keypoints).max() < 1.0
+        x, y, w, _, rotation = expected["roi_from_detection"]
+        person = detector.landmarks(image, Roi(x * width, y * height, w * width, rotation))
+        rows = np.array(expected["landmarks"])
+        visible = rows[:, 3] > 0.5
+        assert np.linalg.norm(person.points - rows[:, :2] * [width, height], axis=1)[visible].mean() < 0.3
 
 
 def test_left_and_right_are_the_references(
