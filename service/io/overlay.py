@@ -114,7 +114,8 @@ def _write_mp4(
                 stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
                 stream.width, stream.height = image.shape[1], image.shape[0]
                 stream.pix_fmt = "yuv420p"
-                stream.options = {"crf": "23", "preset": "veryfast"}
+                # superfast: 24 ms a 2000 x 720 frame where veryfast took 42 (1.5 x the bytes)
+                stream.options = {"crf": "23", "preset": "superfast"}
             frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="rgb24")
             container.mux(stream.encode(frame))
             if advance is not None:
