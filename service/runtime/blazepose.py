@@ -94,9 +94,8 @@ def letterbox(width: int, height: int) -> Roi:
 def detector_views(width: int, height: int, zoom: int) -> list[Roi]:
     """The squares the detector reads a frame through: the whole frame (letterbox), then for each
     zoom level k = 1, 2.. squares of side (the shorter side) / 2**(k - 1) covering the frame with
-    even overlaps. The detector finds a person by the face and upper body at 224 px: a person less
-    than about a sixth of the letterboxed side is missed, and a closer view finds them (a departure
-    from MediaPipe, which reads the whole frame only)."""
+    even overlaps. The detector reads 224 px: a small person in the whole frame is missed, and a
+    closer view finds them (a departure from MediaPipe, which reads the whole frame only)."""
     views = [letterbox(width, height)]
     for level in range(1, zoom + 1):
         side = min(width, height) / 2 ** (level - 1)
