@@ -44,7 +44,7 @@ $(STAMP_DIR)/.serve-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/
 
 $(STAMP_DIR)/.test-installed: pyproject.toml $(if $(strip $(VENV)),$(VENV)/bin/python)
 	@mkdir -p $(STAMP_DIR)
-	$(PY) -m pip install $(PIP_ARGS) $(EDITABLE) '.[server,train,cli,dev]'
+	$(PY) -m pip install $(PIP_ARGS) $(EDITABLE) '.[server,train,cli,video,dev]'
 	@touch $@ $(STAMP_DIR)/.serve-installed
 
 serve: $(STAMP_DIR)/.serve-installed

@@ -11,6 +11,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from repnet.cli.usable import usable_poses
 from repnet.client.body import Batch, Intrinsics, Tracking
 from repnet.client.chunks import Progress
 from repnet.client.http import LiftClient
@@ -18,6 +19,7 @@ from repnet.client.result import LiftClientError, LiftResult
 from repnet.core.contract import DEFAULT_FPS
 from repnet.core.formats import FORMATS, MODEL_PARENTS
 from repnet.core.inputs import Limits
+from repnet.io.output import Lifted
 from repnet.io.poses import Poses
 
 Say = Callable[[str], None]
@@ -249,14 +251,63 @@ def warn_about(results: Sequence[LiftResult], poses: Poses) -> None:
         )
 
 
+def lift_poses(
+    args: Any, poses: Poses, fmt: str, temporal: str | None, progress_bar: Callable[[int, str], Any]
+) -> tuple[Lifted, Choice]:
+    """Lift `poses` as `repnet lift` and `repnet video` do, with their shared flags (`args`, see
+    repnet.cli.options): through the service at args.url or in this process (args.local), the
+    unusable poses skipped (told) or refused (args.strict), in the temporal mode `temporal` (None:
+    choose's default), the poses' progress on a `progress_bar(total, unit)`. The output document
+    with its results, and the choice of mode and frame rate."""
+    remote = (
+        None
+        if args.local
+        else RemoteBackend(args.url, args.timeout, args.batch_size, args.api_key, args.ca_file, args.model)
+    )
+    original = poses
+    try:
+        model = None if args.model is None else Path(args.model)  # --local: an ONNX file
+        lifter = local_backend(model, args.batch_size) if remote is None else remote
+        threshold = args.confidence_threshold
+        poses, skipped = usable_poses(poses, fmt, threshold, lifter.limits(), args.strict, say)
+        choice = choose(poses, temporal, args.fps, lifter.temporal_modes, say)
+        ids = tracks_of(poses, choice)
+        batch = batch_of(poses, fmt, threshold, args.intrinsics, choice, ids, args.person_height)
+        bar = progress_bar(len(poses.points), "pose")
+        try:
+            results = lifter.lift_batch(batch, None if bar is None else bar.update)
+        finally:
+            if bar is not None:
+                bar.close()
+    finally:
+        if remote is not None:
+            remote.close()
+    out = output_document(results, poses, fmt, choice, [s.to_json(original) for s in skipped])
+    warn_about(results, poses)
+    return Lifted(out, results, poses), choice
+
+
+def tell_written(files: Sequence[Path], lifted: Lifted, choice: Choice) -> None:
+    """Say on stderr what was lifted and where it was written."""
+    n, frames = len(lifted.results), lifted.poses.frame_count
+    doc = lifted.document
+    tracks = "" if choice.temporal == "off" else f", temporal {choice.temporal} at {choice.fps:g} fps"
+    counted = f"{n} pose{'s' * (n != 1)} of {frames} frame{'s' * (frames != 1)}"
+    say(
+        f"lifted {counted} ({doc['format']}, model {doc['model_id']}{tracks}) -> {', '.join(map(str, files))}"
+    )
+
+
 __all__ = [
     "Choice",
     "LiftClientError",
     "RemoteBackend",
     "batch_of",
     "choose",
+    "lift_poses",
     "output_document",
     "output_rows",
     "stills_reason",
+    "tell_written",
     "tracks_of",
 ]

@@ -1,4 +1,5 @@
-"""The `repnet` command: serve, lift files of poses (via the service or locally), plot, list formats."""
+"""The `repnet` command: serve, lift files of poses (via the service or locally), lift the people of a
+video, plot, list formats."""
 
 from __future__ import annotations
 
@@ -11,28 +12,17 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
-from repnet.cli import adapt
+from repnet.cli import adapt, video
 from repnet.cli.adapt import add_parser as add_adapt_parser
-from repnet.cli.adapt import resolve_format, threshold_flag
-from repnet.cli.flags import format_flag, fps_flag, intrinsics_flag, size_flag
-from repnet.cli.lift import (
-    RemoteBackend,
-    batch_of,
-    choose,
-    local_backend,
-    output_document,
-    say,
-    tracks_of,
-    warn_about,
-)
-from repnet.cli.usable import usable_poses
-from repnet.client.connection import DEFAULT_URL
+from repnet.cli.adapt import resolve_format
+from repnet.cli.flags import format_flag, size_flag
+from repnet.cli.lift import lift_poses, say, tell_written
+from repnet.cli.options import add_lift_options
 from repnet.client.http import LiftClientError
-from repnet.core.contract import TEMPORAL_MODES
 from repnet.core.errors import ModelLoadError
 from repnet.core.format_hints import format_table
 from repnet.core.formats import FORMATS
-from repnet.io.output import WRITERS, Lifted, check_output, write_output
+from repnet.io.output import WRITERS, check_output, write_output
 from repnet.io.pose_file import load_poses, read_input
 from repnet.io.poses import InputFileError, Poses
 
@@ -73,43 +63,13 @@ def run_lift(args: argparse.Namespace) -> int:
     if args.output is not None:
         check_output(args.output, args.overwrite)
     size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
-    poses = original = read_input(args.input, lambda files: _progress(files, "file"), size)
+    poses = read_input(args.input, lambda files: _progress(files, "file"), size)
     fmt = resolve_format(poses, args.format, args.input, say)
-    remote = (
-        None
-        if args.local
-        else RemoteBackend(args.url, args.timeout, args.batch_size, args.api_key, args.ca_file, args.model)
-    )
-    try:
-        model = None if args.model is None else Path(args.model)  # --local: an ONNX file
-        lifter = local_backend(model, args.batch_size) if remote is None else remote
-        threshold = args.confidence_threshold
-        poses, skipped = usable_poses(poses, fmt, threshold, lifter.limits(), args.strict, say)
-        choice = choose(poses, args.temporal, args.fps, lifter.temporal_modes, say)
-        ids = tracks_of(poses, choice)
-        batch = batch_of(
-            poses, fmt, args.confidence_threshold, args.intrinsics, choice, ids, args.person_height
-        )
-        bar = progress_bar(len(poses.points), "pose")
-        try:
-            results = lifter.lift_batch(batch, None if bar is None else bar.update)
-        finally:
-            if bar is not None:
-                bar.close()
-    finally:
-        if remote is not None:
-            remote.close()
-    out = output_document(results, poses, fmt, choice, [s.to_json(original) for s in skipped])
-    warn_about(results, poses)
-    n, frames = len(results), poses.frame_count
+    lifted, choice = lift_poses(args, poses, fmt, args.temporal, progress_bar)
     if args.output is None:
-        print(json.dumps(out, allow_nan=False))
+        print(json.dumps(lifted.document, allow_nan=False))
     else:
-        written = write_output(args.output, Lifted(out, results, poses))
-        tracks = "" if choice.temporal == "off" else f", temporal {choice.temporal} at {choice.fps:g} fps"
-        files = ", ".join(map(str, written))
-        counted = f"{n} pose{'s' * (n != 1)} of {frames} frame{'s' * (frames != 1)}"
-        say(f"lifted {counted} ({fmt}, model {out['model_id']}{tracks}) -> {files}")
+        tell_written(write_output(args.output, lifted), lifted, choice)
     return EXIT_OK
 
 
@@ -171,58 +131,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="the image's width and height in px when x, y are normalised to [0, 1] "
         "(MediaPipe landmarks, YOLO label files): they are multiplied by it",
     )
-    lift.add_argument("--url", default=DEFAULT_URL, help=f"service URL (default {DEFAULT_URL})")
-    lift.add_argument("--local", action="store_true", help="run the ONNX model in this process, no service")
-    lift.add_argument(
-        "--model",
-        help="the model: a model_id the service serves (GET /v1/models; default: "
-        "its default model), or with --local an ONNX file (default: the bundled one)",
-    )
-    lift.add_argument(
-        "--confidence-threshold", type=threshold_flag, help="joints below it count as missing, in [0, 1]"
-    )
-    lift.add_argument(
-        "--intrinsics",
-        type=intrinsics_flag,
-        metavar="FX,FY,CX,CY",
-        help="the camera's focal lengths and principal point in px, if known: pose_3d_camera "
-        "is then turned along the ray to the person, and root_camera_m gives where the person stands",
-    )
-    lift.add_argument(
-        "--person-height",
-        type=float,
-        metavar="METRES",
-        help="the person's skeleton height (head top to ankle, about stature - 0.1 m): sets "
-        "root_camera_m's depth (default: the model's template size)",
-    )
-    lift.add_argument(
-        "--temporal",
-        choices=TEMPORAL_MODES,
-        help="how a sequence's tracked people are lifted: off, each pose alone; causal, from "
-        "its track's frames up to it; offline, from the frames around it (default: offline "
-        "for a folder or a file of several frames, off for one frame)",
-    )
-    lift.add_argument(
-        "--fps",
-        type=fps_flag,
-        help="frames per second of the sequence (default: the file's, else 30, said on stderr)",
-    )
-    lift.add_argument(
-        "--batch-size",
-        type=int,
-        default=256,
-        help="poses per request lifted alone (default 256); a temporal request holds "
-        "as many as the service takes (max_temporal_poses)",
-    )
-    lift.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
-    lift.add_argument(
-        "--api-key",
-        default=os.environ.get("REPNET_API_KEY"),
-        help="API key of a service with REPNET_API_KEYS_FILE (default: $REPNET_API_KEY; "
-        "the variable keeps it out of the process list)",
-    )
-    lift.add_argument(
-        "--ca-file", type=Path, help="PEM CA certificates of an https:// --url (default: the system's)"
+    add_lift_options(
+        lift,
+        "offline for a folder or a file of several frames, off for one frame",
+        "the file's, else 30, said on stderr",
     )
     lift.add_argument(
         "-o",
@@ -231,16 +143,6 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"output file by its suffix ({', '.join(WRITERS)}; default: JSON on stdout): .npz "
         "arrays named as the reply's fields, .csv a row per pose per joint, .bvh a skeleton "
         "animation per person (file.track-ID.bvh when several)",
-    )
-    lift.add_argument(
-        "--strict",
-        action="store_true",
-        help="refuse the file if a pose breaks the input rules (default: skip it, said in `skipped`)",
-    )
-    lift.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace an existing output file (default: refuse before lifting)",
     )
     plot = sub.add_parser("plot", help="draw a lift output: 2D input with reprojection, 3D from two sides")
     plot.add_argument("input", type=Path, help="output .json of `repnet lift`")
@@ -257,8 +159,18 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--track", help="animate this track's poses (the output's track_id) instead")
     plot.add_argument("--fps", type=int, default=10, help="frames per second of an animation (default 10)")
     sub.add_parser("formats", help="print how each keypoint format maps onto the model's 17 joints")
+    video.add_parser(sub)
     add_adapt_parser(sub, size_flag, format_flag)
     return parser
+
+
+def usage_error(args: argparse.Namespace) -> str | None:
+    """What is wrong with the command's flags beyond what argparse checks, if anything."""
+    if args.command == "lift" and args.batch_size < 1:
+        return "--batch-size must be at least 1"
+    if args.command == "plot" and args.fps < 1:
+        return "--fps must be at least 1"
+    return video.check_args(args) if args.command == "video" else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -274,13 +186,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "adapt":  # its lineage records the command
         args.command_line = ["repnet", *argv]
-    if args.command == "lift" and args.batch_size < 1:
-        print("repnet: error: --batch-size must be at least 1", file=sys.stderr)
+    if wrong := usage_error(args):
+        print(f"repnet: error: {wrong}", file=sys.stderr)
         return EXIT_USAGE
-    if args.command == "plot" and args.fps < 1:
-        print("repnet: error: --fps must be at least 1", file=sys.stderr)
-        return EXIT_USAGE
-    commands = {"lift": run_lift, "plot": run_plot, "formats": run_formats, "adapt": run_adapt}
+    commands = {
+        "lift": run_lift,
+        "plot": run_plot,
+        "formats": run_formats,
+        "adapt": run_adapt,
+        "video": run_video,
+    }
     try:
         return commands[args.command](args)
     except (InputFileError, ModelLoadError) as err:
@@ -294,9 +209,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
     except ImportError as err:
-        extra = EXTRAS.get((err.name or "").split(".")[0], "cli")
+        # `repnet video` needs its whole extra (PyAV, OpenCV, Pillow and onnxruntime for its detector)
+        extra = "video" if args.command == "video" else EXTRAS.get((err.name or "").split(".")[0], "cli")
         print(f"repnet: error: {err.name or err} is needed: {install_hint(extra)}", file=sys.stderr)
         return EXIT_USAGE
+
+
+def run_video(args: argparse.Namespace) -> int:
+    """`repnet video`: repnet.cli.video, with the command's progress bars."""
+    return video.run(args, progress_bar)
 
 
 def run_adapt(args: argparse.Namespace) -> int:
@@ -322,6 +243,7 @@ EXTRAS = {
         "server",
     ),
     **dict.fromkeys(["matplotlib", "tqdm"], "cli"),
+    **dict.fromkeys(["av", "PIL", "cv2"], "video"),
     **dict.fromkeys(["torch", "sklearn", "onnx"], "train"),
 }
 

@@ -46,6 +46,9 @@ def test_the_wheel_holds_repnet_alone(wheel: Path) -> None:
         "repnet/server/static/page.js",
         "repnet/train/",
         "repnet/models/",
+        "repnet/models/detector/pose_detection.onnx",  # `repnet video`'s BlazePose, with its licence
+        "repnet/models/detector/pose_landmark_full.onnx",
+        "repnet/models/detector/LICENSE",
     ):
         assert any(n.startswith(part) for n in names), part
 
@@ -94,14 +97,19 @@ def test_the_clients_and_the_file_tools_import_without_the_heavy_packages(tmp_pa
 
 @pytest.mark.parametrize(
     ("argv", "extra"),
-    [(["serve", "--help"], "server"), (["lift", "POSE", "--local"], "local")],
+    [
+        (["serve", "--help"], "server"),
+        (["lift", "POSE", "--local"], "local"),
+        (["video", "CLIP", "--local"], "video"),
+    ],
 )
 def test_a_command_whose_extra_is_missing_says_which_install_brings_it(
     tmp_path: Path, argv: list[str], extra: str
 ) -> None:
     pose = tmp_path / "pose.json"
     pose.write_text(json.dumps({"keypoints": [[500.0 + 10 * j, 400.0 + 20 * j] for j in range(17)]}))
-    args = [str(pose) if a == "POSE" else a for a in argv]
+    clip = ROOT / "tests" / "fixtures" / "video" / "street640.mp4"
+    args = [str(pose) if a == "POSE" else str(clip) if a == "CLIP" else a for a in argv]
     run = light(f"import sys; from repnet.cli.main import main; sys.exit(main({args!r}))")
     assert run.returncode == 2, run.stderr
     assert f"[{extra}]" in run.stderr and "Traceback" not in run.stderr, run.stderr
