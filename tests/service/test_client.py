@@ -169,14 +169,14 @@ def test_stream_answers_every_frame_in_order(live_service: LiveService, lifter: 
 
 
 def test_stream_bad_frame_gets_an_error_and_the_stream_goes_on(live_service: LiveService) -> None:
-    frames: list[np.ndarray | Frame] = [POSE_2D, Frame(POSE_2D, format="coco18"), POSE_2D]
+    frames: list[np.ndarray | Frame] = [POSE_2D, Frame(POSE_2D, format="coco99"), POSE_2D]
     with StreamClient(live_service.grpc_target, timeout=30) as client:
         results = list(client.stream(frames))
     assert [r.frame_id for r in results] == [0, 1, 2]
     assert results[0].result is not None and results[2].result is not None
     error = results[1].error
     assert results[1].result is None and error is not None
-    assert error.status == "INVALID_ARGUMENT" and "unknown format 'coco18'" in error.message
+    assert error.status == "INVALID_ARGUMENT" and "unknown format 'coco99'" in error.message
     assert error.details[0]["field"] == "pose.format"
 
 
