@@ -22,6 +22,7 @@ assert calls, "{module} left onnxruntime's telemetry on"
     "module",
     [
         "repnet.runtime.lifter",
+        "repnet.runtime.detector",
         "repnet.cli.local",
         "repnet.train.export",
         "repnet.train.adapt",
