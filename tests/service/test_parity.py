@@ -92,6 +92,8 @@ def _shapes() -> list[Shape]:
         np.savez(path := folder / "poses.npz", keypoints=mpii, format=np.array("mpii16"))
         return path
 
+    b25b = np.stack([detector_pose("body25b", y) for y in (-30.0, 20.0)])  # OpenPose BODY_25B
+    body25b_body = {"format": "body25b", "poses": [{"keypoints": p.tolist()} for p in b25b]}
     rows = [[x / SIZE[0], y / SIZE[1], -0.1, 0.9] for x, y in media.tolist()]
     triples = np.concatenate([POSE_2D, conf[:, None]], axis=1).tolist()
     scored = np.concatenate([coco, np.full((17, 1), 0.8)], axis=1).ravel().tolist()
@@ -112,6 +114,7 @@ def _shapes() -> list[Shape]:
             ),
         ),  # fmt: skip
         Shape("npz", mpii, None, "mpii16", npz),
+        Shape("body25b body", b25b, None, "body25b", _json("body25b.json", body25b_body)),
         Shape(
             "pairs with (0, 0)",
             zeroed[None],
@@ -177,6 +180,7 @@ CELLS: dict[str, dict[str, str]] = {
         "openpose folder": "a frame posted raw: 422 detector_output naming body25; else each "
         "pose_keypoints_2d as [x, y, c] rows with format body25",
         "npz": "the client reads it: np.load(...)['keypoints'] rows (NaN -> null)",
+        "body25b body": "direct",
         "pairs with (0, 0)": "direct: (0, 0) is missing, with a warning",
         "mmpose image folder": "each file's instances as rows with format halpe26 (a file posted raw: "
         "422 detector_output)",
@@ -194,6 +198,7 @@ CELLS: dict[str, dict[str, str]] = {
         "coco results": "per result: x, y and scores",
         "openpose folder": "per person: x, y and c",
         "npz": "the array's rows",
+        "body25b body": "direct",
         "pairs with (0, 0)": "direct: (0, 0) is missing, with a warning",
         "mmpose image folder": "per pose: x, y and the keypoint scores",
         **{
@@ -412,7 +417,7 @@ PAGE_INPUTS = {"h36m17 pairs": "paste", "triplets": "paste", "coco results": "fi
                "pairs with (0, 0)": "paste", "mmpose video": "file", "mmpose image": "paste",
                "yolo summary": "file", "yolo labels": "files", "mediapipe results": "file",
                "alphapose": "file", "coco wholebody": "paste", "openpose coco18": "files",
-               "mmpose image folder": "files"}  # fmt: skip
+               "mmpose image folder": "files", "body25b body": "file"}  # fmt: skip
 
 
 @pytest.mark.parametrize("shape", list(PAGE_INPUTS))
