@@ -174,3 +174,18 @@ def test_grpc_lift_reports_the_same_poses_with_empty_results(service: Temporal) 
         service.stub.Lift(lifter_pb2.LiftRequest(invalid_poses=lifter_pb2.INVALID_POSES_REPORT))
     assert empty.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert np.isfinite(np.array(got.poses[0].pose_3d)).all()
+
+
+def test_the_poses_not_lifted_are_counted_as_rejected_input(service: Temporal) -> None:
+    def rejected(transport: str) -> float:
+        value = service.metrics.rejected.labels(transport=transport, reason="too_few_visible")._value.get()
+        return float(value)
+
+    http_before, grpc_before = rejected("http"), rejected("grpc")
+    status, _ = post(service, {"poses": [{"keypoints": GOOD}, {"keypoints": FEW}], "invalid_poses": "report"})
+    assert status == 200 and rejected("http") == http_before + 1
+    request = lifter_pb2.LiftRequest(
+        poses=[grpc_pose(GOOD), grpc_pose(FEW)], invalid_poses=lifter_pb2.INVALID_POSES_REPORT
+    )
+    service.stub.Lift(request)
+    assert rejected("grpc") == grpc_before + 1

@@ -93,11 +93,15 @@ def proto_replies(lifted: Lifted) -> list[lifter_pb2.PoseResult]:
     return lifted.replies.check().to_proto()
 
 
-def proto_report(count: int, readable: report.Readable, lifted: Lifted) -> tuple[list[Any], list[Any]]:
+def proto_report(
+    metrics: Metrics, count: int, readable: report.Readable, lifted: Lifted
+) -> tuple[list[Any], list[Any]]:
     """The PoseResults and PoseErrors of an INVALID_POSES_REPORT Lift (on the batcher's thread): an
-    empty PoseResult for each pose not lifted; ModelOutputError when the model failed on any pose."""
+    empty PoseResult for each pose not lifted (counted as rejected input, once per reason);
+    ModelOutputError when the model failed on any pose."""
     assert lifted.replies is not None  # the job asks for them
     result = report.outcome(count, readable, lifted.prepared)
+    metrics.reject(TRANSPORT, result.errors)
     replies = iter(lifted.replies.check().to_proto())
     results = [next(replies) if row >= 0 else lifter_pb2.PoseResult() for row in result.rows]
     by_pose: dict[int, list[Violation]] = {}
@@ -168,7 +172,11 @@ class PoseLifterServicer:
                     engine = self.models.pick(request.model)
                     readable, threshold = await offload(count, self._read_request, request)
                 if request.invalid_poses == lifter_pb2.INVALID_POSES_REPORT:
-                    job = Job(partial(proto_report, count, readable), readable.poses, threshold=threshold)
+                    job = Job(
+                        partial(proto_report, self.metrics, count, readable),
+                        readable.poses,
+                        threshold=threshold,
+                    )
                     results, errors = await engine.run_async(job, TRANSPORT, source=context.peer())
                 else:
                     job = Job(finish=proto_replies, poses=readable.poses, threshold=threshold)

@@ -121,13 +121,15 @@ def _read(request: LiftRequest, limits: Limits) -> list[PoseInput]:
     return read_request(len(poses), lambda i: to_pose_input(poses[i], request, i), threshold, limits)
 
 
-def _report_body(info: ModelInfo, count: int, readable: Readable, lifted: Lifted) -> bytes:
+def _report_body(info: ModelInfo, metrics: Metrics, count: int, readable: Readable, lifted: Lifted) -> bytes:
     """The 200 answer's JSON of an `invalid_poses: report` request (on the batcher's thread): the
-    lifted poses' replies, null and errors for the others; ModelOutputError when the model failed on
-    any pose."""
+    lifted poses' replies, null and errors for the others (counted as rejected input, once per
+    reason, as a refused request is); ModelOutputError when the model failed on any pose."""
     assert lifted.replies is not None  # the job asks for them
     head = {"model_id": info.model_id, "joints": list(info.joint_names)}
-    return report_json(head, lifted.replies.check(), outcome(count, readable, lifted.prepared))
+    result = outcome(count, readable, lifted.prepared)
+    metrics.reject("http", result.errors)
+    return report_json(head, lifted.replies.check(), result)
 
 
 def _body(info: ModelInfo, lifted: Lifted) -> bytes:
@@ -221,7 +223,7 @@ def create_app(
             with metrics.parsing("http", started):
                 readable = await offload(count, read_poses, request, limits, read)
             report = Job(
-                finish=partial(_report_body, engine.lifter.info, count, readable),
+                finish=partial(_report_body, engine.lifter.info, metrics, count, readable),
                 poses=readable.poses,
                 threshold=request.confidence_threshold,
                 track_ids=[request.poses[i].track_id for i in readable.positions],

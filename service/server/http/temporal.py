@@ -110,6 +110,8 @@ async def lift_temporal(
     count = len(request.poses)
     with metrics.parsing(TRANSPORT, started):
         inputs, result = await offload(count, prepare_temporal, request, limits, temporal, read)
+    if result is not None:  # invalid_poses report: the poses not lifted, counted as a refusal's
+        metrics.reject(TRANSPORT, result.errors)
     assert temporal is not None  # prepare_temporal refuses the request without it
     prediction = await engine.predict_async(inputs, TRANSPORT, source=source)
     plan = await offload(count, plan_of, request, temporal, inputs, prediction, result)
