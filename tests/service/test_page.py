@@ -27,7 +27,7 @@ from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
 from repnet.server.app import build_app
 from repnet.server.config import Settings
-from repnet.server.http.page import ASSETS, CSP, STATIC_DIR
+from repnet.server.http.page import ASSETS, CSP, STATIC_DIR, VENDOR
 from repnet.server.metrics import Metrics
 from tests.conftest import POSE_3D, TEMPORAL_MODES, live_settings, load_model, project, running_service
 from tests.service.page_examples import EXAMPLES_PATH, build_examples, detector_pose
@@ -62,15 +62,18 @@ def test_ui_false_serves_the_api_alone(
 
 
 def test_the_bundle_names_no_other_origin_and_no_inline_code() -> None:
-    files = {p.name: p.read_text() for p in STATIC_DIR.iterdir()}
-    assert set(files) == {*ASSETS, "index.html"}
+    own = {name for name in ASSETS if not name.startswith(VENDOR)}
+    files = {p.name: p.read_text() for p in STATIC_DIR.iterdir() if p.is_file()}
+    assert set(files) == {*own, "index.html"}
+    vendored = {p.relative_to(STATIC_DIR).as_posix() for p in (STATIC_DIR / VENDOR).iterdir()}
+    assert vendored == {*ASSETS, "index.html"} - set(files) | {VENDOR + "LICENSE", VENDOR + "README.md"}
     for name, text in files.items():
         text = text.replace('xmlns="http://www.w3.org/2000/svg"', "")  # a name, never fetched
         assert not re.search(r"(https?:)?//[a-z0-9.-]+\.[a-z]{2,}", text, re.I), name
     html = files["index.html"]
     assert re.findall(r"<script[^>]*>", html) == ['<script type="module" src="/ui/page.js">']
     assert not re.search(r"\son[a-z]+=", html) and "style=" not in html
-    scripts = "".join(files[n] for n in ASSETS if n.endswith(".js"))
+    scripts = "".join(files[n] for n in own if n.endswith(".js"))
     assert "innerHTML" not in scripts and "insertAdjacentHTML" not in scripts and "eval(" not in scripts
     assert set(re.findall(r"fetch\(\"([^\"]+)\"", scripts)) == {"/lift", "/v1/model", "/ui/examples.json"}
 
@@ -978,3 +981,75 @@ def test_camera_intrinsics_show_where_the_person_stands_and_the_root_trajectory(
     wait_for(driver, "return document.getElementById('intrinsics-error').textContent.length > 0")
     assert "expected fx, fy, cx, cy" in text_of(driver, "intrinsics-error") and lifts(driver) == before
     driver.save_screenshot(str(SHOTS / "trajectory-errors.png"))
+
+
+# ---- the live mode: a fake camera fed from a real clip ----
+
+
+def write_y4m(clip: Path, out: Path, repeat: int) -> int:
+    """The clip as a raw 4:2:0 .y4m at 30 fps (each frame shown `repeat` times), Chromium's fake camera."""
+    import av
+
+    with av.open(str(clip)) as container:
+        frames = [f.to_ndarray(format="yuv420p") for f in container.decode(video=0)]
+    height, width = frames[0].shape[0] * 2 // 3, frames[0].shape[1]
+    with out.open("wb") as f:
+        f.write(f"YUV4MPEG2 W{width} H{height} F30:1 Ip A1:1 C420jpeg\n".encode())
+        for frame in frames:
+            for _ in range(repeat):
+                f.write(b"FRAME\n" + frame.tobytes())
+    return len(frames) * repeat
+
+
+def test_live_mode_lifts_the_fake_camera_causally_and_draws_the_person(
+    lifter: Lifter, page_url: str, tmp_path: Path
+) -> None:
+    if shutil.which("chromium") is None or shutil.which("chromedriver") is None:
+        pytest.skip("needs Debian's chromium and chromium-driver")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.by import By
+
+    clip = tmp_path / "clip.y4m"
+    street = Path(__file__).resolve().parents[1] / "fixtures" / "video" / "street640.mp4"
+    assert write_y4m(street, clip, 6) == 30
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    options = webdriver.ChromeOptions()
+    options.binary_location = shutil.which("chromium")
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1560,1250", "--force-device-scale-factor=1",
+                "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
+                f"--use-file-for-fake-video-capture={clip}"):  # fmt: skip
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    chromedriver = Service(executable_path=shutil.which("chromedriver"))
+    driver = webdriver.Chrome(options=options, service=chromedriver)
+    try:
+        open_page(driver, page_url)
+        driver.find_element(By.ID, "live-camera").click()
+        try:
+            stopped = "document.getElementById('live-status').textContent.startsWith('live mode stopped')"
+            wait_for(
+                driver, f"return Number(document.body.dataset.liveDrawn || 0) >= 40 || {stopped}", timeout=90
+            )
+        finally:
+            print(driver.find_element(By.ID, "live-status").text, driver.get_log("browser"))
+        latency = json.loads(driver.execute_script("return document.body.dataset.liveLatency"))
+        status = driver.find_element(By.ID, "live-status").text
+        print(f"live latency: {latency}; {status}")
+        assert "p95" in status and latency["n"] >= 40 and 0 < latency["p50"] <= latency["p95"]
+        driver.execute_script("document.getElementById('live').scrollIntoView()")
+        driver.find_element(By.ID, "live").screenshot(str(SHOTS / "live-camera.png"))
+        driver.find_element(By.ID, "live3d").screenshot(str(SHOTS / "live-3d.png"))
+        # the 3D canvas holds a drawn skeleton (opaque pixels), not an empty view
+        drawn = driver.execute_script(
+            "return document.getElementById('live3d').getContext('2d')"
+            ".getImageData(0, 0, 480, 480).data.filter((v, i) => i % 4 === 3 && v > 0).length"
+        )
+        assert drawn > 1000
+        errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+        assert not errors, errors
+        driver.find_element(By.ID, "live-stop").click()
+        assert driver.find_element(By.ID, "live-status").text == "stopped"
+    finally:
+        driver.quit()

@@ -27,9 +27,28 @@ ASSETS = {
     "trajectory.js": "text/javascript; charset=utf-8",
     "examples.json": "application/json",
     "icon.svg": "image/svg+xml",
+    "live.js": "text/javascript; charset=utf-8",
 }
+# The live mode's 2D detector: the npm package @mediapipe/pose as published (vendor/mediapipe/README.md),
+# its SIMD WebAssembly build and the lite landmark model. Served as they are, under the same allow-list.
+VENDOR = "vendor/mediapipe/"
+BINARY = "application/octet-stream"
+ASSETS |= {
+    VENDOR + "pose.js": "text/javascript; charset=utf-8",
+    VENDOR + "pose_solution_simd_wasm_bin.js": "text/javascript; charset=utf-8",
+    VENDOR + "pose_solution_packed_assets_loader.js": "text/javascript; charset=utf-8",
+    VENDOR + "pose_solution_simd_wasm_bin.wasm": "application/wasm",
+    VENDOR + "pose_solution_simd_wasm_bin.data": BINARY,
+    VENDOR + "pose_solution_packed_assets.data": BINARY,
+    VENDOR + "pose_web.binarypb": BINARY,
+    VENDOR + "pose_landmark_lite.tflite": BINARY,
+}
+# 'wasm-unsafe-eval' lets the page compile WebAssembly (the vendored detector's), and nothing else:
+# no eval, no inline script; the .wasm itself must still come from this origin (connect-src 'self').
+# media-src blob: plays the video file the user picks for the live mode (an object URL of it).
 CSP = (
-    "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self'; connect-src 'self'; "
+    "default-src 'none'; script-src 'self' 'wasm-unsafe-eval'; media-src blob:; style-src 'self'; "
+    "img-src 'self'; connect-src 'self'; "
     "base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
 )
 HEADERS = {
@@ -49,7 +68,7 @@ def add_page(app: FastAPI) -> None:
     async def page() -> Response:
         return Response(index, media_type="text/html; charset=utf-8", headers=HEADERS)
 
-    @app.get("/ui/{name}", include_in_schema=False)
+    @app.get("/ui/{name:path}", include_in_schema=False)
     async def asset(name: str) -> Response:
         if name not in assets:
             return Response(b"not found", status_code=404, media_type="text/plain", headers=HEADERS)

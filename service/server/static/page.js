@@ -7,6 +7,7 @@ import { InputError, parseFiles, parseJson, parseText } from "./parse.js";
 import { assignTracks } from "./track.js";
 import { cameraFields, drawTrajectory, rootsOf } from "./trajectory.js";
 import { View3D, draw2d, sideOf } from "./view.js";
+import "./live.js";  // the live mode: a video or the webcam, detected here, lifted causally
 
 const $ = (id) => document.getElementById(id);
 const SLOTS = ["example", "file", "paste", "format", "threshold", "temporal", "rate", "intrinsics", "height", "image-size"];
