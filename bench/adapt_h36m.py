@@ -72,11 +72,29 @@ def s8_sh(found: list[tuple[str, np.ndarray, data.Camera, np.ndarray]]) -> data.
     return data.ValidationSet(*(np.concatenate(a).astype(np.float32) for a in s8))
 
 
+def source_frames(poses: dict[str, np.ndarray], count: int) -> np.ndarray:
+    """About `count` of the source subjects' training frames (data.load_poses' "train" poses, the
+    validation tails left out), pelvis at the origin."""
+    heads = [
+        seq[: data.sequence_split(len(seq), 0.1)]
+        for key, seq in sorted(poses.items())
+        if key.split("/")[0] in SOURCE
+    ]
+    world = np.concatenate(heads)
+    world = world[:: max(1, len(world) // count)]
+    return world - world[:, :1]
+
+
+def tail_frames(poses: dict[str, np.ndarray]) -> np.ndarray:
+    """Every 10th frame of the validation tails of all training subjects, pelvis at the origin."""
+    tail = np.concatenate([seq[data.sequence_split(len(seq), 0.1) :: 10] for _, seq in sorted(poses.items())])
+    return tail - tail[:, :1]
+
+
 def high_tails(poses: dict[str, np.ndarray]) -> data.ValidationSet:
     """Every 10th frame of the validation tails of all training subjects (data.load_poses' "train"
     poses), seen from high cameras (seed 2)."""
-    tail = np.concatenate([seq[data.sequence_split(len(seq), 0.1) :: 10] for _, seq in sorted(poses.items())])
-    pixels, camera = high_views(tail - tail[:, :1], seed=2)
+    pixels, camera = high_views(tail_frames(poses), seed=2)
     return data.ValidationSet(camera, pixels, np.ones(pixels.shape[:2], np.float32))
 
 
@@ -102,14 +120,7 @@ def sh_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[s
 def high_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
     """The source subjects' training frames from high cameras, and the tails from other high ones."""
     train = data.load_poses(data_dir, "train")
-    heads = [
-        seq[: data.sequence_split(len(seq), 0.1)]
-        for key, seq in sorted(train.items())
-        if key.split("/")[0] in SOURCE
-    ]
-    world = np.concatenate(heads)
-    world = world[:: max(1, len(world) // poses)]
-    pixels, _ = high_views(world - world[:, :1], seed=1)
+    pixels, _ = high_views(source_frames(train, poses), seed=1)
     pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
     return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high_tails(train)}
 
@@ -157,19 +168,9 @@ def built_shift(name: str, change: Any, truth_changes: bool) -> Any:
 
     def shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
         train = data.load_poses(data_dir, "train")
-        heads = [
-            seq[: data.sequence_split(len(seq), 0.1)]
-            for key, seq in sorted(train.items())
-            if key.split("/")[0] in SOURCE
-        ]
-        world = np.concatenate(heads)
-        world = world[:: max(1, len(world) // poses)]
-        pixels, _ = high_views(change(world - world[:, :1]), seed=1, elevation=synthetic.ELEVATION_DEG)
+        pixels, _ = high_views(change(source_frames(train, poses)), seed=1, elevation=synthetic.ELEVATION_DEG)
         pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
-        tail = np.concatenate(
-            [seq[data.sequence_split(len(seq), 0.1) :: 10] for _, seq in sorted(train.items())]
-        )
-        tail = tail - tail[:, :1]
+        tail = tail_frames(train)
         seen, truth = high_views(change(tail), seed=2, elevation=synthetic.ELEVATION_DEG)
         if not truth_changes:
             _, truth = high_views(tail, seed=2, elevation=synthetic.ELEVATION_DEG)
