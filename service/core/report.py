@@ -15,8 +15,7 @@ from repnet.core.errors import InvalidKeypoints, Violation
 from repnet.core.inputs import Limits, PoseInput, Prepared
 from repnet.core.keypoints import check_request
 
-REFUSE, REPORT = "refuse", "report"  # the two ways a request's invalid poses are answered
-MODES = (REFUSE, REPORT)
+REPORT = "report"  # invalid_poses: answer the valid poses, each invalid one with its errors
 MAX_POSE_ERRORS = 3  # violations listed per unlifted pose (its first ones; error_count says how many)
 
 
@@ -63,11 +62,6 @@ class Outcome:
     rows: npt.NDArray[np.int64]  # (count,)
     errors: tuple[Violation, ...]  # at most MAX_POSE_ERRORS per pose, in request order
     error_count: int  # every violation of every pose not lifted
-
-    @property
-    def lifted(self) -> int:
-        """How many poses were lifted."""
-        return int((self.rows >= 0).sum())
 
 
 def outcome(count: int, readable: Readable, prepared: Prepared) -> Outcome:
