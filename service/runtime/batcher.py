@@ -14,12 +14,7 @@ from typing import Any, Generic, Protocol, TypeVar
 
 from repnet.core.errors import ModelNotReady, Overloaded
 from repnet.runtime.fair_queue import Chunk, FairQueue
-
-
-def batch_window(max_wait_s: float, busy: float) -> float:
-    """How long the oldest queued request may wait for others to join its batch, for a batcher that
-    ran `busy` of its recent time: 0 up to BUSY_TO_WAIT, then in proportion, max_wait_s when always busy."""
-    return max_wait_s * min(1.0, max(0.0, busy - BUSY_TO_WAIT) / (1.0 - BUSY_TO_WAIT))
+from repnet.runtime.window import Window
 
 
 class Rows(Protocol):
@@ -59,8 +54,6 @@ T = TypeVar("T")
 # cheaper than the hop to a worker thread and back (docs/BENCHMARKS.md).
 INLINE_POSES = 8
 MAX_BATCH = 256  # most poses (or windows) in one model run by default (REPNET_MAX_BATCH)
-BUSY_TO_WAIT = 0.25  # a batcher busier than this share of its time lets requests wait for others
-BUSY_SMOOTHING = 0.1  # the weight of the last run in the busy share (an average over ~10 runs)
 SOURCE_SHARE = 0.25  # most of the queue one source may hold (see Batcher.source_share)
 
 
@@ -80,8 +73,10 @@ def _wake(room: asyncio.Future[None]) -> None:
 class Batcher(Generic[In, Out]):
     """One worker thread runs one model on batches of queued requests' rows; adapters get its answers.
 
-    An idle batcher runs a request at once; under load (work queued during the last run) a batch
-    starts when max_batch poses are queued or max_wait_s after the last run ended. Requests larger
+    An idle batcher runs a request at once, unless another source is expected to send within
+    company_wait_s of it (a paced camera's next frame); under load (work queued during the last run)
+    a batch starts when max_batch poses are queued or max_wait_s after the last run ended
+    (runtime.window). Requests larger
     than max_batch are split into chunks. The queue holds at most queue_size poses: a request that
     does not fit is refused at once with Overloaded. The engine knows no reply and no wire format.
 
@@ -90,20 +85,26 @@ class Batcher(Generic[In, Out]):
     """
 
     def __init__(
-        self, metrics: BatchMetrics | None, *, max_batch: int, max_wait_s: float, queue_size: int, name: str
+        self,
+        metrics: BatchMetrics | None,
+        *,
+        max_batch: int,
+        max_wait_s: float,
+        queue_size: int,
+        name: str,
+        company_wait_s: float = 0.0,
     ) -> None:
-        if max_batch < 1 or queue_size < 1 or max_wait_s < 0:
-            raise ValueError("max_batch and queue_size must be >= 1 and max_wait_s >= 0")
+        if max_batch < 1 or queue_size < 1:
+            raise ValueError("max_batch and queue_size must be >= 1")
         self.metrics = metrics
         self.model = name  # the model it runs: its metrics' `model` label, its thread's name
         self.max_batch = max_batch
-        self.max_wait_s = max_wait_s
+        self.window = Window(max_wait_s, company_wait_s)  # when a batch is due
         self.queue_size = queue_size
         self._queue = FairQueue()
         # Coroutines in submit_async waiting for room, woken on their own loops.
         self._room_waiters: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []
         self._closed = False
-        self._busy = 0.0  # the share of its time the worker spent running, smoothed over recent runs
         self._serving = True  # False once shutdown begins: readiness off, queued work still done
         self._cond = threading.Condition()
         self._worker = threading.Thread(target=self._work, name=f"repnet-{name}", daemon=True)
@@ -139,7 +140,7 @@ class Batcher(Generic[In, Out]):
         Overloaded at once, or after waiting up to `wait_s` for room (streams wait: their window
         bounds what they hold, so a busy moment slows them down instead of failing their frames).
         """
-        source = object() if source is None else source
+        named, source = source is not None, object() if source is None else source
         chunks = self._chunks(inputs, transport, source)
         with self._cond:
             deadline = time.monotonic() + wait_s
@@ -148,21 +149,21 @@ class Batcher(Generic[In, Out]):
                 if remaining <= 0:
                     break
                 self._cond.wait(remaining)
-            return self._enqueue(chunks, len(inputs), source)
+            return self._enqueue(chunks, len(inputs), source, named)
 
     async def submit_async(
         self, inputs: In, transport: str, wait_s: float = 0.0, source: Hashable = None
     ) -> list[Future[Out]]:
         """Batcher.submit for coroutines: waiting for room suspends the caller, not its event loop."""
         loop = asyncio.get_running_loop()
-        source = object() if source is None else source
+        named, source = source is not None, object() if source is None else source
         chunks = self._chunks(inputs, transport, source)
         deadline = time.monotonic() + wait_s
         while True:
             with self._cond:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or not self._must_wait(len(inputs), source):
-                    return self._enqueue(chunks, len(inputs), source)
+                    return self._enqueue(chunks, len(inputs), source, named)
                 room: asyncio.Future[None] = loop.create_future()
                 self._room_waiters.append((loop, room))
             with contextlib.suppress(TimeoutError):
@@ -226,8 +227,11 @@ class Batcher(Generic[In, Out]):
         full = self._queue.rows + n > self.queue_size or self._over_share(n, source)
         return full and n <= self.queue_size and not self._closed
 
-    def _enqueue(self, chunks: list[Chunk[In, Out]], n: int, source: Hashable) -> list[Future[Out]]:
-        """Queue the chunks of n poses, or raise why not (call with _cond held)."""
+    def _enqueue(
+        self, chunks: list[Chunk[In, Out]], n: int, source: Hashable, named: bool = False
+    ) -> list[Future[Out]]:
+        """Queue the chunks of n poses, or raise why not (call with _cond held); a `named` source's
+        arrival is remembered (a one-off request's is not: it never sends again)."""
         if self._closed:
             raise ModelNotReady("the server is shutting down and accepts no new requests")
         if self._queue.rows + n > self.queue_size:
@@ -241,6 +245,8 @@ class Batcher(Generic[In, Out]):
                 f"{self.source_share} poses waiting, {n} more requested); retry later"
             )
         now = time.monotonic()
+        if named:
+            self.window.arrived(source, now)
         for chunk in chunks:
             chunk.enqueued = now
             self._queue.push(chunk)
@@ -273,29 +279,22 @@ class Batcher(Generic[In, Out]):
             self.metrics.batch_queued(self.model, self._queue.rows)
 
     def _take_batch(self) -> list[Chunk[In, Out]]:
-        """Block until a batch is due, then take it from the queue; [] once closed and empty.
-
-        The batching window follows the load. A request that finds the batcher idle runs at once
-        (a client that waits for each answer never has company). When work queued during the last
-        run, the oldest queued request may wait for more, up to batch_window(max_wait_s, the share
-        of its time the batcher ran lately), so that runs grow with the load (paced cameras send one
-        frame at a time). A batch is taken at once when max_batch of cost waits; FairQueue.take_run
-        picks it.
-        """
+        """Block until a batch is due (runtime.window.Window; at once when max_batch of cost waits),
+        then take it from the queue (FairQueue.take_run); [] once closed and empty."""
         with self._cond:
             loaded = bool(self._queue)  # work queued while the last run ran: others are sending too
             while not self._queue:
                 if self._closed:
                     return []
                 self._cond.wait()
-            window = batch_window(self.max_wait_s, self._busy) if loaded else 0.0
-            if window > 0:
-                deadline = self._queue.first().enqueued + window
-                while self._queue.cost < self.max_batch and not self._closed:
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
-                        break
-                    self._cond.wait(remaining)
+            deadline, company = self.window.deadlines(self._queue.first().enqueued, loaded)
+            while self._queue.cost < self.max_batch and not self._closed:
+                now = time.monotonic()
+                queued = [k for k, s in self._queue.sources.items() if s.chunks] if company > now else ()
+                until = self.window.due(now, deadline, company, queued)
+                if until <= now:
+                    break
+                self._cond.wait(until - now)
             batch = self._queue.take_run(self.max_batch)
             self._set_depth()
             self._room_freed()
@@ -309,8 +308,7 @@ class Batcher(Generic[In, Out]):
                 started = time.monotonic()
                 self._run_batch(batch)
                 now = time.monotonic()
-                share = (now - started) / max(now - ended, 1e-9)  # of the time since the last run
-                self._busy += BUSY_SMOOTHING * (share - self._busy)
+                self.window.ran(started, now, ended)
                 ended = now
 
     def _run_batch(self, batch: list[Chunk[In, Out]]) -> None:

@@ -30,12 +30,18 @@ class LiftBatcher(Batcher[Any, Any]):
         max_wait_s: float,
         queue_size: int,
         limits: Limits | None = None,
+        company_wait_s: float = 0.0,
     ) -> None:
         self.lifter = lifter
         self.limits = Limits() if limits is None else limits
         model = lifter.info.model_id
         super().__init__(
-            metrics, max_batch=max_batch, max_wait_s=max_wait_s, queue_size=queue_size, name=model
+            metrics,
+            max_batch=max_batch,
+            max_wait_s=max_wait_s,
+            queue_size=queue_size,
+            name=model,
+            company_wait_s=company_wait_s,
         )
 
     def _chunks(self, inputs: Job | ModelInput, transport: str, source: Hashable) -> list[Chunk[Job, Any]]:

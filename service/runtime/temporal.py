@@ -232,7 +232,15 @@ class TemporalBatcher(Batcher[WindowSource, TemporalAnswer]):
     batch on its thread, so a request's windows are never all built at once), TemporalAnswers out.
     Its runs are not in the single-frame metrics (inference_seconds, batch size)."""
 
-    def __init__(self, lifter: TemporalLifter, *, max_batch: int, max_wait_s: float, queue_size: int) -> None:
+    def __init__(
+        self,
+        lifter: TemporalLifter,
+        *,
+        max_batch: int,
+        max_wait_s: float,
+        queue_size: int,
+        company_wait_s: float = 0.0,
+    ) -> None:
         self.lifter = lifter
         super().__init__(
             None,
@@ -240,6 +248,7 @@ class TemporalBatcher(Batcher[WindowSource, TemporalAnswer]):
             max_wait_s=max_wait_s,
             queue_size=queue_size,
             name=f"{lifter.mode}-batcher",
+            company_wait_s=company_wait_s,
         )
 
     def _run(self, parts: list[WindowSource]) -> TemporalAnswer:

@@ -170,6 +170,7 @@ def build_batcher(lifter: Lifter, metrics: Metrics, settings: Settings) -> LiftB
         max_batch=settings.max_batch,
         max_wait_s=settings.max_wait_ms / 1000,
         queue_size=settings.queue_size,
+        company_wait_s=settings.company_wait_ms / 1000,
     )
 
 

@@ -142,6 +142,14 @@ class Settings(BaseSettings):
         "its batch. The window follows the load: a batcher busy under a quarter of its time runs a "
         "request at once, a busier one lets it wait up to this, in proportion (0: never wait)",
     )
+    company_wait_ms: float = Field(
+        default=12.0,
+        ge=0,
+        description="the longest a request waits for a client that is expected to send within it (a "
+        "paced camera's next frame, from the gaps between its last ones) to join its run, even when the "
+        "batcher is idle: cameras share runs instead of each paying a run per frame. A client that waits "
+        "for each answer is never waited for (0: never wait)",
+    )
     queue_size: int = Field(
         default=8192,
         ge=1,

@@ -94,6 +94,7 @@ def load_temporal(settings: Settings, lifter: Lifter, metrics: Metrics) -> Tempo
             max_batch=settings.max_batch,
             max_wait_s=settings.max_wait_ms / 1000,
             queue_size=settings.queue_size,
+            company_wait_s=settings.company_wait_ms / 1000,
         )
         for mode, temporal in lifters.items()
     }

@@ -18,9 +18,9 @@ from prometheus_client import CollectorRegistry
 from repnet.core.errors import ModelNotReady, Overloaded
 from repnet.core.inputs import ModelInput, PoseInput
 from repnet.core.keypoints import prepare_poses
-from repnet.runtime.batcher import BUSY_TO_WAIT, batch_window
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter, Prediction
+from repnet.runtime.window import BUSY_TO_WAIT, batch_window
 from repnet.server.app import limits_of
 from repnet.server.config import Settings
 from tests.conftest import POSE_2D, GatedLifter, GrpcHandle
@@ -264,7 +264,7 @@ def test_a_busy_batcher_lets_a_request_wait_for_company_and_an_idle_one_does_not
     engine = engine_factory(gated, max_batch=64, max_wait_s=1.0, queue_size=64)
     engine.lift(model_input(variant(0)), "http")
     engine.lift(model_input(variant(1)), "http")  # idle: two batches of one
-    engine._busy = 1.0  # as after runs that took all of its time
+    engine.window.busy = 1.0  # as after runs that took all of its time
     gated.gate.clear()
     gated.entered.clear()
     running = engine.submit(model_input(variant(2)), "http")

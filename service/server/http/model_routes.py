@@ -171,7 +171,7 @@ def describe_model(
             confidence_threshold=limits.confidence_threshold,
             max_coordinate_px=limits.max_coordinate,
             max_batch=engine.max_batch,
-            max_wait_ms=engine.max_wait_s * 1000,
+            max_wait_ms=engine.window.max_wait_s * 1000,
             queue_size=engine.queue_size,
             max_temporal_poses=None if temporal is None else temporal.max_poses,
         ),
