@@ -29,22 +29,20 @@ ASSETS = {
     "icon.svg": "image/svg+xml",
     "live.js": "text/javascript; charset=utf-8",
 }
-# The live mode's 2D detector: the npm package @mediapipe/pose as published (vendor/mediapipe/README.md),
-# its SIMD WebAssembly build and the lite landmark model. Served as they are, under the same allow-list.
+# The live mode's 2D detector: the npm package @mediapipe/tasks-vision as published (its ES module and
+# SIMD WebAssembly build) and a lite pose landmarker model (vendor/mediapipe/README.md says whence).
+# Served as they are, under the same allow-list.
 VENDOR = "vendor/mediapipe/"
-BINARY = "application/octet-stream"
 ASSETS |= {
-    VENDOR + "pose.js": "text/javascript; charset=utf-8",
-    VENDOR + "pose_solution_simd_wasm_bin.js": "text/javascript; charset=utf-8",
-    VENDOR + "pose_solution_packed_assets_loader.js": "text/javascript; charset=utf-8",
-    VENDOR + "pose_solution_simd_wasm_bin.wasm": "application/wasm",
-    VENDOR + "pose_solution_simd_wasm_bin.data": BINARY,
-    VENDOR + "pose_solution_packed_assets.data": BINARY,
-    VENDOR + "pose_web.binarypb": BINARY,
-    VENDOR + "pose_landmark_lite.tflite": BINARY,
+    VENDOR + "vision_bundle.mjs": "text/javascript; charset=utf-8",
+    VENDOR + "vision_wasm_internal.js": "text/javascript; charset=utf-8",
+    VENDOR + "vision_wasm_internal.wasm": "application/wasm",
+    VENDOR + "pose_landmarker_lite.task": "application/octet-stream",
 }
 # 'wasm-unsafe-eval' lets the page compile WebAssembly (the vendored detector's), and nothing else:
-# no eval, no inline script; the .wasm itself must still come from this origin (connect-src 'self').
+# no eval, no inline script; the .wasm and the model must still come from this origin (connect-src
+# 'self'), and the detector's loader is a script of this origin too (script-src 'self'). It needs no
+# worker and no blob: script.
 # media-src blob: plays the video file the user picks for the live mode (an object URL of it).
 CSP = (
     "default-src 'none'; script-src 'self' 'wasm-unsafe-eval'; media-src blob:; style-src 'self'; "

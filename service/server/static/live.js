@@ -1,7 +1,8 @@
 // The live mode: a video file or the webcam, its person detected in 2D in the browser by the vendored
-// MediaPipe Pose (vendor/mediapipe/, lite model, WebAssembly) and lifted by this service as one causal
-// track: each frame is a POST /lift of the track's last frames (the causal model's window), whose
-// last answer is the frame's 3D pose, drawn at once. Frames that arrive while one is in hand are skipped.
+// MediaPipe PoseLandmarker (vendor/mediapipe/, lite model, WebAssembly on the CPU) and lifted by this
+// service as one causal track: each frame is a POST /lift of the track's last frames (the causal
+// model's window), whose last answer is the frame's 3D pose, drawn at once. Frames that arrive while
+// one is in hand are skipped.
 
 import { reach } from "./track.js";
 import { View3D, sideOf } from "./view.js";
@@ -14,31 +15,31 @@ const KEPT = 200;  // latencies kept for the p50/p95 shown
 const live = { pose: null, model: null, running: false, source: null, sent: [], latencies: [], drawn: 0, start: 0 };
 const view = new View3D($("live3d"));
 
-// The vendored detector's script (a classic script that defines window.Pose), loaded once on demand.
-function loadDetector() {
-  if (live.pose) return Promise.resolve(live.pose);
-  return new Promise((resolve, reject) => {
-    const script = document.createElement("script");
-    script.src = `${VENDOR}pose.js`;
-    script.onload = async () => {
-      const pose = new window.Pose({ locateFile: (file) => VENDOR + file });
-      pose.setOptions({ modelComplexity: 0, smoothLandmarks: true, minDetectionConfidence: 0.5, minTrackingConfidence: 0.5 });
-      await pose.initialize();
-      live.pose = pose;
-      resolve(pose);
-    };
-    script.onerror = () => reject(new Error("the pose detector did not load"));
-    document.head.append(script);
+// The vendored detector (MediaPipe Tasks' PoseLandmarker), loaded once on demand: its ES module, then its
+// WebAssembly build and the lite model, all from this service. It runs on the CPU (XNNPACK in WebAssembly
+// SIMD), in VIDEO mode: the person found in one frame is tracked into the next without the detector model.
+async function loadDetector() {
+  if (live.pose) return live.pose;
+  const { PoseLandmarker } = await import(`${VENDOR}vision_bundle.mjs`);
+  const fileset = { wasmLoaderPath: `${VENDOR}vision_wasm_internal.js`, wasmBinaryPath: `${VENDOR}vision_wasm_internal.wasm` };
+  live.pose = await PoseLandmarker.createFromOptions(fileset, {
+    baseOptions: { modelAssetPath: `${VENDOR}pose_landmarker_lite.task`, delegate: "CPU" },
+    runningMode: "VIDEO",
+    numPoses: 1,
+    minPoseDetectionConfidence: 0.5,
+    minPosePresenceConfidence: 0.5,
+    minTrackingConfidence: 0.5,
   });
+  return live.pose;
 }
 
-// The detector's landmarks of one video frame: 33 normalised [x, y, z, visibility], or null.
-function detect(pose, video) {
-  return new Promise((resolve, reject) => {
-    pose.onResults((results) => resolve(results.poseLandmarks ?? null));
-    pose.send({ image: video }).catch(reject);
-  });
+// The detector's landmarks of one video frame (grabbed at `time`, ms): 33 normalised {x, y, z, visibility}, or null.
+function detect(pose, video, time) {
+  return pose.detectForVideo(video, time).landmarks[0] ?? null;
 }
+
+const round = (value, scale) => Math.round(value * scale) / scale;
+const encoder = new TextEncoder();
 
 const percentile = (values, q) => {
   const sorted = [...values].sort((a, b) => a - b);
@@ -54,16 +55,23 @@ async function step(video, fps, window) {
   const grabbed = performance.now();
   const frame = live.source === "camera" ? Math.round((grabbed - live.start) / 1000 * fps) : Math.round(video.currentTime * fps);
   if (live.sent.length && frame <= live.sent[live.sent.length - 1].frame) return;
-  const landmarks = await detect(live.pose, video);
+  const landmarks = detect(live.pose, video, grabbed);
   const detected = performance.now();
   if (!live.running) return;
   if (!landmarks) {
     status("no person in view");
     return;
   }
-  live.sent.push({ keypoints: landmarks.map((l) => [l.x, l.y, l.z, l.visibility]), track_id: TRACK, frame });
+  // x, y to 1e-5 of the image (well under a pixel), so that a window of every frame fits the body limit
+  const keypoints = landmarks.map((l) => [round(l.x, 1e5), round(l.y, 1e5), round(l.z, 1e4), round(l.visibility, 1e3)]);
+  live.sent.push({ keypoints, track_id: TRACK, frame });
   live.sent = live.sent.filter((p) => p.frame >= frame - window);
   const body = { format: "mediapipe33", image_size: [video.videoWidth, video.videoHeight], temporal: "causal", fps, poses: live.sent };
+  // a service with a smaller body limit than the window needs gets the newest poses that fit
+  while (live.sent.length > 1 && encoder.encode(JSON.stringify(body)).length > live.model.limits.max_body_bytes) {
+    live.sent = live.sent.slice(1);
+    body.poses = live.sent;
+  }
   const response = await fetch("/lift", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
   const answer = await response.json();
   if (!response.ok) throw new Error(`/lift answered ${response.status}: ${JSON.stringify(answer.detail)}`);
