@@ -63,11 +63,14 @@ class Tally:
     errors: int = 0
 
     def record(self, sent: float, done: float, ok: bool = True) -> None:
-        """Count a call sent at `sent` and answered at `done` if it was sent in the window."""
+        """Count a call sent at `sent` and answered at `done`: its latency if it was sent in the window
+        and answered (an error is counted apart: a fast refusal is not a fast answer), and as completed
+        if it was answered in the window (an error is not throughput)."""
         if self.start <= sent < self.stop:
-            self.latencies.append(done - sent)
+            if ok:
+                self.latencies.append(done - sent)
             self.errors += not ok
-        if self.start <= done < self.stop:
+        if ok and self.start <= done < self.stop:
             self.completed += 1
 
 

@@ -145,3 +145,30 @@ def test_the_readmes_video_command_runs_as_written(tmp_path: Path, monkeypatch: 
     out = Path(commands[0][commands[0].index("-o") + 1])
     with av.open(str(out)) as container:
         assert sum(1 for _ in container.decode(video=0)) == 5
+
+
+def test_a_camera_is_lifted_causally_as_it_is_read(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`repnet video 0`: a camera (here the clip behind /dev/video0, as v4l2 would give its frames) is
+    read once and lifted with the causal model, as a live camera must be; its -o .mp4 is drawn from
+    the frames kept while reading."""
+    from repnet.io import video
+
+    real_open = av.open
+
+    def open_device(source: str, *args: object, **options: object) -> object:
+        if source == "/dev/video0":  # what v4l2 would give: the clip's frames, read once
+            assert options == {"format": "v4l2"}
+            return real_open(str(CLIP))
+        return real_open(source, *args, **options)  # the .mp4 written
+
+    monkeypatch.setattr(video, "device_path", lambda source: "/dev/video0" if source == "0" else None)
+    monkeypatch.setattr(av, "open", open_device)
+    out, drawn = tmp_path / "camera.json", tmp_path / "camera.mp4"
+    assert main(["video", "0", "--local", "-o", str(out)]) == EXIT_OK
+    found = json.loads(out.read_text())
+    assert found["temporal"] == "causal" and found["video"]["frames"] == 5
+    poses = found["poses"]
+    assert [p["frame"] for p in poses] == [0, 1, 2, 3, 4] and all(p["temporal"] for p in poses)
+    assert main(["video", "0", "--local", "-o", str(drawn)]) == EXIT_OK
+    with real_open(str(drawn)) as container:
+        assert sum(1 for _ in container.decode(video=0)) == 5
