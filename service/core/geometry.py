@@ -42,21 +42,19 @@ def rotation_of_camera(camera: np.ndarray) -> npt.NDArray[np.float64]:
     t = np.sqrt(trace + 2 * r)
     a, b, c, d = m[:, 0, 0] + r, m[:, 0, 1], m[:, 1, 0], m[:, 1, 1] + r
     scale = t / np.where(full_rank, a * d - b * c, 1.0)
-    inverse_root = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], 1) * scale[:, None, None]
-    rows = inverse_root @ k  # (N, 2, 3)
+    adjugate = np.empty((len(k), 2, 2))  # filled in place: np.stack cost more than the arithmetic
+    adjugate[:, 0, 0], adjugate[:, 0, 1], adjugate[:, 1, 0], adjugate[:, 1, 1] = d, -b, -c, a
+    rows = (adjugate * scale[:, None, None]) @ k  # (N, 2, 3)
     if not full_rank.all():
         u, _, vt = np.linalg.svd(k[~full_rank], full_matrices=False)
         rows[~full_rank] = u @ vt
     r0, r1 = rows[:, 0], rows[:, 1]
-    third = np.stack(
-        [
-            r0[:, 1] * r1[:, 2] - r0[:, 2] * r1[:, 1],
-            r0[:, 2] * r1[:, 0] - r0[:, 0] * r1[:, 2],
-            r0[:, 0] * r1[:, 1] - r0[:, 1] * r1[:, 0],
-        ],
-        -1,
-    )
-    return np.concatenate([rows, third[:, None]], axis=1)
+    rotation = np.empty((len(k), 3, 3))
+    rotation[:, :2] = rows
+    rotation[:, 2, 0] = r0[:, 1] * r1[:, 2] - r0[:, 2] * r1[:, 1]
+    rotation[:, 2, 1] = r0[:, 2] * r1[:, 0] - r0[:, 0] * r1[:, 2]
+    rotation[:, 2, 2] = r0[:, 0] * r1[:, 1] - r0[:, 1] * r1[:, 0]
+    return rotation
 
 
 def rotation_to_ray(direction: np.ndarray) -> npt.NDArray[np.float64]:

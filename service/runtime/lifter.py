@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
@@ -53,7 +54,7 @@ def non_finite_rows(*arrays: np.ndarray) -> BoolArray:
     n = arrays[0].shape[0]
     finite = np.ones(n, bool)
     for a in arrays:
-        finite &= np.isfinite(a.reshape(n, int(np.prod(a.shape[1:])))).all(axis=1)  # N may be 0
+        finite &= np.isfinite(a.reshape(n, math.prod(a.shape[1:]))).all(axis=1)  # N may be 0
     return ~finite
 
 

@@ -126,11 +126,18 @@ def build_replies(
         "derived": inputs.derived,
         "plausibility": prediction.plausibility,
         "warnings": _warnings(inputs, error, prediction.plausibility),
-        "temporal": np.isin(np.arange(len(inputs)), temporal.rows),
+        "temporal": _marked(len(inputs), temporal.rows),
         "track_id": [None] * len(inputs) if track_ids is None else list(track_ids),
         **root_columns(inputs, pose_3d_camera),
     }
     return Replies(columns, failed | non_finite_rows(rotation, reprojection, error))
+
+
+def _marked(n: int, rows: np.ndarray) -> BoolArray:
+    """(n,) True at `rows`."""
+    found = np.zeros(n, bool)
+    found[rows] = True
+    return found
 
 
 # A pose whose plausibility is below IMPLAUSIBLE_BELOW gets a warning. It is about the 1st percentile
