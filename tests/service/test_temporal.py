@@ -262,6 +262,7 @@ def test_the_model_description_lists_the_temporal_models_and_their_limit(tempora
     described = temporal.client.get("/v1/model").json()
     causal = temporal.models.engines["causal"].lifter
     assert described["limits"]["max_temporal_poses"] == temporal.models.max_poses
+    assert described["limits"]["company_wait_ms"] == Settings().company_wait_ms  # the batching window's
     entry = next(e for e in described["temporal"] if e["mode"] == "causal")
     assert entry == {"mode": "causal", "window": causal.contract.window, "grid_fps": causal.contract.grid_fps,
                      "max_fps": causal.contract.max_fps, "model_id": causal.model_id}  # fmt: skip

@@ -48,6 +48,11 @@ class LimitsInfo(BaseModel):
     max_coordinate_px: float
     max_batch: int
     max_wait_ms: float
+    company_wait_ms: float = Field(
+        0.0,
+        description="The longest a request waits for a client expected to send within it "
+        "(REPNET_COMPANY_WAIT_MS; docs/API.md, The batching window).",
+    )
     queue_size: int
     max_temporal_poses: int | None = Field(
         None,
@@ -172,6 +177,7 @@ def describe_model(
             max_coordinate_px=limits.max_coordinate,
             max_batch=engine.max_batch,
             max_wait_ms=engine.window.max_wait_s * 1000,
+            company_wait_ms=engine.window.company_wait_s * 1000,
             queue_size=engine.queue_size,
             max_temporal_poses=None if temporal is None else temporal.max_poses,
         ),
