@@ -1,6 +1,7 @@
-"""The wheel: `repnet` alone at its top level; the plain install is the light one (the clients, the
-core, the file tools: no onnxruntime, no web framework), and each command whose extra is missing says
-which `pip install` brings it. (CI also installs the wheel into a fresh venv: .ci/run, step wheel.)"""
+"""The wheel and an editable install: `repnet` alone at its top level; the plain install is the light
+one (the clients, the core, the file tools: no onnxruntime, no web framework), and each command whose
+extra is missing says which `pip install` brings it. (CI also installs the wheel into a fresh venv:
+.ci/run, step wheel.)"""
 
 from __future__ import annotations
 
@@ -71,6 +72,33 @@ def test_the_installed_wheel_imports_repnet_and_nothing_else(wheel: Path, tmp_pa
     )  # fmt: skip
     assert found.stdout.strip() == "['repnet']", found.stderr
     assert (target / "repnet" / "train" / "__init__.py").is_file()  # training/ is repnet.train
+
+
+def test_an_editable_install_imports_repnet_and_nothing_else(tmp_path: Path) -> None:
+    """`pip install -e .` (setuptools' default editable mode, what a user running it from a checkout
+    gets) maps service/ to repnet and exposes neither service/ nor training/ under its own name:
+    looked for outside the checkout, in a fresh venv."""
+    built = tmp_path / "editable"
+    built.mkdir()
+    hook = f"import setuptools.build_meta as b; print(b.build_editable({str(built)!r}))"  # PEP 660, as pip -e
+    made = subprocess.run(
+        [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
+    python = venv / "bin" / "python"
+    install = [sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-deps"]
+    subprocess.run(
+        [*install, str(built / made.stdout.split()[-1])], check=True, capture_output=True, timeout=300
+    )
+    code = (
+        "import importlib.util as u; print([(n, u.find_spec(n).origin) for n in ('repnet', 'service', "
+        "'training') if u.find_spec(n) is not None])"
+    )  # top-level names only: importing repnet would need its dependencies (--no-deps)
+    found = subprocess.run(
+        [str(python), "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60
+    )
+    assert found.stdout.strip() == str([("repnet", str(ROOT / "service" / "__init__.py"))]), found.stderr
 
 
 def requirements(wheel: Path) -> dict[str, set[str]]:
