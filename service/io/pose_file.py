@@ -236,6 +236,15 @@ def load_poses(path: Path) -> Poses:
     raise InputFileError(f"{path}: expected a .json, .npz or .txt (YOLO labels) file")
 
 
+def _load_in_pixels(path: Path, image_size: tuple[float, float] | None) -> Poses:
+    """load_poses(path) in pixels (to_pixels), every error named by the file."""
+    poses = load_poses(path)  # its errors name the file
+    try:
+        return to_pixels(poses, image_size)
+    except InputFileError as err:
+        raise InputFileError(f"{path}: {err}") from None
+
+
 def _frame_files(spec: str) -> list[Path]:
     """The .json files of a folder, or the files a glob pattern matches, by frame number then name."""
     path = Path(spec)
@@ -272,6 +281,7 @@ def load_frames(
         data = read_json(path) if path.suffix == ".json" else None
         number = frame_number(path)
         rows: list[np.ndarray] = []
+        names: list[str] = []  # each row's label, when not its file's name
         if path.suffix == ".txt" and _blank(path):  # a frame's label file without a person
             pass
         elif isinstance(data, dict) and "people" in data:
@@ -283,17 +293,16 @@ def load_frames(
             scale = np.array([*(image_size or (1.0, 1.0)), 1.0])  # --keypoint_scale 3 writes [0, 1]
             rows = [p * scale for p in people]
         else:
-            try:
-                poses = to_pixels(load_poses(path), image_size)
-            except InputFileError as err:  # named by its file
-                raise InputFileError(err if str(path) in str(err) else f"{path}: {err}") from None
+            poses = _load_in_pixels(path, image_size)
             fmt = fmt or poses.format
             conf = np.full(poses.points.shape[:2], np.nan) if poses.confidence is None else poses.confidence
             rows = list(np.concatenate([poses.points, conf[..., None]], axis=-1))
+            if data is None and poses.label:  # a label file's own labels (its line numbers)
+                names = list(poses.label)
         parts += rows
         frames += [index if number is None else number] * len(rows)
         persons += range(len(rows))
-        labels += list(poses.label) if data is None and poses.label else [path.name] * len(rows)
+        labels += names or [path.name] * len(rows)
     poses = stack_poses(parts, None, fmt, f"{len(files)} files")
     return replace(
         poses, frame=np.array(frames), person=np.array(persons), label=tuple(labels), numbered_by="file names"
@@ -305,11 +314,7 @@ def read_input(spec: str, progress: Progress, image_size: tuple[float, float] | 
     (normalised coordinates multiplied by their image size: the file's, else `image_size`)."""
     path = Path(spec)
     if path.is_file():
-        poses = load_poses(path)
-        try:
-            return to_pixels(poses, image_size)
-        except InputFileError as err:  # named by its file
-            raise InputFileError(f"{path}: {err}") from None
+        return _load_in_pixels(path, image_size)
     if path.is_dir() or any(c in spec for c in "*?["):
         return load_frames(_frame_files(spec), progress, image_size)
     raise InputFileError(f"{spec}: No such file or folder")

@@ -179,3 +179,12 @@ def test_an_empty_label_file_is_a_frame_without_a_person(tmp_path: Path) -> None
     (tmp_path / "labels" / "clip_1.txt").write_text("\n")
     poses = read(str(tmp_path / "labels"), IMAGE_SIZE)
     assert poses.frame.tolist() == [0, 2, 2] and len(poses.points) == 3
+
+
+def test_a_blank_label_file_first_or_between_keeps_each_pose_its_label(tmp_path: Path) -> None:
+    shutil.copytree(FIXTURES / "yolo_labels", tmp_path / "labels")
+    (tmp_path / "labels" / "clip_1.txt").write_text("\n")
+    (tmp_path / "labels" / "clip_00.txt").write_text("  \n")  # the first file: frame 0, no person
+    poses = read(str(tmp_path / "labels"), IMAGE_SIZE)
+    assert poses.frame.tolist() == [0, 2, 2] and len(poses.label) == len(poses.points) == 3
+    assert [label.split(" ")[0] for label in poses.label] == ["clip_0.txt", "clip_2.txt", "clip_2.txt"]
