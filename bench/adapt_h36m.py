@@ -151,13 +151,11 @@ def coco_hips(world: np.ndarray) -> np.ndarray:
     out = world.copy()
     pelvis, thorax = world[:, 0], world[:, skeleton.JOINT_NAMES.index("thorax")]
     up = np.linalg.norm(thorax - pelvis, axis=-1, keepdims=True) * 0.08
-    for name in ("right_hip", "left_hip"):
-        j = skeleton.JOINT_NAMES.index(name)
+    hips = [skeleton.RIGHT_HIP, skeleton.LEFT_HIP]
+    for j in hips:
         out[:, j] = world[:, j] + 0.25 * (world[:, j] - pelvis)
         out[:, j, 2] += up[:, 0]
-    out[:, 0] = out[
-        :, [skeleton.JOINT_NAMES.index("right_hip"), skeleton.JOINT_NAMES.index("left_hip")]
-    ].mean(1)
+    out[:, 0] = out[:, hips].mean(1)
     return out
 
 

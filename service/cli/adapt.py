@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -30,11 +29,6 @@ def format_error(name: str) -> str:
     return f"unknown format {echo(name)}; expected one of {', '.join(FORMATS)}{means}"
 
 
-def _as_flags(match: re.Match[str]) -> str:
-    """'send format "body25" or "body25b"' -> 'use --format body25 or --format body25b'."""
-    return "use " + re.sub(r'"(\w+)"', r"--format \1", match[1])
-
-
 def resolve_format(
     poses: Poses, given: str | None, source: str, say: Callable[[str], None] | None = None
 ) -> str:
@@ -49,8 +43,9 @@ def resolve_format(
         raise InputFileError(format_error(fmt))
     if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
         first = poses.points[0]
-        hint = hint_for(first, ~np.isnan(first).any(axis=1), fmt) or "; pick the format with --format"
-        hint = re.sub(r'send format ("\w+"(?: or "\w+")*)', _as_flags, hint)
+        hint = (
+            hint_for(first, ~np.isnan(first).any(axis=1), fmt, flag=True) or "; pick the format with --format"
+        )
         raise InputFileError(
             f"{source}: poses have {poses.points.shape[1]} joints, format {fmt} has "
             f"{len(FORMATS[fmt].joint_names)}{hint}"

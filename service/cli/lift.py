@@ -16,7 +16,7 @@ from repnet.client.body import Batch, Intrinsics, Tracking
 from repnet.client.chunks import Progress
 from repnet.client.http import LiftClient
 from repnet.client.result import LiftClientError, LiftResult
-from repnet.core.contract import DEFAULT_FPS
+from repnet.core.contract import DEFAULT_FPS, MODES
 from repnet.core.formats import FORMATS, MODEL_PARENTS
 from repnet.core.inputs import Limits
 from repnet.io.output import Lifted
@@ -138,7 +138,7 @@ def choose(
     rate or tracks make them a clip); a default the lifter has no model for falls back to causal,
     then off (told). The frame rate: `fps` (--fps), else the file's, else DEFAULT_FPS (told)."""
     rate = fps if fps is not None else poses.fps
-    clip = asked in ("causal", "offline") or rate is not None or poses.track_id is not None
+    clip = asked in MODES or rate is not None or poses.track_id is not None
     stills = None if clip else stills_reason(poses.numbered_by, poses.frame.tolist())
     if stills is not None:
         count = poses.frame_count

@@ -4,10 +4,9 @@ COCO-WholeBody keypoint lists (repnet.io.detectors reads each of them as a file)
 
 from __future__ import annotations
 
-# COCO-style keypoint lists by joint count, as repnet lift names them.
-_BY_COUNT = {17: "coco17", 26: "halpe26", 133: "wholebody133"}
+from repnet.core.formats import FORMAT_BY_COUNT, WHOLEBODY_PARTS
+
 _READ_IT = 'POST /lift takes {"poses": [...]}: read the file with `repnet lift FILE` or the page, or send'
-_WHOLEBODY_PARTS = ("foot_kpts", "face_kpts", "lefthand_kpts", "righthand_kpts")
 
 
 def _first(data: object) -> object:
@@ -15,10 +14,6 @@ def _first(data: object) -> object:
     while isinstance(data, list) and data:
         data = data[0]
     return data
-
-
-def _named(count: int, default: str) -> str:
-    return _BY_COUNT.get(count, default)
 
 
 def _mmpose(item: dict[str, object]) -> str | None:
@@ -32,7 +27,7 @@ def _mmpose(item: dict[str, object]) -> str | None:
     keypoints = item.get("keypoints")
     if not isinstance(keypoints, list) or "keypoint_scores" not in item:
         return None
-    fmt = _named(len(keypoints), "coco17")
+    fmt = FORMAT_BY_COUNT.get(len(keypoints), "coco17")
     return (
         f"this looks like an MMPose inferencer file (pred_out_dir); {_READ_IT} each instance's keypoints as "
         f'{{"keypoints": [[x, y], ...], "confidence": keypoint_scores}} with format "{fmt}"'
@@ -64,13 +59,13 @@ def _keypoint_list(item: dict[str, object]) -> str | None:
     keypoints = item.get("keypoints")
     if not isinstance(keypoints, list) or "image_id" not in item:
         return None
-    if any(part in item for part in _WHOLEBODY_PARTS):
+    if any(part in item for part in WHOLEBODY_PARTS[1:]):
         return (
             f"this looks like a COCO-WholeBody annotation file; {_READ_IT} each annotation's keypoints, "
             'foot_kpts, face_kpts, lefthand_kpts and righthand_kpts joined as {"keypoints": [[x, y, v], '
             '...]} with format "wholebody133"'
         )
-    fmt = _BY_COUNT.get(len(keypoints) // 3)
+    fmt = FORMAT_BY_COUNT.get(len(keypoints) // 3)
     if fmt == "coco17" and not isinstance(item["image_id"], str):
         return None  # COCO results: format_hints.raw_output_hint names them
     return (
@@ -80,11 +75,12 @@ def _keypoint_list(item: dict[str, object]) -> str | None:
 
 
 def detector_file_hint(data: object) -> str | None:
-    """What to do with one of these files posted as a body, or None for any other body."""
+    """What to do with one of these files posted as a body, or None for any other body (a POST /lift
+    body, with "poses", is not one: format_hints.raw_output_hint looks no further)."""
     annotations = isinstance(data, dict) and isinstance(data.get("annotations"), list)
     items = data["annotations"] if isinstance(data, dict) and annotations else data
     first = _first(items)
-    if not isinstance(first, dict) or (isinstance(data, dict) and "poses" in data):
+    if not isinstance(first, dict):
         return None
     for hint in (_mmpose, _yolo, _mediapipe, _keypoint_list):
         if (found := hint(first)) is not None:

@@ -9,7 +9,15 @@ import numpy as np
 import numpy.typing as npt
 
 from repnet.core.file_hints import detector_file_hint
-from repnet.core.formats import COCO17, FORMATS, H36M17, MODEL_JOINTS, KeypointFormat
+from repnet.core.formats import (
+    BODY25,
+    COCO17,
+    FORMATS,
+    H36M17,
+    MODEL_JOINTS,
+    OPENPOSE_FORMATS,
+    KeypointFormat,
+)
 
 # COCO's nose, shoulders and hips; Human3.6M has its pelvis, knee, ankle, shoulder and elbow there.
 _NOSE = COCO17.joint_names.index("nose")
@@ -123,42 +131,35 @@ def formats_with(count: int) -> tuple[str, ...]:
     return tuple(f.name for f in FORMATS.values() if len(f.joint_names) == count)
 
 
-def suggest_format(points: np.ndarray, present: np.ndarray) -> str | None:
-    """The format a pose of (K, 2) points (present (K,): the joints given) looks like: the one format
-    with K joints; where two have K, for 17 (h36m17 and coco17) the one joint 0's height above the
-    shoulders points to (nose_height: above, COCO's nose; below, Human3.6M's pelvis); else None
-    (body25 and body25b have the same joints in other places: suggest_formats names both)."""
+def suggest_formats(points: np.ndarray, present: np.ndarray) -> tuple[str, ...]:
+    """The formats a pose of (K, 2) points (present (K,): the joints given) may be in: every format
+    with K joints (one, or body25 and body25b, whose same joints sit in other places); for 17
+    (h36m17 and coco17), the one joint 0's height above the shoulders points to (nose_height:
+    above, COCO's nose; below, Human3.6M's pelvis), else none."""
     names = formats_with(len(points))
-    if len(names) < 2:
-        return names[0] if names else None
-    if len(points) != len(COCO17.joint_names):
-        return None
+    if len(names) < 2 or len(points) != len(COCO17.joint_names):
+        return names
     ok = present & np.isfinite(points).all(axis=-1)
     height = float(nose_height(np.asarray(points, np.float64)[None], ok[None])[0])
     if np.isnan(height):
-        return None
-    return COCO17.name if height > 0 else H36M17.name
+        return ()
+    return (COCO17.name if height > 0 else H36M17.name,)
 
 
-def suggest_formats(points: np.ndarray, present: np.ndarray) -> tuple[str, ...]:
-    """The formats a pose of (K, 2) points may be in: suggest_format's one, else every format with K
-    joints where nothing tells them apart (25: body25 and body25b), else none."""
-    found = suggest_format(points, present)
-    if found is not None:
-        return (found,)
-    return () if len(points) == len(COCO17.joint_names) else formats_with(len(points))
-
-
-def hint_for(points: np.ndarray, present: np.ndarray, given: str | None) -> str:
+def hint_for(points: np.ndarray, present: np.ndarray, given: str | None, flag: bool = False) -> str:
     """A hint for a pose that does not fit its format `given` (None: no format was sent): "; 25
     joints: this looks like body25 (OpenPose BODY_25) or body25b (...): send format \"body25\" or
-    \"body25b\"", or "" when nothing fits better."""
+    \"body25b\"" (`flag`: "use --format body25 or --format body25b", the command line's), or ""
+    when nothing fits better."""
     found = [name for name in suggest_formats(points, present) if name != given]
     if not found:
         return ""
     described = " or ".join(f"{name} ({FORMATS[name].description})" for name in found)
-    send = " or ".join(f'"{name}"' for name in found)
-    return f"; {len(points)} joints: this looks like {described}: send format {send}"
+    if flag:
+        send = "use " + " or ".join(f"--format {name}" for name in found)
+    else:
+        send = "send format " + " or ".join(f'"{name}"' for name in found)
+    return f"; {len(points)} joints: this looks like {described}: {send}"
 
 
 def alternatives_note(name: str) -> str:
@@ -179,7 +180,7 @@ def _openpose_formats(people: object) -> str:
     first = people[0] if isinstance(people, list) and people else None
     flat = first.get("pose_keypoints_2d") if isinstance(first, dict) else None
     count = len(flat) // 3 if isinstance(flat, list) else 0
-    names = formats_with(count) if count in (18, 25) else formats_with(25)
+    names = formats_with(count if count in OPENPOSE_FORMATS else len(BODY25.joint_names))
     return " or ".join(f'"{name}"' for name in names)
 
 
@@ -188,15 +189,17 @@ def raw_output_hint(data: object) -> str | None:
     other body: an OpenPose --write_json frame ({"version", "people": [{"pose_keypoints_2d"}]}) or
     COCO keypoint results / annotations ([{"image_id", "keypoints": [x, y, s, ...]}]), or one of
     the files core.file_hints knows (MMPose, YOLO, MediaPipe, AlphaPose, COCO-WholeBody)."""
+    if isinstance(data, dict) and "poses" in data:  # a POST /lift body: the usual case, at once
+        return None
     if (hint := detector_file_hint(data)) is not None:
         return hint
-    if isinstance(data, dict) and "people" in data and "poses" not in data:
+    if isinstance(data, dict) and "people" in data:
         return (
             "this is OpenPose output (--write_json): use `repnet lift` on the file or folder, or send "
             'each person\'s pose_keypoints_2d as {"keypoints": [[x, y, c], ...]} with format '
             + _openpose_formats(data["people"])
         )
-    items = data.get("annotations") if isinstance(data, dict) and "poses" not in data else data
+    items = data.get("annotations") if isinstance(data, dict) else data
     first = items[0] if isinstance(items, list) and items else None
     if isinstance(first, dict) and "keypoints" in first and ("image_id" in first or "category_id" in first):
         return (

@@ -278,6 +278,11 @@ FORMATS: dict[str, KeypointFormat] = {
 }
 DEFAULT_FORMAT = H36M17.name  # what a pose without a format is read as, on every transport and client
 FORMAT_NAMES: tuple[str, ...] = tuple(FORMATS)  # ModelInput.format_index points into this
+# Detector files' formats by joint count: OpenPose's people, and COCO-style keypoint lists (COCO-17,
+# Halpe-26 / AlphaPose, COCO-WholeBody); a COCO-WholeBody annotation's parts, in its joints' order.
+OPENPOSE_FORMATS = {len(f.joint_names): f.name for f in (COCO18, BODY25)}
+FORMAT_BY_COUNT = {len(f.joint_names): f.name for f in (COCO17, HALPE26, WHOLEBODY133)}
+WHOLEBODY_PARTS = ("keypoints", "foot_kpts", "face_kpts", "lefthand_kpts", "righthand_kpts")
 
 
 def _check_points(fmt: KeypointFormat, points: np.ndarray, visible: np.ndarray, num: int) -> None:

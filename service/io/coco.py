@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 
 from repnet.core.contract import is_frame_number
-from repnet.io.detectors import FORMAT_BY_COUNT, wholebody_triples
+from repnet.core.formats import FORMAT_BY_COUNT
+from repnet.io.detectors import wholebody_triples
 from repnet.io.poses import InputFileError, Poses, frame_number, shown, stack_poses
 
 

@@ -10,12 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from repnet.core.formats import FORMAT_BY_COUNT, WHOLEBODY_PARTS
 from repnet.io.poses import InputFileError, Poses, shown, stack_poses
 
-# COCO-style keypoint lists by joint count: COCO-17, Halpe-26 (AlphaPose) and COCO-WholeBody.
-FORMAT_BY_COUNT = {17: "coco17", 26: "halpe26", 133: "wholebody133"}
-# COCO-WholeBody's parts, in the order of its 133 joints: body, feet, face, left hand, right hand.
-WHOLEBODY_PARTS = ("keypoints", "foot_kpts", "face_kpts", "lefthand_kpts", "righthand_kpts")
 YOLO_JOINTS = 17  # Ultralytics' pose models: the COCO-17 keypoints (kpt_shape [17, 3] or [17, 2])
 
 

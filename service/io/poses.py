@@ -15,6 +15,7 @@ import numpy as np
 
 from repnet.core.contract import MAX_FRAME
 from repnet.core.errors import MAX_ECHO_CHARS
+from repnet.core.formats import OPENPOSE_FORMATS
 
 
 class InputFileError(Exception):
@@ -111,14 +112,11 @@ def openpose_people(data: dict[str, Any]) -> list[np.ndarray]:
     return [np.where(p[:, 2:] > 0, p, np.nan) for p in people]
 
 
-# OpenPose's --write_json people by joint count: 18 is --model_pose COCO, 25 BODY_25 (the default
-# model). The experimental BODY_25B has 25 too, in another order: nothing in the file tells it, so
-# body25 is read and `repnet lift` says so (format_hints.alternatives_note); --format body25b reads it.
-OPENPOSE_FORMATS = {18: "coco18", 25: "body25"}
-
-
 def openpose_format(people: Sequence[np.ndarray]) -> str | None:
-    """The format of OpenPose people by their joint count (OPENPOSE_FORMATS), else None."""
+    """The format of OpenPose people by their joint count (core.formats.OPENPOSE_FORMATS: 18 is
+    --model_pose COCO, 25 BODY_25, the default model), else None. The experimental BODY_25B has 25 too,
+    in another order: nothing in the file tells it, so body25 is read and `repnet lift` says so
+    (format_hints.alternatives_note); --format body25b reads it."""
     return OPENPOSE_FORMATS.get(len(people[0])) if people else None
 
 

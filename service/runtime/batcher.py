@@ -290,8 +290,7 @@ class Batcher(Generic[In, Out]):
             deadline, company = self.window.deadlines(self._queue.first().enqueued, loaded)
             while self._queue.cost < self.max_batch and not self._closed:
                 now = time.monotonic()
-                queued = [k for k, s in self._queue.sources.items() if s.chunks] if company > now else ()
-                until = self.window.due(now, deadline, company, queued)
+                until = self.window.due(now, deadline, company, self._queue.queued_by)
                 if until <= now:
                     break
                 self._cond.wait(until - now)

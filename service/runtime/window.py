@@ -3,7 +3,7 @@ expected from regular senders (a paced camera's next frame) that a run may wait 
 
 from __future__ import annotations
 
-from collections.abc import Collection, Hashable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
 BUSY_TO_WAIT = 0.25  # a batcher busier than this share of its time lets requests wait for others
@@ -22,6 +22,11 @@ def batch_window(max_wait_s: float, busy: float) -> float:
     """How long the oldest queued request may wait for others to join its batch, for a batcher that
     ran `busy` of its recent time: 0 up to BUSY_TO_WAIT, then in proportion, max_wait_s when always busy."""
     return max_wait_s * min(1.0, max(0.0, busy - BUSY_TO_WAIT) / (1.0 - BUSY_TO_WAIT))
+
+
+def _none(source: Hashable) -> int:
+    """Nothing queued, by any source."""
+    return 0
 
 
 @dataclass
@@ -67,13 +72,13 @@ class Arrivals:
         """Forget the sources not heard of within HORIZON_S."""
         self._senders = {k: s for k, s in self._senders.items() if now - s.last <= HORIZON_S}
 
-    def expected(self, now: float, until: float, excluded: Collection[Hashable] = ()) -> float | None:
-        """The earliest time by `until` that a source not in `excluded` (those already queued) is
+    def expected(self, now: float, until: float, queued: Callable[[Hashable], int] = _none) -> float | None:
+        """The earliest time by `until` that a source with nothing `queued` (what it has queued) is
         expected to send, with its slack (a late one: now, while it is less than LATE of its
         period late); None if none is."""
         best: float | None = None
         for key, sender in self._senders.items():
-            if sender.period <= 0.0 or key in excluded:
+            if sender.period <= 0.0 or queued(key):
                 continue
             due = sender.last + sender.period
             if due < now - LATE * sender.period or due > until:
@@ -120,9 +125,9 @@ class Window:
         light = not loaded and self.busy < COMPANY_BUSY  # under load, the window above instead
         return first + window, first + (self.company_wait_s if light else 0.0)
 
-    def due(self, now: float, deadline: float, company: float, queued: Collection[Hashable]) -> float:
-        """When the run is due: the load's deadline, or later while a source not `queued` is
-        expected to send by the company deadline."""
+    def due(self, now: float, deadline: float, company: float, queued: Callable[[Hashable], int]) -> float:
+        """When the run is due: the load's deadline, or later while a source with nothing `queued`
+        (what it has queued) is expected to send by the company deadline."""
         if company <= now or not len(self.arrivals):
             return deadline
         expected = self.arrivals.expected(now, company, queued)

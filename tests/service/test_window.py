@@ -28,7 +28,7 @@ def test_a_paced_source_is_expected_one_period_after_its_last_arrival() -> None:
     due = found.expected(last + 0.001, last + 0.1)
     assert due == pytest.approx(last + 1 / 30 + window.SLACK_S + window.SLACK_SHARE / 30)
     assert found.expected(last + 0.001, last + 0.02) is None  # not by then
-    assert found.expected(last + 0.001, last + 0.1, excluded={"camera"}) is None  # already queued
+    assert found.expected(last + 0.001, last + 0.1, queued={"camera"}.__contains__) is None  # already queued
 
 
 def test_one_arrival_a_long_gap_or_a_late_source_is_not_expected() -> None:

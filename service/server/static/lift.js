@@ -3,7 +3,7 @@
 
 import { reach, splitClip } from "./track.js";
 
-const bytes = (text) => new Blob([text]).size;
+export const bytes = (text) => new Blob([text]).size;
 
 // The temporal mode of a lift: the one asked, else offline for a sequence and off for one frame;
 // a default the service has no model for falls back to causal, then off ({mode, note}).

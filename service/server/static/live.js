@@ -4,6 +4,7 @@
 // model's window), whose last answer is the frame's 3D pose, drawn at once. Frames that arrive while
 // one is in hand are skipped.
 
+import { bytes } from "./lift.js";
 import { reach } from "./track.js";
 import { View3D, sideOf } from "./view.js";
 
@@ -12,7 +13,7 @@ const VENDOR = "/ui/vendor/mediapipe/";
 const TRACK = "live";
 const KEPT = 200;  // latencies kept for the p50/p95 shown
 
-const live = { pose: null, model: null, running: false, source: null, sent: [], latencies: [], drawn: 0, start: 0 };
+const live = { pose: null, model: null, running: false, source: null, sent: [], latencies: [], parts: [], drawn: 0, start: 0 };
 const view = new View3D($("live3d"));
 
 // The vendored detector (MediaPipe Tasks' PoseLandmarker), loaded once on demand: its ES module, then its
@@ -39,7 +40,6 @@ function detect(pose, video, time) {
 }
 
 const round = (value, scale) => Math.round(value * scale) / scale;
-const encoder = new TextEncoder();
 
 const percentile = (values, q) => {
   const sorted = [...values].sort((a, b) => a - b);
@@ -68,11 +68,13 @@ async function step(video, fps, window) {
   live.sent = live.sent.filter((p) => p.frame >= frame - window);
   const body = { format: "mediapipe33", image_size: [video.videoWidth, video.videoHeight], temporal: "causal", fps, poses: live.sent };
   // a service with a smaller body limit than the window needs gets the newest poses that fit
-  while (live.sent.length > 1 && encoder.encode(JSON.stringify(body)).length > live.model.limits.max_body_bytes) {
+  let text = JSON.stringify(body);
+  while (live.sent.length > 1 && bytes(text) > live.model.limits.max_body_bytes) {
     live.sent = live.sent.slice(1);
     body.poses = live.sent;
+    text = JSON.stringify(body);
   }
-  const response = await fetch("/lift", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+  const response = await fetch("/lift", { method: "POST", headers: { "Content-Type": "application/json" }, body: text });
   const answer = await response.json();
   if (!response.ok) throw new Error(`/lift answered ${response.status}: ${JSON.stringify(answer.detail)}`);
   const lifted = performance.now();
@@ -82,7 +84,7 @@ async function step(video, fps, window) {
   view.setPose({ points: result.pose_3d, rotation: result.rotation, parents, sides: joints.map(sideOf), imputed: result.imputed });
   const took = performance.now() - grabbed;
   live.latencies = [...live.latencies.slice(1 - KEPT), took];
-  live.parts = [...(live.parts ?? []).slice(1 - KEPT), [detected - grabbed, lifted - detected, performance.now() - lifted]];
+  live.parts = [...live.parts.slice(1 - KEPT), [detected - grabbed, lifted - detected, performance.now() - lifted]];
   live.drawn += 1;
   const [p50, p95] = [percentile(live.latencies, 0.5), percentile(live.latencies, 0.95)];
   document.body.dataset.liveDrawn = String(live.drawn);
