@@ -43,9 +43,8 @@ def resolve_format(
         raise InputFileError(format_error(fmt))
     if poses.points.shape[1] != len(FORMATS[fmt].joint_names):
         first = poses.points[0]
-        hint = (
-            hint_for(first, ~np.isnan(first).any(axis=1), fmt, flag=True) or "; pick the format with --format"
-        )
+        present = ~np.isnan(first).any(axis=1)
+        hint = hint_for(first, present, fmt, flag=True) or "; pick the format with --format"
         raise InputFileError(
             f"{source}: poses have {poses.points.shape[1]} joints, format {fmt} has "
             f"{len(FORMATS[fmt].joint_names)}{hint}"
