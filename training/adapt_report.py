@@ -103,7 +103,7 @@ def _per_run(pose: np.ndarray, runs: list[slice]) -> tuple[float, float]:
             spreads.append(float(metrics.limb_length_std(part).mean()))
             weights.append(len(part))
         if len(part) >= 3:
-            jitters.append(np.linalg.norm(part[2:] - 2 * part[1:-1] + part[:-2], axis=-1).mean(axis=1))
+            jitters.append(np.linalg.norm(metrics.acceleration(part), axis=-1).mean(axis=1))
     spread = float(np.average(spreads, weights=weights)) if spreads else 0.0
     return spread, float(np.concatenate(jitters).mean()) if jitters else 0.0
 

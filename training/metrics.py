@@ -143,13 +143,16 @@ def limb_length_std(pose: np.ndarray) -> np.ndarray:
     return segment_lengths(pose, LIMB_BONES).std(axis=0)
 
 
+def acceleration(pose: np.ndarray) -> np.ndarray:
+    """(n - 2, ...) the second time differences of a clip's (n, ...) poses (per frame^2)."""
+    return pose[2:] - 2 * pose[1:-1] + pose[:-2]
+
+
 def acceleration_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """(n - 2,) mean per-joint norm of the difference of second time differences of a clip's
     (n, J, 3) answers and truth (mm / frame^2), as VideoPose3D and SmoothNet define it (root-relative
     poses in the camera's orientation)."""
-    accel = pred[2:] - 2 * pred[1:-1] + pred[:-2]
-    truth = gt[2:] - 2 * gt[1:-1] + gt[:-2]
-    return np.linalg.norm(accel - truth, axis=-1).mean(axis=-1)
+    return np.linalg.norm(acceleration(pred) - acceleration(gt), axis=-1).mean(axis=-1)
 
 
 def velocity_error(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:

@@ -18,23 +18,21 @@ class Catalog:
     holds two models' poses, and its own queue of at most queue_size poses: a flood on one model
     fills that model's queue (503 / RESOURCE_EXHAUSTED for it) while the others keep theirs.
 
-    `temporal_base`: the model the loaded temporal models were loaded with (trained on its answers,
-    or on those of a model it was adapted from), None without temporal models; `adapted`: the other
-    models served that temporal lifting runs over too (adapted from the model the temporal models
-    were trained on: runtime.loading.serves_under). A request for temporal lifting with any other
-    model gets a field-level error.
+    `temporal_models`: the models temporal lifting runs over (empty without temporal models): the
+    one the temporal models were loaded with, and those adapted from the model they were trained on
+    (runtime.loading.serves_under). A request for temporal lifting with any other model gets a
+    field-level error.
     """
 
     engines: dict[str, LiftBatcher]
-    temporal_base: str | None = None
+    temporal_models: frozenset[str] = frozenset()
     sha256: dict[str, str] = field(default_factory=dict)  # each model file's, by id (lineage)
     # Whether the service's other workers serve too (server.workers; None: one process).
     peers_ready: Callable[[], bool] | None = None
-    adapted: frozenset[str] = frozenset()
 
     def runs_temporal(self, model: str) -> bool:
         """Whether temporal lifting runs over model `model`."""
-        return self.temporal_base is not None and (model == self.temporal_base or model in self.adapted)
+        return model in self.temporal_models
 
     def __post_init__(self) -> None:
         if not self.engines:
@@ -47,7 +45,7 @@ class Catalog:
         if isinstance(engine, Catalog):
             return engine
         model = engine.lifter.info.model_id
-        return cls({model: engine}, model if temporal else None)
+        return cls({model: engine}, frozenset({model} if temporal else ()))
 
     @property
     def default(self) -> str:
@@ -65,12 +63,12 @@ class Catalog:
 
     def violation(self, name: str | None, temporal: bool = False) -> Violation | None:
         """Why `name` cannot serve a request (None: it can); empty or None names the default.
-        `temporal`: the request asks for temporal lifting, which runs over temporal_base only."""
+        `temporal`: the request asks for temporal lifting, which runs over temporal_models only."""
         model = name or self.default
         if model not in self.engines:
             reason = f"unknown model {clip(model, 100)!r}; this service serves: {self.known()}"
             return Violation(MODEL_FIELD, reason, "unknown_model")
-        if temporal and self.temporal_base is not None and not self.runs_temporal(model):
+        if temporal and self.temporal_models and not self.runs_temporal(model):
             over = ", ".join(repr(m) for m in self.engines if self.runs_temporal(m))
             reason = (
                 f"temporal lifting runs over {over} (the model its temporal models were trained on, "

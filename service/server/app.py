@@ -235,17 +235,17 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
     sha256 = {m.info.model_id: file_sha256(m.path) for m in lifters}
     peers = Peers.from_env()  # a supervised worker's (server.workers)
     ready = None if peers is None else peers.all_ready
-    adapted = frozenset(
-        m.info.model_id
-        for m in lifters[1:]
-        if temporal is not None
-        and all(
-            serves_under(e.lifter, sha256[m.info.model_id], m.info.metadata)
-            for e in temporal.engines.values()
-        )
-    )
-    base = None if temporal is None else lifter.info.model_id
-    models = Catalog(engines, base, sha256, ready, adapted)
+    temporal_models: set[str] = set()
+    if temporal is not None:  # the model they were loaded with, and those adapted from their base
+        temporal_models = {lifter.info.model_id} | {
+            m.info.model_id
+            for m in lifters[1:]
+            if all(
+                serves_under(e.lifter, sha256[m.info.model_id], m.info.metadata)
+                for e in temporal.engines.values()
+            )
+        }
+    models = Catalog(engines, frozenset(temporal_models), sha256, ready)
     api_keys = None if settings.api_keys_file is None else ApiKeys.read(settings.api_keys_file)
     app = build_app(models, metrics, settings, temporal, api_keys)
     grpc_server = build_grpc_server(models, metrics, settings, temporal, api_keys, peers is not None)
