@@ -1,5 +1,6 @@
 """An onnxruntime session of a model file: its options (threads, spinning), the file read safely (a regular
-file of bounded size, hashed in chunks), the graph outputs the service never reads cut at load."""
+file of bounded size, hashed in chunks), the graph outputs the service never reads cut at load and the
+rewrites that keep its answers (runtime.rewrite)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,12 @@ import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO, Protocol
+from typing import Any, BinaryIO, Protocol
 
 import onnxruntime as ort
 
 from repnet.core.errors import ModelLoadError
+from repnet.runtime.rewrite import convs_as_matmuls
 
 # onnxruntime >= 1.29 sends usage telemetry on Linux unless told not to: off before this package makes
 # any session, whatever started it (repnet serve, repnet lift --local, repnet adapt, a script).
@@ -91,21 +93,32 @@ def model_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def without_unread_outputs(data: bytes) -> bytes:
-    """The model `data` without the UNREAD_OUTPUTS and the nodes only they need (metadata kept); the
-    same bytes when it has none of them."""
-    import onnx  # the runtime's extras bring it; loaded only here
+def _pruned(model: Any) -> Any:
+    """onnx `model` without the UNREAD_OUTPUTS and the nodes only they need (metadata kept); the
+    same object when it has none of them."""
     from onnx import utils
 
-    model = onnx.load_from_string(data)
     names = [o.name for o in model.graph.output]
     kept = [n for n in names if n not in UNREAD_OUTPUTS]
     if kept == names:
-        return data
+        return model
     inputs = [i.name for i in model.graph.input if i.name not in {t.name for t in model.graph.initializer}]
     pruned = utils.Extractor(model).extract_model(inputs, kept)
     pruned.metadata_props.extend(model.metadata_props)
     pruned.doc_string = model.doc_string
+    return pruned
+
+
+def served_graph(data: bytes) -> bytes:
+    """The graph the service runs of the model `data`: without the UNREAD_OUTPUTS, its strided 1D
+    convolutions as matrix products (runtime.rewrite: the same answers to float32 rounding); the
+    same bytes when neither applies."""
+    import onnx  # the runtime's extras bring it; loaded only here
+
+    model = onnx.load_from_string(data)
+    pruned = _pruned(model)
+    if convs_as_matmuls(pruned) == 0 and pruned is model:
+        return data
     return bytes(pruned.SerializeToString())
 
 
@@ -122,6 +135,6 @@ def open_session(path: Path, settings: HasSessionOptions | None = None) -> ort.I
     options.add_session_config_entry("session.intra_op.allow_spinning", spinning)
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     try:
-        return ort.InferenceSession(without_unread_outputs(data), options, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(served_graph(data), options, providers=["CPUExecutionProvider"])
     except Exception as err:  # onnxruntime and onnx raise their own untyped errors for bad files
         raise ModelLoadError(f"cannot load model {path}: {' '.join(str(err).split())[:500]}") from err

@@ -3,7 +3,11 @@ requests with gaps, gRPC Lift and a tracked LiftStream) equals the one stored in
 
 The file was written before the package moved into `repnet` (and is written again only when an
 answer is meant to change, saying why in the commit): `python -m tests.service.test_golden --write`.
-Strings and flags must match exactly; numbers within TOLERANCE (0: bit for bit).
+Strings and flags must match exactly; numbers within TOLERANCE, or within RELATIVE of their size
+where one float32 step is larger than that (a coordinate past 1,024 mm moves by 1.2e-4 at the least).
+The temporal models run their strided convolutions as matrix products since 2026-12-05
+(runtime.rewrite): their answers moved by at most one float32 step (1.2e-4 mm), the single-frame
+answers, cameras and scores not at all.
 """
 
 from __future__ import annotations
@@ -28,7 +32,10 @@ from tests.conftest import POSE_3D, load_model, project
 from tests.service.test_temporal import Temporal, temporal_service
 
 GOLDEN = Path(__file__).with_name("golden_answers.json.gz")
-TOLERANCE = 0.0  # absolute, on every number of every answer
+TOLERANCE = 1e-4  # absolute, on every number of every answer (mm, px, ...): issue 35's bound
+RELATIVE = 2.0**-22  # two float32 steps of the stored value
+# The camera and the scores: within 1e-6 (issue 35), and no relative slack.
+STRICT = {"camera": 1e-6, "rotation": 1e-6, "scale": 1e-6, "plausibility": 1e-6, "root_camera_m": 1e-6}
 
 
 def walk(frames: int, seed: int, noise_px: float = 3.0, shift: float = 0.0) -> np.ndarray:
@@ -144,7 +151,14 @@ def differences(got: Any, want: Any, where: str = "") -> Iterator[str]:
         for k, (g, w) in enumerate(zip(got, want, strict=False)):
             yield from differences(g, w, f"{where}[{k}]")
     elif isinstance(want, float | int) and isinstance(got, float | int) and not isinstance(want, bool):
-        if not (math.isclose(got, want, rel_tol=0.0, abs_tol=TOLERANCE) or got == want):
+        field = where.rsplit(".", 1)[-1].split("[", 1)[0]
+        strict = STRICT.get(field)
+        close = (
+            math.isclose(got, want, rel_tol=0.0, abs_tol=strict)
+            if strict is not None
+            else math.isclose(got, want, rel_tol=RELATIVE, abs_tol=TOLERANCE)
+        )
+        if not (close or got == want):
             yield f"{where}: {got!r}, stored {want!r}"
     elif got != want:
         yield f"{where}: {got!r}, stored {want!r}"
