@@ -98,31 +98,48 @@ def high_tails(poses: dict[str, np.ndarray]) -> data.ValidationSet:
     return data.ValidationSet(camera, pixels, np.ones(pixels.shape[:2], np.float32))
 
 
-def sh_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
-    """The SH detections of the source subjects' training frames (about `poses` of them), and S8's."""
+def sh_shift(
+    data_dir: Path, poses: int, run_length: int = 1
+) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], np.ndarray | None]:
+    """The SH detections of the source subjects' training frames (about `poses` of them), and S8's.
+    run_length > 1: runs of that many consecutive frames (25 Hz) spread over each sequence instead
+    of every k-th frame, with their frame numbers (a gap between runs and between sequences), so
+    that the input is read as clips (--smoothness-weight); 1: every k-th frame, no frame numbers."""
     points: list[np.ndarray] = []
     visible: list[np.ndarray] = []
+    frames: list[np.ndarray] = []
     found = list(sequences.detected_sequences(data_dir))
     total = sum(
         data.sequence_split(len(seq), 0.1) for name, seq, _, _ in found if name.split("/")[0] in SOURCE
     )
     step = max(1, total // poses)
+    offset = 0
     for name, seq, _, detections in found:
         if name.split("/")[0] in SOURCE:
             n = min(len(detections), len(seq))
             pts, vis = data.mpii_to_h36m(detections[:n])
             split = min(data.sequence_split(len(seq), 0.1), n)
-            points.append(pts[:split:step])
-            visible.append(vis[:split:step])
-    return np.concatenate(points), np.concatenate(visible), {"s8_sh": s8_sh(found)}
+            if run_length > 1:
+                starts = np.arange(0, max(split - run_length + 1, 0), step * run_length)
+                take = (starts[:, None] + np.arange(run_length)).reshape(-1)
+            else:
+                take = np.arange(0, split, step)
+            points.append(pts[take])
+            visible.append(vis[take])
+            frames.append(offset + take)
+            offset += n + 2
+    numbers = np.concatenate(frames) if run_length > 1 else None
+    return np.concatenate(points), np.concatenate(visible), {"s8_sh": s8_sh(found)}, numbers
 
 
-def high_shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
+def high_shift(
+    data_dir: Path, poses: int, run_length: int = 1
+) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], None]:
     """The source subjects' training frames from high cameras, and the tails from other high ones."""
     train = data.load_poses(data_dir, "train")
     pixels, _ = high_views(source_frames(train, poses), seed=1)
     pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
-    return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high_tails(train)}
+    return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high_tails(train)}, None
 
 
 # Shifts built from Human3.6M's 3D, stand-ins for a new dataset's people and a detector's joint
@@ -164,7 +181,9 @@ def built_shift(name: str, change: Any, truth_changes: bool) -> Any:
     cameras, + N(0, 2 px)), scored on the tails changed the same way, against the changed 3D when
     `truth_changes` (other people) else the true 3D (another detector)."""
 
-    def shift(data_dir: Path, poses: int) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet]]:
+    def shift(
+        data_dir: Path, poses: int, run_length: int = 1
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], None]:
         train = data.load_poses(data_dir, "train")
         pixels, _ = high_views(change(source_frames(train, poses)), seed=1, elevation=synthetic.ELEVATION_DEG)
         pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
@@ -173,7 +192,7 @@ def built_shift(name: str, change: Any, truth_changes: bool) -> Any:
         if not truth_changes:
             _, truth = high_views(tail, seed=2, elevation=synthetic.ELEVATION_DEG)
         tails = data.ValidationSet(truth, seen, np.ones(seen.shape[:2], np.float32))
-        return pixels, np.ones(pixels.shape[:2], np.float32), {name: tails}
+        return pixels, np.ones(pixels.shape[:2], np.float32), {name: tails}, None
 
     return shift
 
@@ -234,16 +253,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--work-dir", type=Path, default=Path("runs/bench/adapt"), help="input, model, report"
     )
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--run-length",
+        type=int,
+        default=1,
+        help="sh: runs of this many consecutive frames, numbered (default 1: every k-th frame)",
+    )
     parser.add_argument("adapt_flags", nargs="*", help="more `repnet adapt` flags (after --)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     data_dir = data.resolve_data_dir(args.data_dir)
     build = {"sh": sh_shift, "high": high_shift, **SHIFTS}[args.shift]
-    points, visible, extra = build(data_dir, args.poses)
+    points, visible, extra, frames = build(data_dir, args.poses, args.run_length)
     work = args.work_dir / args.shift
     work.mkdir(parents=True, exist_ok=True)
     keypoints = np.where(visible[..., None] > 0.5, points, np.nan)
-    np.savez(work / "input.npz", keypoints=keypoints, format="h36m17")
+    numbered = {} if frames is None else {"frame": frames}
+    np.savez(work / "input.npz", keypoints=keypoints, format="h36m17", **numbered)
     out = work / "adapted.onnx"
     command = [
         "adapt",
@@ -265,6 +291,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result: dict[str, Any] = {
         "shift": args.shift,
         "poses": len(points),
+        "run_length": args.run_length,
+        "flags": args.adapt_flags,
         "status": status,
         "wall_s": round(took, 1),
     }

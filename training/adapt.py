@@ -64,6 +64,9 @@ class AdaptConfig:
     critic_warmup: int = 20  # critic-only steps against the parent's answers before the generator moves
     anchor_weight: float = 2.0  # the synthetic task beside the paper's terms (when their weights > 0)
     bone_weight: float = 10.0  # the bone-length prior, on the answers to the user's 2D too
+    # Temporal consistency of the user's sequences: the second difference of the answers to three
+    # consecutive frames of one person (m), where the inputs say which frames those are.
+    smoothness_weight: float = 0.0
     # The synthetic task's target: "parent", the parent's answer to the clean synthetic 2D
     # (distillation: the model keeps its answers, and learns to give them under the user's
     # errors); "truth", the prior's pose itself.
@@ -104,6 +107,7 @@ def train_config(config: AdaptConfig, threads: int) -> TrainConfig:
         critic_steps=config.critic_steps,
         critic_fakes="generator",
         bone_weight=config.bone_weight,
+        smoothness_weight=config.smoothness_weight,
         detector_error_prob=config.residual_share,
         detector_error_min=config.residual_min,
         detector_error_max=config.residual_max,
@@ -122,6 +126,16 @@ def split_holdout(counts: list[int], fraction: float) -> np.ndarray:
         held = min(max(held, 1 if fraction > 0 and n >= 2 else 0), n - 1 if n > 1 else 0)
         masks.append(np.arange(n) >= n - held)
     return np.concatenate(masks) if masks else np.zeros(0, dtype=bool)
+
+
+def triplets_of(previous: np.ndarray) -> np.ndarray:
+    """(T, 3) rows (p, t, n) of three consecutive frames of one person, from `previous` (N,): per
+    row the row of the same person's frame before it, -1 where there is none."""
+    following = np.full(len(previous), -1, dtype=np.int64)
+    has = np.flatnonzero(previous >= 0)
+    following[previous[has]] = has
+    middle = np.flatnonzero((previous >= 0) & (following >= 0))
+    return np.stack([previous[middle], middle, following[middle]], axis=1).astype(np.int64)
 
 
 def answer(
@@ -161,7 +175,9 @@ class ConfigMismatch(ValueError):
 class Adaptation:
     """An adaptation of `parent` (a checkpoint state: repnet.train.checkpoint.load) to the user's
     pixel points (N, J, 2) and visibility (N, J) of the training part (the holdout is not here).
-    mirror_average -- the parent's export setting: its answers average each pose with its mirror."""
+    mirror_average -- the parent's export setting: its answers average each pose with its mirror.
+    previous -- (N,) per pose the row of the same person's frame before it, -1 where none (None: the
+      poses are not known to be sequences; the smoothness term then has nothing to judge)."""
 
     def __init__(
         self,
@@ -172,6 +188,7 @@ class Adaptation:
         mirror_average: bool,
         threads: int = 0,
         prior: PosePrior | None = None,
+        previous: np.ndarray | None = None,
     ) -> None:
         self.config, self.mirror_average = config, mirror_average
         torch.manual_seed(config.seed)
@@ -185,6 +202,7 @@ class Adaptation:
             points_2d=self.points,
             visible=self.visible,
             poses_world=world,
+            triplets=None if previous is None else triplets_of(previous),
         )
         model_config = RepNetConfig(**parent["model_config"])
         self.trainer = Trainer(
@@ -202,7 +220,7 @@ class Adaptation:
         elif config.anchor_target != "truth":
             raise ValueError(f"anchor_target must be parent or truth, got {config.anchor_target!r}")
         self.step, self.elapsed = 0, 0.0
-        self.inputs_sha = digest(self.points, self.visible)
+        self.inputs_sha = digest(self.points, self.visible, *(() if previous is None else (previous,)))
         # The detector errors are measured when the run starts (run), unless a checkpoint brings them.
 
     def refresh(self) -> None:

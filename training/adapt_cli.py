@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from repnet.core.contract import DEFAULT_FPS
 from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE
+from repnet.core.links import kept_links
 from repnet.runtime.loading import BUNDLED_MODEL
 from repnet.train import checkpoint, lineage
 from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
@@ -89,6 +90,7 @@ def _config(args: argparse.Namespace) -> AdaptConfig:
         holdout_fraction=args.holdout_fraction,
         prior_poses=args.prior_poses,
         reprojection_weight=_given(args.reprojection_weight, defaults.reprojection_weight),
+        smoothness_weight=_given(args.smoothness_weight, defaults.smoothness_weight),
         adversarial_weight=_given(args.adversarial_weight, defaults.adversarial_weight),
         residual_share=0.0 if args.residuals == "off" else defaults.residual_share,
         residual_mode=args.residuals if args.residuals in ("mean", "pose") else defaults.residual_mode,
@@ -110,11 +112,17 @@ def _progress(adaptation: Adaptation, probe: tuple[np.ndarray, np.ndarray], scor
 
 
 def run(
-    args: argparse.Namespace, points: np.ndarray, visible: np.ndarray, counts: tuple[int, ...], skipped: int
+    args: argparse.Namespace,
+    points: np.ndarray,
+    visible: np.ndarray,
+    counts: tuple[int, ...],
+    skipped: int,
+    previous: np.ndarray | None = None,
 ) -> int:
     """The command on the inputs' usable poses (`points` (N, 17, 2) px and `visible` (N, 17), `counts`
-    per input, `skipped` by the input rules: repnet.cli.adapt reads them): adapt, report, refuse or
-    write. 0 written, 1 refused (worse), 2 usage."""
+    per input, `skipped` by the input rules, `previous` (N,) the row of each pose's frame before, -1
+    where none: repnet.cli.adapt reads them): adapt, report, refuse or write. 0 written, 1 refused
+    (worse), 2 usage."""
     if args.threads:
         torch.set_num_threads(args.threads)
     if (problem := _output_problem(args)) is not None:
@@ -122,6 +130,7 @@ def run(
         return 2
     held = split_holdout(list(counts), args.holdout_fraction)
     train = (points[~held], visible[~held])
+    links = None if previous is None else kept_links(previous, ~held)
     test = (points[held], visible[held]) if held.any() else train
     say(
         f"{len(points)} poses ({skipped} skipped by the input rules): {len(train[0])} to adapt on, "
@@ -134,8 +143,10 @@ def run(
     mirror = bool(json.loads(meta.get("mirror_average", "false")))
     config = _config(args)
     parent_sha = lineage.file_sha256(parent_path)
-    folder = run_dir(args, parent_sha, digest(*train))
-    adaptation = Adaptation(config, parent, *train, mirror_average=mirror, threads=args.threads)
+    folder = run_dir(args, parent_sha, digest(*train, *(() if links is None else (links,))))
+    adaptation = Adaptation(
+        config, parent, *train, mirror_average=mirror, threads=args.threads, previous=links
+    )
     state = folder / "adapt.pt"
     if args.resume and state.is_file():
         try:

@@ -35,3 +35,13 @@ def camera_scale(camera: torch.Tensor) -> torch.Tensor:
     returns (N,). For K = s R, R two orthonormal rows, it is that s."""
     check_shape(camera, (None, 2, 3), "camera K (N, 2, 3)")
     return torch.sqrt((camera**2).sum(dim=(1, 2)) / 2)
+
+
+def camera_frame(pose: torch.Tensor, camera: torch.Tensor) -> torch.Tensor:
+    """(N, J, 3) poses X turned by the rotation in their (N, 2, 3) K: rows K / s, and their cross
+    product (differentiable; for K = s R with R's rows orthonormal, R X)."""
+    check_shape(camera, (None, 2, 3), "camera K (N, 2, 3)")
+    rows = camera / camera_scale(camera).clamp_min(1e-6)[:, None, None]
+    third = torch.linalg.cross(rows[:, 0], rows[:, 1], dim=-1)
+    rotation = torch.cat([rows, third[:, None]], dim=1)  # (N, 3, 3)
+    return torch.einsum("nrc,njc->njr", rotation, pose)

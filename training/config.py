@@ -86,6 +86,11 @@ class TrainConfig:
     # the generated poses, all 16 bones; one person's bones keep their length and left equals
     # right, which the critic alone teaches slowly. 0 = off (the paper).
     bone_weight: float = 0.0
+    # Temporal consistency on the 2D inputs' sequences (pool.triplets: three consecutive frames of
+    # one person): mean |X(t-1) - 2 X(t) + X(t+1)| (m) of the answers turned into their cameras'
+    # frames, `smoothness_batch` triplets a generator step of the adversarial phase. 0 = off.
+    smoothness_weight: float = 0.0
+    smoothness_batch: int = 64
     # Train the critic alone on the generator's poses, the generator frozen: a last stage that
     # fits the plausibility score to the generator that ships (resume from its checkpoint).
     critic_only: bool = False

@@ -183,6 +183,9 @@ class TrainingPool:
     # visibility, of the training frames (repnet.train.sequences.residuals).
     detector_errors: np.ndarray | None = None
     detector_visible: np.ndarray | None = None
+    # (T, 3) rows of points_2d that are three consecutive frames of one person (the smoothness
+    # term, TrainConfig.smoothness_weight); None: the inputs are not known to be sequences.
+    triplets: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from repnet.train.augment import (
     sample_2d,
     with_detector_errors,
 )
-from repnet.train.camera import camera_scale
+from repnet.train.camera import camera_frame, camera_scale
 from repnet.train.config import RepNetConfig, TrainConfig
 from repnet.train.losses import (
     bone_lengths,
@@ -35,7 +35,7 @@ from repnet.train.losses import (
 from repnet.train.model import MM_PER_UNIT, Critic, RepNet, normalize_keypoints
 
 # The losses every step reports (0 where its mode has no such term), in the history's order.
-TERMS = ("rep", "cam", "adv", "bone", "synthetic_pose", "w_dist")
+TERMS = ("rep", "cam", "adv", "bone", "synthetic_pose", "w_dist", "smooth")
 CRITIC_FAKES = ("generator", "corrupted")  # what a critic-only stage judges (TrainConfig.critic_fakes)
 Terms = dict[str, torch.Tensor]
 
@@ -233,10 +233,27 @@ class Trainer:
         if config.synthetic_weight > 0:
             terms["synthetic_pose"], fit, _ = self.synthetic_terms()
             loss_g = loss_g + config.synthetic_weight * (terms["synthetic_pose"] + fit)
+        if config.smoothness_weight > 0 and self.pool.triplets is not None and len(self.pool.triplets):
+            terms["smooth"] = self.smoothness_term()
+            loss_g = loss_g + config.smoothness_weight * terms["smooth"]
         self._update_generator(loss_g)
         # The next critic steps judge these poses: no generator pass of their own.
         self.fakes = pose.detach() if config.reuse_fakes else None
         return terms
+
+    def smoothness_term(self) -> torch.Tensor:
+        """Mean |X(t-1) - 2 X(t) + X(t+1)| (m) over joints of the answers to smoothness_batch of
+        the pool's triplets of consecutive frames, each answer turned into its camera's frame (the
+        rotation in K), so that a person turning is not read as the pose moving."""
+        triplets = self.pool.triplets
+        assert triplets is not None
+        pick = torch.randint(0, len(triplets), (self.config.smoothness_batch,), generator=self.gen).numpy()
+        rows = triplets[pick].T.reshape(-1)  # the first frames, then the second ones, then the third
+        visible = torch.from_numpy(self.pool.visible[rows]).to(self.device)
+        points = normalize_keypoints(torch.from_numpy(self.pool.points_2d[rows]).to(self.device), visible)
+        pose, camera = self.generate(points, visible)
+        seen = camera_frame(pose, camera).reshape(3, -1, *pose.shape[1:])  # (3, B, J, 3)
+        return (seen[0] - 2 * seen[1] + seen[2]).norm(dim=-1).mean()
 
     def real_batch(self, n: int) -> torch.Tensor:
         """n real poses drawn from real_pool with the run's random generator."""

@@ -18,6 +18,7 @@ from repnet.core.format_hints import alias_of, alternatives_note, hint_for
 from repnet.core.formats import DEFAULT_FORMAT, FORMATS
 from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE, Limits, PoseInput
 from repnet.core.keypoints import prepare_poses
+from repnet.core.links import kept_links, shifted
 from repnet.io.pose_file import Progress, read_input
 from repnet.io.poses import InputFileError, Poses
 
@@ -60,6 +61,9 @@ class AdaptInput:
     visible: np.ndarray  # (N, 17) float32 in {0, 1}
     counts: tuple[int, ...]  # usable poses per input
     skipped: int  # poses the service's input rules reject (too few joints, out of range, ...)
+    # (N,) per pose the row of the same person's pose in the frame before it, -1 where none
+    # (Poses.previous_frames, among the usable poses of all inputs)
+    previous: np.ndarray
 
 
 def read_adapt_input(
@@ -72,7 +76,11 @@ def read_adapt_input(
     """Read each input (a file, a folder or a glob of frame files) and keep the poses the service
     would lift, converted to the model's joints as a request converts them."""
     limits = Limits()  # the service's own rules; prepare_poses does not cap the count (check_request would)
-    points, visible, counts, skipped = [], [], [], 0
+    points: list[np.ndarray] = []
+    visible: list[np.ndarray] = []
+    previous: list[np.ndarray] = []
+    counts: list[int] = []
+    skipped = 0
     for spec in specs:
         poses = read_input(spec, progress, image_size)
         if not len(poses.points):
@@ -86,13 +94,17 @@ def read_adapt_input(
         prepared = prepare_poses(inputs, limits, threshold)
         kept = prepared.inputs
         skipped += sum(1 for found in prepared.violations if found)
+        usable = np.array([not found for found in prepared.violations], dtype=bool)
+        previous.append(shifted(kept_links(poses.previous_frames(), usable), sum(counts)))
         points.append(kept.keypoints_2d.astype(np.float32))
         visible.append(kept.visible.astype(np.float32))
         counts.append(len(kept))
     total = sum(counts)
     if total == 0:
         raise InputFileError("no usable poses in the inputs (each needs enough visible joints)")
-    return AdaptInput(np.concatenate(points), np.concatenate(visible), tuple(counts), skipped)
+    return AdaptInput(
+        np.concatenate(points), np.concatenate(visible), tuple(counts), skipped, np.concatenate(previous)
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -105,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     size = None if args.image_size is None else (args.image_size[0], args.image_size[1])
     data = read_adapt_input(args.input, args.format, args.confidence_threshold, size, lambda files: files)
-    return adapt_cli.run(args, data.points, data.visible, data.counts, data.skipped)
+    return adapt_cli.run(args, data.points, data.visible, data.counts, data.skipped, data.previous)
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: Any, fmt: Any) -> None:
@@ -173,6 +185,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
         "--adversarial-weight",
         type=_non_negative,
         help="weight of the critic's Wasserstein term on the answers to your 2D (default 0.1)",
+    )
+    adapt.add_argument(
+        "--smoothness-weight",
+        type=_non_negative,
+        help="weight of the smoothness of the answers to consecutive frames of one person (default 0)",
     )
     adapt.add_argument(
         "--residuals",

@@ -200,6 +200,7 @@ def _load_npz(path: Path) -> Poses:
         conf = npz["confidence"] if "confidence" in npz else None
         fmt = npz["format"] if "format" in npz else None
         fps = float(npz["fps"]) if "fps" in npz else None
+        frame = npz["frame"] if "frame" in npz else None
     keypoints = keypoints[None] if keypoints.ndim == 2 else keypoints
     if keypoints.ndim != 3 or keypoints.shape[-1] not in (2, 3, 4):
         raise InputFileError(f"expected keypoints (N, J, 2|3|4), got {keypoints.shape}")
@@ -207,7 +208,24 @@ def _load_npz(path: Path) -> Poses:
     keypoints = keypoints[..., [0, 1, 3]] if keypoints.shape[-1] == 4 else keypoints
     padded = np.pad(keypoints, ((0, 0), (0, 0), (0, 3 - keypoints.shape[-1])), constant_values=np.nan)
     poses = stack_poses(list(padded), conf, fmt, str(path))
-    return replace(poses, fps=_fps({"fps": fps}), landmarks=landmarks if landmarks.any() else None)
+    numbers = poses.frame if frame is None else _npz_frames(frame, len(keypoints), path)
+    return replace(
+        poses, fps=_fps({"fps": fps}), landmarks=landmarks if landmarks.any() else None, frame=numbers
+    )
+
+
+def _npz_frames(frame: np.ndarray, count: int, path: Path) -> np.ndarray:
+    """An NPZ's optional `frame` array: each pose's frame number (N,), integers 0..MAX_FRAME, so that
+    a clip with gaps (frames a detector missed) is read as one."""
+    if frame.dtype.kind not in "iu" or frame.shape != (count,):
+        raise InputFileError(
+            f"{path}: 'frame' must be ({count},) integers, one frame number per pose; "
+            f"got {frame.dtype} {frame.shape}"
+        )
+    if count and (frame.min() < 0 or frame.max() > MAX_FRAME):
+        got = f"{frame.min()}..{frame.max()}"
+        raise InputFileError(f"{path}: 'frame' numbers must be 0..{MAX_FRAME}, got {got}")
+    return frame.astype(np.int64)
 
 
 def load_poses(path: Path) -> Poses:

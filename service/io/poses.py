@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,6 +16,7 @@ import numpy as np
 from repnet.core.contract import MAX_FRAME
 from repnet.core.errors import MAX_ECHO_CHARS
 from repnet.core.formats import OPENPOSE_FORMATS
+from repnet.core.links import Links, previous_frames
 
 
 class InputFileError(Exception):
@@ -50,6 +51,20 @@ class Poses:
     def frame_count(self) -> int:
         """How many frames the poses are of: more than one makes a sequence."""
         return len(np.unique(self.frame))
+
+    def previous_frames(self) -> Links:
+        """(N,) per pose the row of the same person's pose in the frame before it, -1 where there
+        is none (core.links). A person is known across frames by the tracks the file gives, or as
+        the one person of a clip whose every frame holds one pose; frames numbered by image ids or
+        file names are unrelated images and link nothing."""
+        n = len(self.points)
+        people: list[Hashable | None] = [None] * n
+        if self.numbered_by is None:
+            if self.track_id is not None and any(t is not None for t in self.track_id):
+                people = list(self.track_id)
+            elif self.frame_count == n:
+                people = [0] * n
+        return previous_frames(self.frame, people)
 
 
 ROW_HINT = (

@@ -18,9 +18,9 @@ from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_OFFLINE, load_tempora
 from repnet.server.config import Settings
 from repnet.server.startup import load_lifter
 from repnet.train import adapt_cli, adapt_report, checkpoint, lineage, metrics, prior, synthetic
-from repnet.train.adapt import Adaptation, answer, split_holdout
+from repnet.train.adapt import Adaptation, AdaptConfig, answer, split_holdout, triplets_of
 from repnet.train.adapt_report import Figures, worse
-from repnet.train.camera import masked_centre, project_weak_perspective
+from repnet.train.camera import camera_frame, masked_centre, project_weak_perspective
 from repnet.train.checkpoint import read_metadata
 from repnet.train.config import RepNetConfig
 from repnet.train.export import generator_of
@@ -378,3 +378,68 @@ def test_an_adapted_model_keeps_the_temporal_models_of_its_parent(
             model.metadata_props.add(key=key, value=value)
     onnx.save(model, other)
     assert load_temporal_lifters(other, load_lifter(Settings(model_path=other)), TEMPORAL_PATHS) == {}
+
+
+def test_triplets_are_three_consecutive_frames_of_one_person() -> None:
+    previous = np.array([-1, 0, 1, 2, -1, 4, -1])  # a run of 4, a run of 2, a lone frame
+    assert triplets_of(previous).tolist() == [[0, 1, 2], [1, 2, 3]]
+    assert triplets_of(np.full(3, -1)).shape == (0, 3)
+
+
+def test_camera_frame_turns_a_pose_by_the_rotation_in_k() -> None:
+    angle = 0.7
+    c, s = float(np.cos(angle)), float(np.sin(angle))
+    rotation = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    pose = torch.randn(1, 17, 3, generator=torch.Generator().manual_seed(0))
+    camera = 2.5 * rotation[None, :2]
+    assert torch.allclose(camera_frame(pose, camera), pose @ rotation.T, atol=1e-6)
+
+
+def _clip_adaptation(points: np.ndarray, weight: float, previous: np.ndarray | None) -> Adaptation:
+    state = checkpoint.from_onnx(Settings().model_path)
+    visible = np.ones(points.shape[:2], np.float32)
+    config = replace(
+        AdaptConfig(), steps=3, critic_warmup=1, batch_size=16, prior_poses=500, smoothness_weight=weight
+    )
+    adaptation = Adaptation(config, state, points, visible, mirror_average=True, threads=1, previous=previous)
+    adaptation.trainer.config = replace(adaptation.trainer.config, smoothness_batch=8)
+    return adaptation
+
+
+def test_the_smoothness_term_is_zero_on_a_still_clip_and_grows_with_its_jitter() -> None:
+    still = np.repeat(_example_clip()[:1], 12, axis=0)
+    jitter = np.random.default_rng(0).normal(0.0, 6.0, still.shape).astype(np.float32)
+    previous = np.arange(-1, 11)
+    terms = {}
+    for name, points in (("still", still), ("jittered", still + jitter)):
+        adaptation = _clip_adaptation(points, 1.0, previous)
+        torch.manual_seed(0)
+        with torch.no_grad():
+            terms[name] = float(adaptation.trainer.smoothness_term())
+    assert terms["still"] < 1e-6 < 1e-3 < terms["jittered"]
+
+
+def test_adapt_trains_on_the_smoothness_of_the_clips_only_when_asked() -> None:
+    clip = _example_clip()
+    seen: dict[str, list[float]] = {}
+    for name, weight, previous in (
+        ("smooth", 1.0, np.arange(-1, len(clip) - 1)),
+        ("off", 0.0, np.arange(-1, len(clip) - 1)),
+        ("no clips", 1.0, None),
+    ):
+        adaptation = _clip_adaptation(clip, weight, previous)
+        got: list[float] = []
+        adaptation.run(0, None, on_step=lambda _step, terms, got=got: got.append(float(terms["smooth"].detach())))
+        seen[name] = got
+    assert seen["smooth"][0] == 0.0 and min(seen["smooth"][1:]) > 0.0  # after the critic's warm-up
+    assert seen["off"] == seen["no clips"] == [0.0, 0.0, 0.0]
+
+
+def _example_clip() -> np.ndarray:
+    """(40, 17, 2) px: a prior pose turning slowly about the vertical before a fixed camera."""
+    world = prior.PosePrior.load().sample(1, np.random.default_rng(5))[0]  # (J, 3) mm, Z up
+    turns = np.linspace(0.0, 0.6, 40)
+    x = world[:, 0] * np.cos(turns)[:, None] - world[:, 1] * np.sin(turns)[:, None]
+    return np.stack([500.0 + 0.3 * x, 500.0 - 0.3 * np.broadcast_to(world[:, 2], x.shape)], -1).astype(
+        np.float32
+    )
