@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -130,7 +131,9 @@ def synthetic_source(
         found_clips += [sequences.synthesize(s, bank, lift, rng, clips.noise, GRID_FPS) for s in training]
         log.info("synthetic clips: draw %d of %d (%.0f s)", draw + 1, clips.draws, time.monotonic() - started)
     cache.parent.mkdir(parents=True, exist_ok=True)
-    partial = cache.with_suffix(".partial.npz")
+    # Each process writes its own partial file: two runs side by side (temporal_train --model) make
+    # the same clips, and the second to finish replaces the first's file with equal bytes.
+    partial = cache.with_suffix(f".partial-{os.getpid()}.npz")
     np.savez(
         partial,
         poses=np.concatenate([c.poses for c in found_clips]),

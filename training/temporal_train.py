@@ -209,11 +209,21 @@ def _example(n: int, k: int, fps: float) -> tuple[torch.Tensor, ...]:
 
 
 def run_preset(
-    name: str, out_dir: Path | None, threads: int, data_dir: str, argv: list[str], only: str | None = None
+    name: str,
+    out_dir: Path | None,
+    threads: int,
+    data_dir: str,
+    argv: list[str],
+    only: str | None = None,
+    base_model: Path | None = None,
 ) -> list[Path]:
     """Every model of a temporal preset (or `only` that one): clips, training, export to
-    OUT/<model_id>.onnx (kept when there)."""
+    OUT/<model_id>.onnx (kept when there). base_model: refit over another single-frame model than
+    the preset's (an adapted one: `repnet adapt`'s output), its model id from its metadata."""
     preset = presets.temporal(name)
+    if base_model is not None:
+        base_id = checkpoint.read_metadata(base_model).get("model_id", base_model.stem)
+        preset = dataclasses.replace(preset, base_model=str(base_model), base_model_id=base_id)
     out = out_dir or lineage.cache_dir() / "runs" / preset.name
     out.mkdir(parents=True, exist_ok=True)
     command = lineage.command_line(argv, out, "repnet.train.temporal_train")
@@ -279,11 +289,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--data-dir", default="", help="Human3.6M folder (default $REPNET_H36M_DIR, ../shared/data/h36m)"
     )
+    parser.add_argument(
+        "--base-model",
+        type=Path,
+        help="refit over this single-frame model (e.g. an adapted one) instead of the preset's",
+    )
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    for path in run_preset(args.preset, args.out_dir, args.threads, args.data_dir, argv, args.model):
+    chosen = (args.out_dir, args.threads, args.data_dir, argv, args.model, args.base_model)
+    for path in run_preset(args.preset, *chosen):
         print(path)
 
 

@@ -8,10 +8,16 @@ import json
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
+from repnet.core.errors import ModelLoadError
+from repnet.runtime.lifter import Lifter
+from repnet.runtime.loading import BUNDLED_MODEL, load_temporal_lifters
+from repnet.runtime.temporal import TemporalLifter
 from repnet.train import metrics, presets, temporal_train
+from repnet.train.lineage import file_sha256
 from repnet.train.temporal import GRID_FPS, TemporalConfig, TemporalGraph, TemporalNet, slots_needed
 from repnet.train.temporal_data import clip_features, onnx_lift, padded_grid
 from tests.training.conftest import STANDING
@@ -140,7 +146,6 @@ def test_the_tiny_temporal_preset_trains_resumes_exports_and_loads_in_the_servic
         ]
         assert [record["step"] for record in history] == [2, 4]
         assert {"sh25_accel", "sh50_pa_mpjpe", "gt25_bone_std"} <= set(history[-1])
-        from repnet.runtime.temporal import TemporalLifter
 
         lifter = TemporalLifter.load(tmp_path / f"{model_id}.onnx")
         assert lifter.mode == config.mode and lifter.window == config.window
@@ -152,3 +157,25 @@ def test_the_tiny_temporal_preset_trains_resumes_exports_and_loads_in_the_servic
     two = torch.load(tmp_path / causal_id / "last.pt", weights_only=False)["net"]
     assert all(torch.equal(one[k], two[k]) for k in one)
     assert causal.mode == "causal"
+
+
+def test_a_refit_over_another_single_frame_model_names_it_and_runs_over_it_alone(
+    synthetic_h36m: Path, tmp_path: Path
+) -> None:
+    mine = onnx.load(BUNDLED_MODEL)  # a single-frame model of another id (as `repnet adapt` writes one)
+    for prop in mine.metadata_props:
+        if prop.key == "model_id":
+            prop.value = "mine"
+    onnx.save(mine, base := tmp_path / "mine.onnx")
+    preset = presets.temporal("tiny-temporal")
+    causal_id = preset.models[0][0]
+    args = ["--preset", preset.name, "--out-dir", str(tmp_path / "out"), "--data-dir", str(synthetic_h36m)]
+    temporal_train.main([*args, "--model", causal_id, "--base-model", str(base)])
+    refit = tmp_path / "out" / f"{causal_id}.onnx"
+    meta = TemporalLifter.load(refit).metadata
+    assert meta["base_model_id"] == "mine" and meta["base_model_sha256"] == file_sha256(base)
+    assert json.loads(meta["lineage"])["base_model"]["path"] == "mine.onnx"
+    lifter = Lifter.load(base)
+    assert set(load_temporal_lifters(base, lifter, {"causal": refit})) == {"causal"}
+    with pytest.raises(ModelLoadError, match="trained on the answers of the single-frame model"):
+        load_temporal_lifters(BUNDLED_MODEL, Lifter.load(BUNDLED_MODEL), {"causal": refit})
