@@ -14,7 +14,7 @@ from typing import Any, BinaryIO, Protocol
 import onnxruntime as ort
 
 from repnet.core.errors import ModelLoadError
-from repnet.runtime.rewrite import convs_as_matmuls
+from repnet.runtime.rewrite import broadcasts_widened, convs_as_matmuls
 
 # onnxruntime >= 1.29 sends usage telemetry on Linux unless told not to: off before this package makes
 # any session, whatever started it (repnet serve, repnet lift --local, repnet adapt, a script).
@@ -111,13 +111,14 @@ def _pruned(model: Any) -> Any:
 
 def served_graph(data: bytes) -> bytes:
     """The graph the service runs of the model `data`: without the UNREAD_OUTPUTS, its strided 1D
-    convolutions as matrix products (runtime.rewrite: the same answers to float32 rounding); the
-    same bytes when neither applies."""
+    convolutions as matrix products and its broadcasts over short trailing axes tiled
+    (runtime.rewrite: the same answers to float32 rounding); the same bytes when none applies."""
     import onnx  # the runtime's extras bring it; loaded only here
 
     model = onnx.load_from_string(data)
     pruned = _pruned(model)
-    if convs_as_matmuls(pruned) == 0 and pruned is model:
+    rewritten = convs_as_matmuls(pruned) + broadcasts_widened(pruned)
+    if rewritten == 0 and pruned is model:
         return data
     return bytes(pruned.SerializeToString())
 

@@ -429,7 +429,7 @@ def test_adapt_trains_on_the_smoothness_of_the_clips_only_when_asked() -> None:
     ):
         adaptation = _clip_adaptation(clip, weight, previous)
         got: list[float] = []
-        adaptation.run(0, None, on_step=lambda _step, terms, got=got: got.append(float(terms["smooth"].detach())))
+        adaptation.run(0, None, on_step=lambda _step, terms, got=got: got.append(terms["smooth"].item()))
         seen[name] = got
     assert seen["smooth"][0] == 0.0 and min(seen["smooth"][1:]) > 0.0  # after the critic's warm-up
     assert seen["off"] == seen["no clips"] == [0.0, 0.0, 0.0]
