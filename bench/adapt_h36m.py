@@ -2,6 +2,7 @@
 
     python -m bench.adapt_h36m --shift sh [--poses 50000] [--threads 2] [-- ADAPT FLAGS...]
     python -m bench.adapt_h36m --shift high ...   (or proportions, coco-hips)
+    python -m bench.adapt_h36m --shift no-sitting --parent runs/nositting/repnet-h36m-nositting.onnx ...
 
 Shifts (the adapted-on 2D is always of S1 S5 S6 S7's training frames, never their 3D; the
 validation tails, repnet.train.data.build_training_sets, are never adapted on):
@@ -13,10 +14,14 @@ validation tails, repnet.train.data.build_training_sets, are never adapted on):
 - proportions, coco-hips: GT 3D of those frames with other proportions, or with the hips where COCO
   puts them, seen from the training cameras + N(0, 2 px) (SHIFTS, below). Scored on the tails
   changed the same way, and on GT 2D of the tails.
+- no-sitting: GT 3D of the Sitting and SittingDown frames seen from the training cameras + N(0, 2 px),
+  for a parent that never saw those actions (--parent, preset repnet-h36m-nositting). Scored on those
+  actions' tails seen the same way, and on GT 2D of all the tails.
 
 It writes the 2D to an NPZ the command reads as a user's file, runs `repnet adapt` on it (the
-command and its report are printed), then scores the bundled and the adapted model: P-II, P-I along
-the ray (where intrinsics exist), symmetry (mm). Choose on these validation figures, never S9/S11.
+command and its report are printed), then scores the parent (--parent, default the bundled model)
+and the adapted model: P-II, P-I along the ray (where intrinsics exist), symmetry (mm). Choose on
+these validation figures, never S9/S11.
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ if __package__ in (None, ""):  # `python bench/adapt_h36m.py`
 from repnet.cli.main import main as repnet
 from repnet.core import skeleton
 from repnet.runtime.loading import BUNDLED_MODEL
-from repnet.train import data, metrics, sequences, synthetic
+from repnet.train import data, metrics, presets, sequences, synthetic
 from repnet.train.config import TrainConfig
 from repnet.train.export import load_generator
 from repnet.train.validation import validate, validation_sets
@@ -176,15 +181,22 @@ def coco_hips(world: np.ndarray) -> np.ndarray:
     return out
 
 
-def built_shift(name: str, change: Any, truth_changes: bool) -> Any:
-    """A shift of the source subjects' training frames changed by `change` (seen by the training
-    cameras, + N(0, 2 px)), scored on the tails changed the same way, against the changed 3D when
-    `truth_changes` (other people) else the true 3D (another detector)."""
+def of_actions(poses: dict[str, np.ndarray], actions: str) -> dict[str, np.ndarray]:
+    """The sequences of the comma-separated `actions` only ("": every one)."""
+    others = data.without_actions(poses, actions)
+    return {key: seq for key, seq in poses.items() if key not in others} if actions else poses
+
+
+def built_shift(name: str, change: Any, truth_changes: bool, actions: str = "") -> Any:
+    """A shift of the source subjects' training frames (of `actions` only, comma-separated, when
+    given) changed by `change` (seen by the training cameras, + N(0, 2 px)), scored on the tails
+    (of those actions) changed the same way, against the changed 3D when `truth_changes` (other
+    people) else the true 3D (another detector)."""
 
     def shift(
         data_dir: Path, poses: int, run_length: int = 1
     ) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], None]:
-        train = data.load_poses(data_dir, "train")
+        train = of_actions(data.load_poses(data_dir, "train"), actions)
         pixels, _ = high_views(change(source_frames(train, poses)), seed=1, elevation=synthetic.ELEVATION_DEG)
         pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
         tail = tail_frames(train)
@@ -200,12 +212,14 @@ def built_shift(name: str, change: Any, truth_changes: bool) -> Any:
 SHIFTS = {
     "proportions": built_shift("proportions", rescaled, truth_changes=True),
     "coco-hips": built_shift("coco_hips", coco_hips, truth_changes=False),
+    # no-sitting: the people and joints unchanged, only actions the parent never saw (issue 32).
+    "no-sitting": built_shift("sitting", np.asarray, truth_changes=True, actions=presets.NO_SITTING),
 }
 
 
 def score(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[str, float]]:
     """A model's validation figures (repnet.train.validation.validate on its generator, mirror-averaged
-    as both the bundled and the adapted model are exported)."""
+    as the bundled model, a preset's and an adapted one are exported)."""
     generator, _ = load_generator(model)
     return {
         kind: validate(generator, val, torch.device("cpu"), mirror_average=True) for kind, val in sets.items()
@@ -240,7 +254,8 @@ def ranking(model: Path, sets: dict[str, data.ValidationSet]) -> dict[str, dict[
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    """Write the shift's 2D, run `repnet adapt` on it, score both models; prints and returns the table."""
+    """Write the shift's 2D, run `repnet adapt` on the parent with it, score both models; prints and
+    returns the table."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -251,6 +266,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument(
         "--work-dir", type=Path, default=Path("runs/bench/adapt"), help="input, model, report"
+    )
+    parser.add_argument(
+        "--parent",
+        type=Path,
+        default=BUNDLED_MODEL,
+        help="the model adapted, and scored as before (default: the bundled one)",
     )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument(
@@ -280,6 +301,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         str(args.threads),
         "--run-dir",
         str(work / "run"),
+        "--model",
+        str(args.parent),
         *args.adapt_flags,
     ]
     print("repnet " + " ".join(command), flush=True)
@@ -290,19 +313,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     sets = {**validation_sets(TrainConfig(val_size=4000, val_mirror=False, val_noise_px=0.0), held), **extra}
     result: dict[str, Any] = {
         "shift": args.shift,
+        "parent_model": args.parent.name,
         "poses": len(points),
         "run_length": args.run_length,
         "flags": args.adapt_flags,
         "status": status,
         "wall_s": round(took, 1),
     }
-    result["bundled"] = score(BUNDLED_MODEL, sets)
-    result["bundled_plausibility"] = ranking(BUNDLED_MODEL, sets)
+    result["parent"] = score(args.parent, sets)
+    result["parent_plausibility"] = ranking(args.parent, sets)
     if out.exists() and status == 0:
         result["adapted"] = score(out, sets)
         result["adapted_plausibility"] = ranking(out, sets)
     for kind in sets:
-        before = result["bundled"][kind]
+        before = result["parent"][kind]
         after = result.get("adapted", {}).get(kind, {})
         line = f"{kind:8} P-II {before['pa_mpjpe']:6.2f}"
         if after:

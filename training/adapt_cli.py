@@ -43,6 +43,7 @@ from repnet.train.adapt_report import (
 )
 from repnet.train.export import generator_of
 from repnet.train.model import Critic
+from repnet.train.prior import PosePrior
 
 PROBE_POSES = 256  # held-out poses the progress bar's figures are measured on
 PROBE_EVERY = 50  # steps between two such measurements
@@ -74,8 +75,21 @@ def run_dir(args: argparse.Namespace, parent_sha: str, inputs_sha: str) -> Path:
     parent and the inputs (so --resume finds it again)."""
     if args.run_dir is not None:
         return Path(args.run_dir)
-    key = hashlib.sha256(f"{args.output.resolve()}|{parent_sha}|{inputs_sha}".encode()).hexdigest()[:12]
-    return lineage.cache_dir() / "adapt" / f"{args.output.stem}-{key}"
+    prior = "" if args.prior is None else lineage.file_sha256(Path(args.prior))
+    key = hashlib.sha256(f"{args.output.resolve()}|{parent_sha}|{inputs_sha}|{prior}".encode())
+    return lineage.cache_dir() / "adapt" / f"{args.output.stem}-{key.hexdigest()[:12]}"
+
+
+def _usage_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with -o or --prior, if anything."""
+    if (problem := _output_problem(args)) is not None:
+        return f"-o {args.output}: {problem}"
+    if args.prior is not None:
+        try:
+            PosePrior.load(Path(args.prior))
+        except (OSError, KeyError, ValueError) as err:
+            return f"--prior {args.prior}: not a pose prior (python -m repnet.train.prior writes one): {err}"
+    return None
 
 
 def _given(value: float | None, default: float) -> float:
@@ -125,8 +139,8 @@ def run(
     (worse), 2 usage."""
     if args.threads:
         torch.set_num_threads(args.threads)
-    if (problem := _output_problem(args)) is not None:
-        say(f"-o {args.output}: {problem}")
+    if (problem := _usage_problem(args)) is not None:
+        say(problem)
         return 2
     held = split_holdout(list(counts), args.holdout_fraction)
     train = (points[~held], visible[~held])
@@ -142,10 +156,11 @@ def run(
     scorer = parent_scorer(parent, meta)
     mirror = bool(json.loads(meta.get("mirror_average", "false")))
     config = _config(args)
+    prior = None if args.prior is None else PosePrior.load(Path(args.prior))  # the shipped one: None
     parent_sha = lineage.file_sha256(parent_path)
     folder = run_dir(args, parent_sha, digest(*train, *(() if links is None else (links,))))
     adaptation = Adaptation(
-        config, parent, *train, mirror_average=mirror, threads=args.threads, previous=links
+        config, parent, *train, prior=prior, mirror_average=mirror, threads=args.threads, previous=links
     )
     state = folder / "adapt.pt"
     if args.resume and state.is_file():
@@ -182,6 +197,7 @@ def run(
     record = {
         "model_id": args.model_id or args.output.stem,
         "parent": {"model_id": meta.get("model_id", parent_path.stem), "sha256": parent_sha},
+        "prior": None if args.prior is None else {"sha256": lineage.file_sha256(Path(args.prior))},
         "command": lineage.path_free(shlex.join(args.command_line), Path.cwd()),
         "inputs": input_hashes(list(args.input)),
         "poses": int(len(train[0])),

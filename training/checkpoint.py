@@ -52,6 +52,8 @@ class ConfigChanged(ValueError):
     """A resumed run was given a configuration that differs from its checkpoint's."""
 
 
+# What an export's training_data says before the actions its run left out (export.training_data).
+EXCLUDED_ACTIONS = " without the actions "
 # How an export whose critic came from another run names the two commands in its train_command.
 GENERATOR_LABEL, CRITIC_COMMAND = "generator: ", "; critic: "
 
@@ -133,8 +135,14 @@ def from_onnx(path: Path) -> dict[str, Any]:
         )
     command = meta.get("train_command", "")
     generator_command, _, critic_command = command.removeprefix(GENERATOR_LABEL).partition(CRITIC_COMMAND)
-    # export writes "..., 2D inputs: gt+sh"; the rest of the run's configuration is not kept.
-    inputs = meta.get("training_data", "").partition("2D inputs: ")[2]
+    # export writes "...[ without the actions A,B], 2D inputs: gt+sh"; the rest of the run's
+    # configuration is not kept.
+    described = meta.get("training_data", "")
+    inputs = described.partition("2D inputs: ")[2]
+    excluded = described.partition(EXCLUDED_ACTIONS)[2].partition(", 2D inputs: ")[0]
+    train_config = {"inputs": inputs} if inputs else {}
+    if excluded:
+        train_config["exclude_actions"] = excluded
     score = _strip(weights, SCORE_PREFIX)
     density = score if "projection" in score else {}  # a repnet.train.density.PoseDensity
     critic = _strip(weights, CRITIC_PREFIX) or _strip(weights, LEGACY_CRITIC_PREFIX)
@@ -145,7 +153,7 @@ def from_onnx(path: Path) -> dict[str, Any]:
         "critic": critic,  # empty without a critic
         "density": density,  # empty unless plausibility is the pose density
         "model_config": json.loads(meta["model_config"]),
-        "train_config": {"inputs": inputs} if inputs else {},
+        "train_config": train_config,
         "step": 0,
         "command": generator_command,
         "critic_command": critic_command or generator_command,

@@ -132,6 +132,10 @@ class TrainConfig:
     mask_max: int = 3
     spine_mask_prob: float = 0.3  # extra chance to hide the spine, which detectors lack
     frame_step: int = 1  # use every n-th frame of the training sequences
+    # Actions left out of the run altogether, comma-separated Human3.6M names ("Sitting,SittingDown";
+    # "" none): their sequences give no 3D pose, no 2D input, no validation pose, and an export of
+    # the run fits and calibrates its pose density without them (a parent that never saw them).
+    exclude_actions: str = ""
     val_fraction: float = 0.1  # tail of each training sequence held out for validation
     val_size: int = 4000  # validation poses per evaluation
     # Also validate on the GT 2D validation poses plus N(0, this) px noise (fixed draw): "gt_noise".

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,6 +81,24 @@ def load_poses(data_dir: Path, split: str) -> dict[str, np.ndarray]:
     """{"S1/Walking 1": (N, 17, 3) float32 world mm} for split "train" or "test"."""
     with np.load(data_dir / poses_file(split)) as npz:
         return {key: npz[key] for key in npz.files}
+
+
+def action_name(sequence: str) -> str:
+    """'Walking 1' -> 'Walking': the two takes of an action are reported together."""
+    return re.sub(r"\s+\d+$", "", sequence)
+
+
+def without_actions(poses: dict[str, np.ndarray], actions: str) -> dict[str, np.ndarray]:
+    """`poses` ({"S1/Sitting 1": ...}) without the sequences of the comma-separated `actions`
+    ("Sitting,SittingDown"; "" keeps every one). ValueError for an action the data lacks, naming
+    those it has: a misspelt action would leave nothing out."""
+    names = {name.strip() for name in actions.split(",") if name.strip()}
+    present = {action_name(key.split("/", 1)[1]) for key in poses}
+    if names - present:
+        raise ValueError(
+            f"expected actions among {', '.join(sorted(present))}, got {', '.join(sorted(names - present))}"
+        )
+    return {key: seq for key, seq in poses.items() if action_name(key.split("/", 1)[1]) not in names}
 
 
 def load_detections(path: Path) -> dict[str, np.ndarray]:
@@ -216,7 +235,7 @@ def training_files(inputs: str) -> tuple[str, ...]:
 
 
 def build_training_sets(
-    data_dir: Path, inputs: str, frame_step: int = 1, val_fraction: float = 0.1
+    data_dir: Path, inputs: str, frame_step: int = 1, val_fraction: float = 0.1, exclude_actions: str = ""
 ) -> tuple[TrainingPool, dict[str, ValidationSet]]:
     """Training pools and validation sets from the training subjects S1 S5 S6 S7 S8.
 
@@ -224,13 +243,14 @@ def build_training_sets(
     neighbouring frames do not leak). Training 3D poses are template-aligned; training 2D
     poses come from every camera, by ground-truth projection ("gt"), Stacked-Hourglass
     detections ("sh") or both ("gt+sh"). Validation sets pair camera-frame 3D poses with
-    2D inputs, one set per input kind.
+    2D inputs, one set per input kind. The sequences of exclude_actions (comma-separated action
+    names, without_actions) are in neither.
     """
     kinds = inputs.split("+")
     if not kinds or any(kind not in ("gt", "sh") for kind in kinds):
         raise ValueError(f"inputs must be gt, sh or gt+sh, got {inputs!r}")
     cameras = load_cameras(data_dir)
-    poses = load_poses(data_dir, "train")
+    poses = without_actions(load_poses(data_dir, "train"), exclude_actions)
     detections = load_detections(data_dir / SH_TRAIN_FILE) if "sh" in kinds else {}
     train_3d: list[np.ndarray] = []
     train_2d: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"gt": [], "sh": []}

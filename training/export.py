@@ -154,6 +154,14 @@ def build_metadata(
     }
 
 
+def training_data(inputs: str, exclude_actions: str = "") -> str:
+    """The metadata entry `training_data`: "Human3.6M S1 S5 S6 S7 S8, 2D inputs: gt+sh", with " without
+    the actions Sitting,SittingDown" after the subjects when the run left those out
+    (checkpoint.from_onnx reads both back)."""
+    without = f"{checkpoint.EXCLUDED_ACTIONS}{exclude_actions}" if exclude_actions else ""
+    return f"Human3.6M S1 S5 S6 S7 S8{without}, 2D inputs: {inputs}"
+
+
 def method_of(train: dict[str, Any]) -> str:
     """How a run of TrainConfig `train` (its checkpoint's config) trained the generator, in words."""
     supervised = int(train.get("warm_start_steps", 0))
@@ -184,14 +192,18 @@ def check_parity(
 
 
 def calibrated_plausibility(
-    critic: Critic, density: DensityConfig | None, data_path: Path, val_fraction: float
+    critic: Critic,
+    density: DensityConfig | None,
+    data_path: Path,
+    val_fraction: float,
+    exclude_actions: str = "",
 ) -> tuple[Plausibility, Critic | None, dict[str, str]]:
     """The plausibility output, calibrated on the real validation poses: the pose density fitted
-    to the training poses (density's settings) or, with density None, the critic's score. Returns
-    it, the critic to carry as the "critic" output (None when it is the score itself) and the
-    metadata entries."""
+    to the training poses (density's settings) or, with density None, the critic's score; neither
+    sees the poses of exclude_actions (data.without_actions). Returns it, the critic to carry as the
+    "critic" output (None when it is the score itself) and the metadata entries."""
     step = density.frame_step if density else 1
-    pool, val_sets = data.build_training_sets(data_path, "gt", frame_step=step, val_fraction=val_fraction)
+    pool, val_sets = data.build_training_sets(data_path, "gt", step, val_fraction, exclude_actions)
     real = data.align_to_template(val_sets["gt"].poses_camera)
     if density is None:
         scorer, table, bones = plausibility_of.build(critic, real)
@@ -236,8 +248,9 @@ def export_model(
     """Export a checkpoint's generator (or an exported model's) to `output` with its metadata and
     lineage; with plausibility, a calibrated plausibility output (calibrated_plausibility: score
     "density", a pose density fitted by `density`'s settings, default DensityConfig(), or "critic")
-    and the critic of critic_checkpoint (default: the checkpoint's own) as the "critic" output.
-    Returns torch vs onnxruntime's max |diff| (mm).
+    and the critic of critic_checkpoint (default: the checkpoint's own) as the "critic" output. The
+    density and its calibration leave out the actions the generator's run left out (its
+    exclude_actions). Returns torch vs onnxruntime's max |diff| (mm).
 
     command -- the export's command line, recorded path free (lineage); root -- the folder the
     lineage's paths are relative to (default run_root(checkpoint_path)).
@@ -245,6 +258,7 @@ def export_model(
     root = root or run_root(checkpoint_path)
     generator, state = load_generator(checkpoint_path)
     train = state.get("train_config", {})
+    excluded = train.get("exclude_actions", "")
     critic_path = critic_checkpoint or checkpoint_path
     critic_state = state if critic_checkpoint is None else checkpoint.load(critic_checkpoint)
     scorer, critic, entries, hashes = None, None, None, {}
@@ -257,7 +271,7 @@ def export_model(
         hashes = lineage.data_hashes(data_path, data.training_files("gt"))
         fit = (density or DensityConfig()) if score == "density" else None
         scorer, critic, entries = calibrated_plausibility(
-            load_critic(critic_state), fit, data_path, train.get("val_fraction", 0.1)
+            load_critic(critic_state), fit, data_path, train.get("val_fraction", 0.1), excluded
         )
     train_command = state.get("command", "")
     if plausibility and critic_checkpoint is not None:
@@ -268,7 +282,7 @@ def export_model(
         generator.config,
         model_id=model_id or output.stem,
         train_command=lineage.path_free(train_command, root),
-        training_data=f"Human3.6M S1 S5 S6 S7 S8, 2D inputs: {train.get('inputs', '?')}",
+        training_data=training_data(train.get("inputs", "?"), excluded),
         training_method=method_of(train),
         evaluation=evaluation,
         plausibility=entries,

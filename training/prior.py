@@ -153,8 +153,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--out", type=Path, default=PRIOR_FILE, help=f"output .npz (default {PRIOR_FILE.name})"
     )
+    parser.add_argument(
+        "--exclude-actions",
+        default="",
+        help="Human3.6M actions left out, comma-separated (e.g. Sitting,SittingDown; default none)",
+    )
     args = parser.parse_args(argv)
-    pool, _ = data.build_training_sets(data.resolve_data_dir(args.data_dir), "gt", frame_step=args.frame_step)
+    data_dir = data.resolve_data_dir(args.data_dir)
+    pool, _ = data.build_training_sets(data_dir, "gt", args.frame_step, exclude_actions=args.exclude_actions)
     assert pool.poses_world is not None
     fitted = fit(pool.poses_world, components=args.components, dims=args.dims)
     fitted.save(args.out)

@@ -87,11 +87,14 @@ class Residuals:
         return errors[start : start + frames], seen[start : start + frames]
 
 
-def detected_sequences(data_dir: Path) -> Iterator[tuple[str, np.ndarray, data.Camera, np.ndarray]]:
+def detected_sequences(
+    data_dir: Path, exclude_actions: str = ""
+) -> Iterator[tuple[str, np.ndarray, data.Camera, np.ndarray]]:
     """Each training-subject sequence seen by a camera with Stacked-Hourglass detections, in name
-    order: ("S1/Walking/54138969", its 3D world poses, the camera, the (F, 16, 2) detections)."""
+    order: ("S1/Walking/54138969", its 3D world poses, the camera, the (F, 16, 2) detections); none
+    of exclude_actions (data.without_actions)."""
     cameras = data.load_cameras(data_dir)
-    poses = data.load_poses(data_dir, "train")
+    poses = data.without_actions(data.load_poses(data_dir, "train"), exclude_actions)
     detections = data.load_detections(data_dir / data.SH_TRAIN_FILE)
     for key, sequence in sorted(poses.items()):
         for cam_id, camera in cameras[key.split("/")[0]].items():
@@ -100,10 +103,10 @@ def detected_sequences(data_dir: Path) -> Iterator[tuple[str, np.ndarray, data.C
                 yield f"{key}/{cam_id}", sequence, camera, found
 
 
-def residuals(data_dir: Path, val_fraction: float = 0.1) -> Residuals:
-    """The detector errors of the training split (never of the held-out tails)."""
+def residuals(data_dir: Path, val_fraction: float = 0.1, exclude_actions: str = "") -> Residuals:
+    """The detector errors of the training split (never of the held-out tails, nor of exclude_actions)."""
     streams = []
-    for _, sequence, camera, found in detected_sequences(data_dir):
+    for _, sequence, camera, found in detected_sequences(data_dir, exclude_actions):
         n = min(len(found), data.sequence_split(len(sequence), val_fraction))
         points, seen = data.mpii_to_h36m(found[:n])
         truth = data.project_to_pixels(sequence[:n], camera)
@@ -113,10 +116,12 @@ def residuals(data_dir: Path, val_fraction: float = 0.1) -> Residuals:
     return Residuals(tuple(streams))
 
 
-def with_residuals(pool: data.TrainingPool, data_dir: Path, val_fraction: float) -> data.TrainingPool:
-    """The pool with the detector errors of the training frames (every sequence and camera), for
-    TrainConfig.detector_error_prob."""
-    streams = residuals(data_dir, val_fraction).streams
+def with_residuals(
+    pool: data.TrainingPool, data_dir: Path, val_fraction: float, exclude_actions: str = ""
+) -> data.TrainingPool:
+    """The pool with the detector errors of the training frames (every sequence and camera but those
+    of exclude_actions), for TrainConfig.detector_error_prob."""
+    streams = residuals(data_dir, val_fraction, exclude_actions).streams
     errors = np.concatenate([e for e, _ in streams]).astype(np.float32)
     seen = np.concatenate([v for _, v in streams]).astype(np.float32)
     return replace(pool, detector_errors=errors, detector_visible=seen)

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 import numpy as np
 
 from repnet.train import data
+from repnet.train.data import action_name
 
 DATASET_LABEL = "S9/S11 without S9 Discussion 1"
 # Detections may miss a few frames at a sequence's end; more means the wrong frame rate.
@@ -31,11 +31,6 @@ class TestSet:
     sequences: int  # camera sequences evaluated
     skipped: tuple[str, ...]  # "<subject>/<sequence>/<camera>" without detections
     notes: tuple[str, ...]  # length mismatches that were trimmed
-
-
-def action_name(sequence: str) -> str:
-    """'Walking 1' -> 'Walking': the two takes of an action are reported together."""
-    return re.sub(r"\s+\d+$", "", sequence)
 
 
 def _detections_2d(

@@ -156,10 +156,12 @@ def train(
         state = checkpoint.read_state(resume_path, device)
         checkpoint.check_resume(resume_path, state, config, model_config, extend)
     data_dir = data.resolve_data_dir(config.data_dir or None)
-    pool, held_out = data.build_training_sets(data_dir, config.inputs, config.frame_step, config.val_fraction)
+    pool, held_out = data.build_training_sets(
+        data_dir, config.inputs, config.frame_step, config.val_fraction, config.exclude_actions
+    )
     val_sets = validation_sets(config, held_out)
     if config.detector_error_prob > 0:
-        pool = sequences.with_residuals(pool, data_dir, config.val_fraction)
+        pool = sequences.with_residuals(pool, data_dir, config.val_fraction, config.exclude_actions)
     hashes = lineage.data_hashes(data_dir, data.training_files(config.inputs))
     log.info(
         "training on %s: %d 3D poses, %d 2D poses, device %s",

@@ -54,6 +54,7 @@ def score(
         config.inputs,
         config.frame_step,
         config.val_fraction,
+        config.exclude_actions,
     )
     sets = validation.validation_sets(config, held_out)
     for sigma in noise_px:

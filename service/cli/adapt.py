@@ -177,6 +177,12 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
         help="3D poses drawn from the shipped pose prior for the run (default 100000)",
     )
     adapt.add_argument(
+        "--prior",
+        type=Path,
+        help="the pose prior the 3D poses are drawn from (an .npz that python -m repnet.train.prior "
+        "writes; default: the shipped one, fitted to Human3.6M)",
+    )
+    adapt.add_argument(
         "--reprojection-weight",
         type=_non_negative,
         help="weight of the paper's reprojection term on your 2D (default 0.1)",

@@ -162,6 +162,32 @@ def synthetic_h36m(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_synthetic_h36m(tmp_path_factory.mktemp("h36m"))
 
 
+# Sequences of actions a run may leave out (TrainConfig.exclude_actions), each pose's right shin
+# LONG_SHIN times its length: a bone no pose of the other actions has.
+SITTING = ("S1/Sitting 1", "S5/SittingDown", "S8/Sitting")
+LONG_SHIN = 2.5
+
+
+@pytest.fixture(scope="session")
+def sitting_h36m(synthetic_h36m: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """synthetic_h36m with SITTING sequences (3D and detections) beside its Walking ones."""
+    folder = tmp_path_factory.mktemp("h36m_sitting")
+    for name in ("cameras.json", "poses_3d_test.npz"):
+        (folder / name).write_bytes((synthetic_h36m / name).read_bytes())
+    rng = np.random.default_rng(5)
+    sitting = {key: synthetic_sequence(rng, 60) for key in SITTING}
+    for seq in sitting.values():
+        seq[:, 3] = seq[:, 2] + LONG_SHIN * (seq[:, 3] - seq[:, 2])  # right knee -> right ankle
+    np.savez(folder / "poses_3d_train.npz", **data.load_poses(synthetic_h36m, "train"), **sitting)
+    cameras = data.load_cameras(folder)
+    detections = data.load_detections(synthetic_h36m / data.SH_TRAIN_FILE)
+    for key, seq in sitting.items():
+        for cam_id, cam in cameras[key.split("/")[0]].items():
+            detections[f"{key}/{cam_id}"] = data.project_to_pixels(seq, cam)[:, MPII_FROM_H36M]
+    np.savez(folder / data.SH_TRAIN_FILE, **detections)
+    return folder
+
+
 def tiny_config(data_dir: Path, out: Path, iterations: int) -> TrainConfig:
     """A few quick steps on the synthetic dataset: batch 64, one critic step, validation every 20."""
     return TrainConfig(

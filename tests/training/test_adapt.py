@@ -443,3 +443,34 @@ def _example_clip() -> np.ndarray:
     return np.stack([500.0 + 0.3 * x, 500.0 - 0.3 * np.broadcast_to(world[:, 2], x.shape)], -1).astype(
         np.float32
     )
+
+
+def test_adapt_draws_its_3d_poses_from_the_prior_it_is_given(
+    poses_file: Path,
+    parent: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    shipped = prior.PosePrior.load()
+    giant = prior.fit(shipped.sample(600, np.random.default_rng(6)) * 1.5, components=2, dims=6)
+    giant.save(tmp_path / "giant.npz")
+    drawn: list[np.ndarray] = []
+    real_init = Adaptation.__init__
+
+    def spy(self: Adaptation, *args: object, **kwargs: object) -> None:
+        real_init(self, *args, **kwargs)  # type: ignore[arg-type]
+        drawn.append(self.trainer.pool.poses_world)
+
+    monkeypatch.setattr(Adaptation, "__init__", spy)
+    out = tmp_path / "giant.onnx"
+    assert (
+        adapt(poses_file, parent, out, "--steps", "1", "--force", "--prior", str(tmp_path / "giant.npz")) == 0
+    )
+    legs = np.linalg.norm(drawn[0][:, 2] - drawn[0][:, 1], axis=-1)  # right thigh, mm
+    assert np.median(legs) > 1.3 * shipped.mean_lengths[1]
+    record = json.loads(read_metadata(out)["lineage"])
+    assert record["prior"] == {"sha256": lineage.file_sha256(tmp_path / "giant.npz")}
+    (tmp_path / "not.npz").write_bytes(b"no prior")
+    assert adapt(poses_file, parent, tmp_path / "b.onnx", "--prior", str(tmp_path / "not.npz")) == 2
+    assert "--prior" in capsys.readouterr().err and not (tmp_path / "b.onnx").exists()

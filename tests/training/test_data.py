@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from repnet.core import skeleton
-from repnet.train import data
+from repnet.train import data, sequences
 from tests.training.conftest import STANDING
 
 
@@ -76,6 +76,32 @@ def test_training_sets_hold_out_the_tail_of_each_sequence(synthetic_h36m: Path) 
     assert set(val) == {"gt", "sh"}
     assert val["gt"].poses_camera.shape == (4 * 5 * 30, 17, 3)
     assert np.all(val["sh"].visible[:, skeleton.SPINE] == 0)
+
+
+def test_excluded_actions_reach_no_pool_no_validation_set_and_no_detector_error(
+    synthetic_h36m: Path, sitting_h36m: Path
+) -> None:
+    """sitting_h36m is synthetic_h36m with sitting sequences: without them, every array is the same."""
+    kept, kept_val = data.build_training_sets(sitting_h36m, "gt+sh", exclude_actions="Sitting, SittingDown")
+    plain, plain_val = data.build_training_sets(synthetic_h36m, "gt+sh")
+    for name in ("poses_aligned", "poses_world", "points_2d", "visible"):
+        np.testing.assert_array_equal(getattr(kept, name), getattr(plain, name))
+    assert set(kept_val) == set(plain_val)
+    for kind, val in plain_val.items():
+        np.testing.assert_array_equal(kept_val[kind].poses_camera, val.poses_camera)
+        np.testing.assert_array_equal(kept_val[kind].points_2d, val.points_2d)
+    errors = sequences.residuals(sitting_h36m, 0.1, "Sitting,SittingDown").streams
+    assert [e.tolist() for e, _ in errors] == [
+        e.tolist() for e, _ in sequences.residuals(synthetic_h36m).streams
+    ]
+    every, _ = data.build_training_sets(sitting_h36m, "gt+sh")  # the sitting poses are there to leave out
+    assert len(every.poses_aligned) > len(kept.poses_aligned)
+
+
+def test_an_action_the_data_lacks_is_refused_not_ignored(sitting_h36m: Path) -> None:
+    with pytest.raises(ValueError, match="expected actions among Sitting, SittingDown, Walking, got Siting"):
+        data.build_training_sets(sitting_h36m, "gt", exclude_actions="Siting")
+    assert data.action_name("SittingDown 1") == "SittingDown"
 
 
 def test_missing_data_dir_names_the_flag_and_variable(tmp_path: Path) -> None:

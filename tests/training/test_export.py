@@ -11,6 +11,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
+from repnet.cli.main import main as repnet
 from repnet.core import skeleton
 from repnet.train import checkpoint, data, export, train
 from repnet.train import plausibility as plausibility_of
@@ -18,7 +19,8 @@ from repnet.train.config import RepNetConfig
 from repnet.train.density import PoseDensity
 from repnet.train.losses import bone_lengths
 from repnet.train.model import Critic, Plausibility, RepNet
-from tests.training.conftest import STANDING, tiny_config
+from repnet.train.plausibility import DensityConfig
+from tests.training.conftest import LONG_SHIN, SITTING, STANDING, tiny_config
 
 
 @pytest.fixture(scope="module")
@@ -196,3 +198,47 @@ def test_a_pose_with_a_bone_no_human_has_scores_zero_whatever_the_critic_says() 
     assert np.all(unguarded[4:] == 1.0)
     np.testing.assert_array_equal(guarded[:4], unguarded[:4])  # real poses keep their score
     assert np.all(guarded[4:] == 0.0)
+
+
+def test_a_run_without_some_actions_exports_a_parent_whose_density_never_saw_them_and_adapt_takes_it(
+    synthetic_h36m: Path, sitting_h36m: Path, tmp_path: Path
+) -> None:
+    """The export reads the run's exclude_actions: the density and its calibration are those of the
+    data without the sitting sequences, and `repnet adapt` adapts the file on those sequences' 2D."""
+    tiny, density = RepNetConfig(width=32, critic_width=16, kcs_width=8), DensityConfig(1, 4, 8)
+    config = dataclasses.replace(
+        tiny_config(sitting_h36m, tmp_path / "run", 4),
+        inputs="gt",
+        batch_size=16,
+        exclude_actions="Sitting,SittingDown",
+    )
+    train.train(config, tiny, command="run")
+    parent = tmp_path / "nositting.onnx"
+    export.export_model(
+        tmp_path / "run" / "last.pt", parent, density=density, mirror_average=True, data_dir=str(sitting_h36m)
+    )
+    meta = checkpoint.read_metadata(parent)
+    assert (
+        meta["training_data"]
+        == "Human3.6M S1 S5 S6 S7 S8 without the actions Sitting,SittingDown, 2D inputs: gt"
+    )
+    assert checkpoint.load(parent)["train_config"] == {
+        "inputs": "gt",
+        "exclude_actions": "Sitting,SittingDown",
+    }
+    critic = export.load_critic(checkpoint.load(tmp_path / "run" / "last.pt"))
+    _, _, without = export.calibrated_plausibility(critic, density, synthetic_h36m, 0.1)
+    assert meta["plausibility_calibration"] == without["plausibility_calibration"]
+    longest = json.loads(meta["plausibility_calibration"])["bone_length_range_mm"]["longest"]
+    shin = skeleton.BONES.index((2, 3))  # right knee -> right ankle, LONG_SHIN times longer when sitting
+    assert longest[shin] < np.linalg.norm(STANDING[3] - STANDING[2]) * LONG_SHIN
+    # The parent adapted on the sitting sequences' GT 2D, as bench.adapt_h36m --shift no-sitting does.
+    cameras = data.load_cameras(sitting_h36m)
+    poses = data.load_poses(sitting_h36m, "train")
+    seen = [data.project_to_pixels(poses[k], cameras[k.split("/")[0]][data.CAMERAS[0]]) for k in SITTING]
+    np.savez(tmp_path / "sitting.npz", keypoints=np.concatenate(seen), format="h36m17")
+    out = tmp_path / "adapted.onnx"
+    command = ["adapt", str(tmp_path / "sitting.npz"), "-o", str(out), "--model", str(parent), "--steps", "2"]
+    command += ["--force", "--threads", "1", "--prior-poses", "2000", "--run-dir", str(tmp_path / "adapt")]
+    assert repnet(command) == 0
+    assert checkpoint.read_metadata(out)["training_data"].startswith(meta["training_data"])

@@ -123,3 +123,14 @@ def test_the_tiny_preset_has_every_kind_of_stage() -> None:
     assert any(stage.init_from and stage.init_from.checkpoint == "best" for stage in tiny.stages)
     assert any(stage.stop < stage.train.iterations for stage in tiny.stages)
     assert tiny.critic.train.critic_fakes == "corrupted" and tiny.mirror_average
+
+
+def test_the_nositting_preset_leaves_sitting_out_of_every_stage_and_trains_from_scratch() -> None:
+    """A parent for bench.adapt_h36m --shift no-sitting: the export's density leaves out what the
+    generator's run left out (repnet.train.export), so every stage names the actions."""
+    preset = presets.get("repnet-h36m-nositting")
+    assert {stage.train.exclude_actions for stage in preset.all_stages} == {"Sitting,SittingDown"}
+    assert all(stage.parents() == () for stage in preset.all_stages)
+    warm = preset.stage(preset.export_from.stage).train
+    assert warm.warm_start_steps == warm.iterations and preset.plausibility == "density"
+    assert preset.critic.train.critic_fakes == "corrupted" and preset.mirror_average
