@@ -26,7 +26,7 @@ import numpy as np
 if __package__ in (None, ""):  # `python bench/plausibility_rank.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench.adapt_h36m import high_tails, s8_sh
+from bench.adapt_shifts import high_tails, s8_sh
 from bench.stats import write_json
 from repnet.runtime.replies import IMPLAUSIBLE_BELOW
 from repnet.train import data, metrics, sequences

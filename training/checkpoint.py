@@ -52,7 +52,7 @@ class ConfigChanged(ValueError):
     """A resumed run was given a configuration that differs from its checkpoint's."""
 
 
-# What an export's training_data says before the actions its run left out (export.training_data).
+# What an export's training_data says before the actions its run left out (metadata.training_data).
 EXCLUDED_ACTIONS = " without the actions "
 # How an export whose critic came from another run names the two commands in its train_command.
 GENERATOR_LABEL, CRITIC_COMMAND = "generator: ", "; critic: "

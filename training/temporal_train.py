@@ -24,7 +24,8 @@ import torch
 
 from repnet.core import skeleton
 from repnet.train import checkpoint, lineage, presets
-from repnet.train.export import LICENCE, write_onnx
+from repnet.train.export import write_onnx
+from repnet.train.metadata import LICENCE
 from repnet.train.temporal import (
     GRID_FPS,
     TemporalConfig,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from repnet.train import checkpoint, export, train, validate
+from repnet.train import checkpoint, export, metadata, train, validate
 from repnet.train import plausibility as plausibility_of
 from repnet.train.config import RepNetConfig
 from repnet.train.model import Critic, Plausibility, RepNet
@@ -24,7 +24,7 @@ def _exported(tmp_path: Path, plausibility: bool, mirror_average: bool) -> tuple
     generator, critic = RepNet(TINY).eval(), Critic(TINY).eval()
     table = torch.linspace(-1, 1, 11)
     path = tmp_path / f"model_{plausibility}_{mirror_average}.onnx"
-    meta = export.build_metadata(
+    meta = metadata.build_metadata(
         TINY,
         "tiny",
         "generator: python -m repnet.train.train --a; critic: python -m repnet.train.train --b",

@@ -15,7 +15,7 @@ import torch
 from sklearn.mixture import GaussianMixture  # type: ignore[import-untyped]
 
 from repnet.core import skeleton
-from repnet.train import checkpoint, density, export
+from repnet.train import checkpoint, density, export, metadata
 from repnet.train import plausibility as plausibility_of
 from repnet.train.config import RepNetConfig
 from repnet.train.model import Critic, LiftingGraph, Plausibility, RepNet
@@ -86,7 +86,7 @@ def _exported(tmp_path: Path, score: torch.nn.Module, with_critic: Critic | None
     with torch.no_grad():
         answers = LiftingGraph(generator)(points, torch.ones(300, 17))[0].numpy()
     plausibility, table, bones = plausibility_of.build(score, answers)
-    meta = export.build_metadata(TINY, "tiny", plausibility=plausibility_of.metadata(kind, table, bones))
+    meta = metadata.build_metadata(TINY, "tiny", plausibility=plausibility_of.metadata(kind, table, bones))
     path = tmp_path / f"{kind}.onnx"
     export.export_onnx(generator, path, meta, plausibility, critic=with_critic)
     return path

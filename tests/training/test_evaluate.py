@@ -18,7 +18,8 @@ def tiny_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     torch = pytest.importorskip("torch")
     pytest.importorskip("onnx")
     from repnet.train.config import RepNetConfig
-    from repnet.train.export import build_metadata, export_onnx
+    from repnet.train.export import export_onnx
+    from repnet.train.metadata import build_metadata
     from repnet.train.model import RepNet
 
     torch.manual_seed(0)

@@ -13,7 +13,7 @@ import torch
 
 from repnet.cli.main import main as repnet
 from repnet.core import skeleton
-from repnet.train import checkpoint, data, export, train
+from repnet.train import checkpoint, data, export, metadata, train
 from repnet.train import plausibility as plausibility_of
 from repnet.train.config import RepNetConfig
 from repnet.train.density import PoseDensity
@@ -28,7 +28,7 @@ def tiny_onnx(tmp_path_factory: pytest.TempPathFactory) -> tuple[RepNet, Path]:
     torch.manual_seed(0)
     generator = RepNet(RepNetConfig(width=32, critic_width=32, kcs_width=8)).eval()
     path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
-    meta = export.build_metadata(
+    meta = metadata.build_metadata(
         generator.config, "tiny-test", "python -m repnet.train.train --x", "synthetic", {"pa_mpjpe": 1.0}
     )
     export.export_onnx(generator, path, meta)
@@ -75,7 +75,7 @@ def test_plausibility_output_is_the_calibrated_percentile_of_the_critic(tmp_path
     assert table.shape == (101,) and np.all(np.diff(table) >= 0)
     path = tmp_path / "plausible.onnx"
     entries = plausibility_of.metadata("critic", table, None)
-    meta = export.build_metadata(config, "tiny-plausible", plausibility=entries)
+    meta = metadata.build_metadata(config, "tiny-plausible", plausibility=entries)
     export.export_onnx(generator, path, meta, Plausibility(critic, torch.from_numpy(table)))
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert [o.name for o in session.get_outputs()] == ["pose_3d", "camera", "plausibility"]
@@ -155,7 +155,7 @@ def test_a_mirror_averaged_export_keeps_the_contract_and_answers_mirrors_with_mi
     torch.manual_seed(0)
     generator = RepNet(RepNetConfig(width=32, critic_width=32, kcs_width=8)).eval()
     path = tmp_path / "mirror.onnx"
-    meta = export.build_metadata(generator.config, "m", mirror_average=True)
+    meta = metadata.build_metadata(generator.config, "m", mirror_average=True)
     export.export_onnx(generator, path, meta, None, mirror_average=True)
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert json.loads(session.get_modelmeta().custom_metadata_map["mirror_average"]) is True
@@ -173,7 +173,7 @@ def test_a_mirror_averaged_export_keeps_the_contract_and_answers_mirrors_with_mi
     np.testing.assert_allclose(camera_m, camera * [[1, -1, -1], [-1, 1, 1]], atol=1e-7, rtol=1e-4)
     # The plain export of the same generator is a different graph: it has no such symmetry.
     plain = tmp_path / "plain.onnx"
-    export.export_onnx(generator, plain, export.build_metadata(generator.config, "p"))
+    export.export_onnx(generator, plain, metadata.build_metadata(generator.config, "p"))
     plain_meta = ort.InferenceSession(str(plain)).get_modelmeta().custom_metadata_map
     assert json.loads(plain_meta["mirror_average"]) is False
 

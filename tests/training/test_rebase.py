@@ -10,7 +10,7 @@ import onnx
 import pytest
 import torch
 
-from repnet.train import export, lineage, rebase
+from repnet.train import export, lineage, metadata, rebase
 from repnet.train.config import RepNetConfig
 from repnet.train.model import Critic, Plausibility, RepNet
 
@@ -22,7 +22,7 @@ def _export(generator: RepNet, path: Path, model_id: str, seed: int) -> Path:
     torch.manual_seed(seed)
     critic = Critic(TINY).eval()
     plausibility = Plausibility(critic, torch.linspace(-1.0, 1.0, 11))
-    export.export_onnx(generator, path, export.build_metadata(TINY, model_id), plausibility)
+    export.export_onnx(generator, path, metadata.build_metadata(TINY, model_id), plausibility)
     return path
 
 
