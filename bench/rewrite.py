@@ -1,5 +1,6 @@
 """The temporal models' graph as stored against as served (runtime.rewrite: strided convolutions as
-matrix products): CPU time per pose by batch, and the largest difference of their answers.
+matrix products, broadcasts over short trailing axes tiled): CPU time per pose by batch, and the
+largest difference of their answers.
 
     python -m bench.rewrite [--batches 1 8 16 64] [--rounds 5] [--out runs/bench/rewrite.json]
 
