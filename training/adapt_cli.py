@@ -27,7 +27,7 @@ from tqdm import tqdm
 from repnet.core.contract import DEFAULT_FPS
 from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE
 from repnet.core.links import kept_links
-from repnet.runtime.loading import BUNDLED_MODEL
+from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_MODEL, ancestors
 from repnet.train import checkpoint, lineage
 from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
 from repnet.train.adapt_report import (
@@ -216,7 +216,8 @@ def run(
     critic = None if isinstance(scorer.score, Critic) else adaptation.trainer.critic.eval()
     diff = export_adapted(adaptation.trainer.generator, scorer, meta, args.output, record, mirror, critic)
     took = time.monotonic() - start
-    written(args.output, record["model_id"], reasons, f"torch vs onnxruntime {diff:.1e} mm, {took:.1f} s")
+    check = f"torch vs onnxruntime {diff:.1e} mm, {took:.1f} s"
+    written(args.output, record["model_id"], reasons, check, keeps_temporal(parent_sha, meta))
     settle_checkpoint(state, deleted=done and args.run_dir is None)  # a --run-dir is the user's
     return 0
 
@@ -233,17 +234,31 @@ def settle_checkpoint(state: Path, deleted: bool) -> None:
     say(f"its checkpoint {state} is deleted: the model holds what it learned")
 
 
-def written(output: Path, model: str, reasons: list[str], check: str) -> None:
-    """Say what was decided and why, and where the model is."""
+def keeps_temporal(parent_sha: str, meta: dict[str, str]) -> bool:
+    """Whether the bundled temporal models run over a model adapted from the parent of file hash
+    `parent_sha` and metadata `meta`: they were trained on its answers or on those of a model it was
+    adapted from (repnet.runtime.loading.serves_under)."""
+    if not BUNDLED_CAUSAL.is_file():
+        return False
+    base = checkpoint.read_metadata(BUNDLED_CAUSAL).get("base_model_sha256", "")
+    return bool(base) and base in (parent_sha, *ancestors(meta))
+
+
+def written(output: Path, model: str, reasons: list[str], check: str, temporal: bool) -> None:
+    """Say what was decided and why, where the model is, and whether temporal lifting runs over it."""
     why = (
         f"written because of --force, though {'; '.join(reasons)}"
         if reasons
         else "written: no figure got worse beyond its limit (docs/TRAINING.md, Report)"
     )
-    say(
-        f"{why}. Wrote {output} (model {model}, {check}): serve it with --model-path or from "
-        "REPNET_MODEL_DIR; the temporal models of its parent run over it (GET /v1/models lists them)"
+    over = (
+        "the temporal models of its parent run over it (GET /v1/models lists them)"
+        if temporal
+        else "the bundled temporal models were trained on another single-frame model and do not run over "
+        "it (python -m repnet.train.temporal_train --base-model trains them over it)"
     )
+    serve = "serve it with --model-path or from REPNET_MODEL_DIR"
+    say(f"{why}. Wrote {output} (model {model}, {check}): {serve}; {over}")
 
 
 def _output_problem(args: argparse.Namespace) -> str | None:

@@ -474,3 +474,14 @@ def test_adapt_draws_its_3d_poses_from_the_prior_it_is_given(
     (tmp_path / "not.npz").write_bytes(b"no prior")
     assert adapt(poses_file, parent, tmp_path / "b.onnx", "--prior", str(tmp_path / "not.npz")) == 2
     assert "--prior" in capsys.readouterr().err and not (tmp_path / "b.onnx").exists()
+
+
+def test_the_command_says_whether_the_bundled_temporal_models_run_over_the_adapted_model(
+    parent: Path, tmp_path: Path
+) -> None:
+    bundled = read_metadata(parent)
+    sha = lineage.file_sha256(parent)
+    assert adapt_cli.keeps_temporal(sha, bundled)  # v7: their base
+    child = {"lineage": json.dumps({"parent": {"sha256": sha}})}  # adapted from v7, adapted again
+    assert adapt_cli.keeps_temporal("0" * 64, child)
+    assert not adapt_cli.keeps_temporal("0" * 64, {})  # another parent (a no-sitting one)
