@@ -5,8 +5,12 @@
 No parsing, no model, no service code on the path: each ~200-byte LiftFrame is taken as bytes and
 answered with the same serialized LiftFrameResult, with every field of a tracked reply and its size
 (721 bytes). What this server spends per message is what Python gRPC itself costs on the machine, the
-floor under any service written on it. `GET /readyz` on the HTTP port answers 200 so that
-bench.server.ServiceProcess can wait for it like for the service; other flags are ignored.
+floor under any service written on it.
+
+The HTTP port is the same for HTTP: uvicorn with httptools, as the service runs it, in front of a bare
+ASGI app that reads a `POST /lift` body whole and answers it with one fixed JSON reply of a pose
+(every field the service fills, its size), no parsing and no framework. `GET /readyz` answers 200, so
+that bench.server.ServiceProcess waits for it as for the service. Other flags are ignored.
 
 measure_floor drives it with bench.temporal_load's own clients (the same frames, each answer parsed):
 8 streams of 256 in flight, one stream in lock-step, and 8 cameras paced at 30 fps.
@@ -16,11 +20,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import sys
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 import grpc
+import uvicorn
 
 if __package__ in (None, ""):  # `python bench/echo.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -75,15 +82,54 @@ async def serve(host: str, grpc_port: int, http_port: int) -> None:
     server.add_insecure_port(f"{host}:{grpc_port}")
     await server.start()
 
-    async def ready(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        await reader.readuntil(b"\r\n\r\n")
-        writer.write(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\nConnection: close\r\n\r\nok")
-        await writer.drain()
-        writer.close()
+    config = uvicorn.Config(http_echo(), host=host, port=http_port, http="httptools", lifespan="off")
+    config.log_level = "warning"
+    http = uvicorn.Server(config)
+    await asyncio.gather(server.wait_for_termination(), http.serve())
 
-    http = await asyncio.start_server(ready, host, http_port)
-    async with http:
-        await server.wait_for_termination()
+
+def fixed_json_reply() -> bytes:
+    """A POST /lift answer of one pose with every field the service fills, as JSON (fixed numbers)."""
+    ramp = [round(float(v) * 0.731 - 17.3, 4) for v in range(51)]
+    pose = {
+        "pose_3d": [ramp[i : i + 3] for i in range(0, 51, 3)],
+        "pose_3d_camera": [[-v for v in ramp[i : i + 3]] for i in range(0, 51, 3)],
+        "camera": [[0.82, 0.01, -0.03], [0.02, 0.81, 0.04]],
+        "scale": 0.003081123111769557,
+        "rotation": [[0.99, 0.01, 0.02], [-0.01, 0.98, 0.1], [-0.02, -0.1, 0.98]],
+        "reprojection": [ramp[i : i + 2] for i in range(0, 34, 2)],
+        "reprojection_error_px": 8.838696479797363,
+        "visible": [True] * 17,
+        "imputed": [False] * 17,
+        "derived": [False] * 17,
+        "plausibility": 0.8191808462142944,
+        "temporal": False,
+    }
+    return json.dumps({"model_id": "repnet-h36m-v7", "poses": [pose]}, separators=(",", ":")).encode()
+
+
+def http_echo() -> Callable[..., Awaitable[None]]:
+    """The bare ASGI app: POST /lift read whole and answered with fixed_json_reply, GET /readyz 200."""
+    reply = fixed_json_reply()
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(reply)).encode())]
+
+    async def app(scope: dict[str, Any], receive: Callable[..., Any], send: Callable[..., Any]) -> None:
+        if scope["type"] != "http":
+            return
+        more = True
+        while more:  # the body, read and dropped
+            message = await receive()
+            more = message.get("more_body", False)
+        if scope["method"] == "POST" and scope["path"] == "/lift":
+            status, body, head = 200, reply, headers
+        elif scope["path"] == "/readyz":
+            status, body, head = 200, b"ok", [(b"content-length", b"2")]
+        else:
+            status, body, head = 404, b"", [(b"content-length", b"0")]
+        await send({"type": "http.response.start", "status": status, "headers": head})
+        await send({"type": "http.response.body", "body": body})
+
+    return app
 
 
 def echoed(answer: bytes, k: int) -> bool:

@@ -5,8 +5,9 @@
 The roof is measured first, alone on the machine; then the service starts on free localhost
 ports with the same thread settings and is loaded from this process (its own GIL). Then the
 same service without the model (bench.ceiling) takes the loads whose targets are ratios, which
-shows what the transports alone reach on the machine. Last, the roof is measured again: ratios
-use the better of the two passes.
+shows what the transports alone reach on the machine, and bench.echo's bare HTTP server (uvicorn and
+httptools, no app code) the single-pose HTTP load: the HTTP floor. Last, the roof is measured again:
+ratios use the better of the two passes.
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ def service_loads(
 
 CEILING = "(no model) "  # name prefix of the rows measured against bench.ceiling
 CEILING_LOADS = ("http c1", "stream x1", "stream x8")  # of service_loads: those whose targets are ratios
+FLOOR = "(http floor) "  # the row of HTTP c1 against bench.echo: uvicorn and httptools, no app code
 
 
 @dataclass
@@ -132,6 +134,8 @@ class Report:
                 )
                 if bare := ceiling.get((CEILING + r.name, r.concurrency)):
                     line += f"; without the model p50 {bare.latency_ms['p50']:.2f} ms"
+                if floor := next((f for f in self.results if f.name == FLOOR + r.name), None):
+                    line += f"; the HTTP floor (uvicorn, no app code) p50 {floor.latency_ms['p50']:.2f} ms"
                 lines.append(line)
         return lines
 
@@ -179,6 +183,12 @@ def run(args: argparse.Namespace) -> Report:
                 result = load()
                 result.name = CEILING + result.name
                 results.append(result)
+    if not args.no_ceiling:
+        with ServiceProcess(module="bench.echo") as echo:
+            log.info("measuring http c1 against the HTTP floor (bench.echo)")
+            result = measure_http("127.0.0.1", echo.http_port, echo.pid, 1, 1, args.duration)
+            result.name = FLOOR + result.name
+            results.append(result)
     log.info("roof again, after the service loads")
     roof_end = measure_roof(settings, BATCHES, args.roof_duration)
     return Report(
@@ -207,7 +217,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--roof-duration", type=float, default=2.0, help="seconds per roof batch size")
     parser.add_argument("--quick", action="store_true", help="fewer configurations (a smoke run)")
     parser.add_argument(
-        "--no-ceiling", action="store_true", help="skip the service without the model (bench.ceiling)"
+        "--no-ceiling",
+        action="store_true",
+        help="skip the service without the model (bench.ceiling) and the HTTP floor (bench.echo)",
     )
     parser.add_argument(
         "--service-flag",

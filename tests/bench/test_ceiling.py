@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
+from typing import Any
+
 import numpy as np
 
+from bench import echo
 from bench.ceiling import ConstantLifter
 from bench.roof import RoofRow
-from bench.run import CEILING, Report
+from bench.run import CEILING, FLOOR, Report
 from bench.stats import Result, sample_poses
 from repnet.runtime.lifter import Lifter
 from tests.conftest import reply_of
@@ -37,6 +42,7 @@ def test_targets_name_the_ceiling_beside_the_service() -> None:
             result(stream, 1, 2_000),
             result(CEILING + stream, 1, 5_000),
             result(CEILING + "HTTP /lift, 1 pose", 1, 500, p50=1.5),
+            result(FLOOR + "HTTP /lift, 1 pose", 1, 900, p50=0.6),
         ],
         server_rss_mb={"start": 1.0, "end": 1.0},
     )  # fmt: skip
@@ -44,6 +50,7 @@ def test_targets_name_the_ceiling_beside_the_service() -> None:
     http, x1 = report.targets
     assert http.startswith("MISSED: HTTP single pose c1 p50 4.00 ms")
     assert "roof's batch-1 call: 2.00 ms" in http and "without the model p50 1.50 ms" in http
+    assert http.endswith("the HTTP floor (uvicorn, no app code) p50 0.60 ms")
     assert x1.startswith("MISSED: LiftStream x1 at 0.20 of the roof (target >= 0.7)")
     assert x1.endswith("without the model the same load reaches 0.49")
 
@@ -58,3 +65,30 @@ def test_the_roof_is_the_better_of_the_passes_before_and_after_the_loads() -> No
     )  # fmt: skip
     assert report.roof_best == 10_240 and report.roof_batch1_ms == 2.0
     assert "Roof after them" in report.markdown()
+
+
+def test_the_http_floor_answers_a_lift_as_the_bench_client_reads_it_and_readyz() -> None:
+    app = echo.http_echo()
+
+    def call(method: str, path: str, chunks: list[bytes]) -> tuple[int, bytes]:
+        incoming = [
+            {"type": "http.request", "body": c, "more_body": i < len(chunks) - 1}
+            for i, c in enumerate(chunks)
+        ]
+        sent: list[dict[str, Any]] = []
+
+        async def receive() -> dict[str, Any]:
+            return incoming.pop(0)
+
+        async def send(message: dict[str, Any]) -> None:
+            sent.append(message)
+
+        asyncio.run(app({"type": "http", "method": method, "path": path}, receive, send))
+        assert not incoming  # the whole body was read
+        return sent[0]["status"], sent[1]["body"]
+
+    status, body = call("POST", "/lift", [b'{"poses": [', b"]}"])
+    pose = json.loads(body)["poses"][0]
+    assert status == 200 and len(pose["pose_3d"]) == 17 and len(pose["reprojection"]) == 17
+    assert call("GET", "/readyz", [b""]) == (200, b"ok")
+    assert call("GET", "/other", [b""])[0] == 404
