@@ -27,9 +27,9 @@ from tqdm import tqdm
 from repnet.core.contract import DEFAULT_FPS
 from repnet.core.inputs import MODEL_ID, MODEL_ID_RULE
 from repnet.core.links import kept_links
-from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_MODEL, ancestors
+from repnet.runtime.loading import BUNDLED_CAUSAL, BUNDLED_MODEL, serves_under
 from repnet.train import checkpoint, lineage
-from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, digest, split_holdout
+from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, split_holdout
 from repnet.train.adapt_report import (
     MIN_HOLDOUT,
     SHARE_STEP_PCT,
@@ -70,26 +70,28 @@ def input_hashes(specs: list[str]) -> list[dict[str, str]]:
     return out
 
 
-def run_dir(args: argparse.Namespace, parent_sha: str, inputs_sha: str) -> Path:
+def run_dir(args: argparse.Namespace, parent_sha: str, inputs_sha: str, prior_sha: str = "") -> Path:
     """Where the run checkpoints: --run-dir, else a folder of the cache named by the output, the
-    parent and the inputs (so --resume finds it again)."""
+    parent, the inputs and the --prior ("": the shipped one), so --resume finds it again."""
     if args.run_dir is not None:
         return Path(args.run_dir)
-    prior = "" if args.prior is None else lineage.file_sha256(Path(args.prior))
-    key = hashlib.sha256(f"{args.output.resolve()}|{parent_sha}|{inputs_sha}|{prior}".encode())
+    key = hashlib.sha256(f"{args.output.resolve()}|{parent_sha}|{inputs_sha}|{prior_sha}".encode())
     return lineage.cache_dir() / "adapt" / f"{args.output.stem}-{key.hexdigest()[:12]}"
 
 
-def _usage_problem(args: argparse.Namespace) -> str | None:
-    """What is wrong with -o or --prior, if anything."""
+def _usage(args: argparse.Namespace) -> tuple[str | None, tuple[PosePrior | None, str]]:
+    """What is wrong with -o or --prior (None: nothing), and the pose prior of --prior read once with
+    its file's sha256 ((None, ""): the shipped one)."""
+    shipped: tuple[PosePrior | None, str] = (None, "")
     if (problem := _output_problem(args)) is not None:
-        return f"-o {args.output}: {problem}"
-    if args.prior is not None:
-        try:
-            PosePrior.load(Path(args.prior))
-        except (OSError, KeyError, ValueError) as err:
-            return f"--prior {args.prior}: not a pose prior (python -m repnet.train.prior writes one): {err}"
-    return None
+        return f"-o {args.output}: {problem}", shipped
+    if args.prior is None:
+        return None, shipped
+    try:
+        return None, (PosePrior.load(Path(args.prior)), lineage.file_sha256(Path(args.prior)))
+    except (OSError, KeyError, ValueError) as err:
+        writer = "python -m repnet.train.prior writes one"
+        return f"--prior {args.prior}: not a pose prior ({writer}): {err}", shipped
 
 
 def _given(value: float | None, default: float) -> float:
@@ -139,7 +141,8 @@ def run(
     (worse), 2 usage."""
     if args.threads:
         torch.set_num_threads(args.threads)
-    if (problem := _usage_problem(args)) is not None:
+    problem, (prior, prior_sha) = _usage(args)
+    if problem is not None:
         say(problem)
         return 2
     held = split_holdout(list(counts), args.holdout_fraction)
@@ -156,13 +159,11 @@ def run(
     scorer = parent_scorer(parent, meta)
     mirror = bool(json.loads(meta.get("mirror_average", "false")))
     config = _config(args)
-    prior = None if args.prior is None else PosePrior.load(Path(args.prior))  # the shipped one: None
     parent_sha = lineage.file_sha256(parent_path)
-    folder = run_dir(args, parent_sha, digest(*train, *(() if links is None else (links,))))
     adaptation = Adaptation(
         config, parent, *train, prior=prior, mirror_average=mirror, threads=args.threads, previous=links
     )
-    state = folder / "adapt.pt"
+    state = run_dir(args, parent_sha, adaptation.inputs_sha, prior_sha) / "adapt.pt"
     if args.resume and state.is_file():
         try:
             adaptation.load(state)
@@ -171,7 +172,7 @@ def run(
             return 2
         say(f"resumed {state} at step {adaptation.step} of {config.steps}")
     elif args.resume:
-        say(f"nothing to resume in {folder}: starting afresh")
+        say(f"nothing to resume in {state.parent}: starting afresh")
     done = _adapt(adaptation, state, (test[0][:PROBE_POSES], test[1][:PROBE_POSES]), scorer)
     if done is None:
         return 130
@@ -197,7 +198,7 @@ def run(
     record = {
         "model_id": args.model_id or args.output.stem,
         "parent": {"model_id": meta.get("model_id", parent_path.stem), "sha256": parent_sha},
-        "prior": None if args.prior is None else {"sha256": lineage.file_sha256(Path(args.prior))},
+        "prior": {"sha256": prior_sha} if prior_sha else None,
         "command": lineage.path_free(shlex.join(args.command_line), Path.cwd()),
         "inputs": input_hashes(list(args.input)),
         "poses": int(len(train[0])),
@@ -236,12 +237,12 @@ def settle_checkpoint(state: Path, deleted: bool) -> None:
 
 def keeps_temporal(parent_sha: str, meta: dict[str, str]) -> bool:
     """Whether the bundled temporal models run over a model adapted from the parent of file hash
-    `parent_sha` and metadata `meta`: they were trained on its answers or on those of a model it was
-    adapted from (repnet.runtime.loading.serves_under)."""
+    `parent_sha` and metadata `meta` (repnet.runtime.loading.serves_under: the model adapted from
+    serves under them as well as its parent)."""
     if not BUNDLED_CAUSAL.is_file():
         return False
     base = checkpoint.read_metadata(BUNDLED_CAUSAL).get("base_model_sha256", "")
-    return bool(base) and base in (parent_sha, *ancestors(meta))
+    return serves_under(base, parent_sha, meta)
 
 
 def written(output: Path, model: str, reasons: list[str], check: str, temporal: bool) -> None:

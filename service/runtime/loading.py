@@ -66,11 +66,12 @@ def ancestors(metadata: dict[str, str]) -> list[str]:
     return found
 
 
-def serves_under(temporal: TemporalLifter, sha256: str, metadata: dict[str, str]) -> bool:
-    """Whether `temporal` runs over the single-frame model of file hash `sha256` and `metadata`: the
-    model its answers were trained on, or one adapted from it (`repnet adapt`: the temporal models
-    work unchanged over an adapted model, docs/RESULTS.md)."""
-    return temporal.base_model_sha256 in (sha256, *ancestors(metadata))
+def serves_under(base_sha256: str, sha256: str, metadata: dict[str, str]) -> bool:
+    """Whether a temporal model trained on the answers of the single-frame model of file hash
+    `base_sha256` (its metadata's base_model_sha256) runs over the one of file hash `sha256` and
+    `metadata`: that model, or one adapted from it (`repnet adapt`: the temporal models work
+    unchanged over an adapted model, docs/RESULTS.md)."""
+    return base_sha256 in (sha256, *ancestors(metadata))
 
 
 def load_temporal_lifters(
@@ -94,7 +95,7 @@ def load_temporal_lifters(
         temporal = TemporalLifter.load(path, settings)
         if temporal.mode != mode:
             raise ModelLoadError(f"{path}: a {temporal.mode} temporal model, set as the {mode} one")
-        if not serves_under(temporal, base, lifter.info.metadata):
+        if not serves_under(temporal.base_model_sha256, base, lifter.info.metadata):
             message = (
                 f"{path}: trained on the answers of the single-frame model with sha256 "
                 f"{temporal.base_model_sha256[:12]}, not of {model_path.name} ({base[:12]})"

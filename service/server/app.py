@@ -241,7 +241,7 @@ def build_service(settings: Settings, lifter: Lifter | None = None) -> Service:
             m.info.model_id
             for m in lifters[1:]
             if all(
-                serves_under(e.lifter, sha256[m.info.model_id], m.info.metadata)
+                serves_under(e.lifter.base_model_sha256, sha256[m.info.model_id], m.info.metadata)
                 for e in temporal.engines.values()
             )
         }
