@@ -121,16 +121,21 @@ def visible_spread(points: np.ndarray, visible: np.ndarray) -> npt.NDArray[np.fl
 
 
 def reproject(
-    camera: np.ndarray, pose_3d: np.ndarray, keypoints_2d: np.ndarray, visible: np.ndarray
+    camera: np.ndarray,
+    pose_3d: np.ndarray,
+    keypoints_2d: np.ndarray,
+    visible: np.ndarray,
+    input_stats: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> FloatArray:
     """Project pose_3d (N, J, 3) with K (N, 2, 3) back into the input's pixels; returns (N, J, 2).
 
     K X matches the normalised input up to a translation, so it is centred on its visible joints,
-    scaled by the input's standard deviation and moved to the input's visible mean.
+    scaled by the input's standard deviation and moved to the input's visible mean (`input_stats`:
+    visible_stats of the input, when the caller has them).
     """
     projected = pose_3d.astype(np.float64) @ camera.astype(np.float64).transpose(0, 2, 1)  # (N, J, 2)
     proj_mean, _ = visible_stats(projected, visible)
-    in_mean, in_std = visible_stats(keypoints_2d, visible)
+    in_mean, in_std = visible_stats(keypoints_2d, visible) if input_stats is None else input_stats
     pixels = (projected - proj_mean[:, None]) * in_std[:, None, None] + in_mean[:, None]
     return np.asarray(pixels, dtype=np.float32)
 

@@ -100,7 +100,10 @@ class ModelInput:
 
     def slice(self, start: int, stop: int) -> ModelInput:
         """Poses start..stop-1 (views)."""
-        return ModelInput(*(getattr(self, f.name)[start:stop] for f in fields(self)))
+        return ModelInput(*(getattr(self, name)[start:stop] for name in _INPUT_FIELDS))
+
+
+_INPUT_FIELDS = tuple(f.name for f in fields(ModelInput))
 
 
 @dataclass(frozen=True)

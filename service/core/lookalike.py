@@ -48,9 +48,12 @@ def geometric_evidence(inputs: ModelInput) -> npt.NDArray[np.float64]:
     return np.asarray(height * _TOWARD_LOOKALIKE[inputs.format_index], np.float64)
 
 
-def relative_error(inputs: ModelInput, error_px: FloatArray) -> npt.NDArray[np.float64]:
-    """(N,) reprojection error (N,) px as a fraction of the pose's spread: the same for any image size."""
-    spread = visible_spread(inputs.keypoints_2d, inputs.visible)  # (N,) px
+def relative_error(
+    inputs: ModelInput, error_px: FloatArray, spread: np.ndarray | None = None
+) -> npt.NDArray[np.float64]:
+    """(N,) reprojection error (N,) px as a fraction of the pose's spread (visible_spread of its
+    input, when the caller has it): the same for any image size."""
+    spread = visible_spread(inputs.keypoints_2d, inputs.visible) if spread is None else spread  # (N,) px
     return error_px.astype(np.float64) / np.maximum(spread, 1e-9)
 
 
@@ -71,10 +74,14 @@ def mixup_scores(
 
 
 def format_warnings(
-    inputs: ModelInput, error_px: FloatArray, plausibility: FloatArray | None
+    inputs: ModelInput,
+    error_px: FloatArray,
+    plausibility: FloatArray | None,
+    spread: np.ndarray | None = None,
 ) -> list[list[str]]:
-    """Per pose, the warnings of its reply: today at most one, that the format looks wrong."""
-    relative = relative_error(inputs, error_px)
+    """Per pose, the warnings of its reply: today at most one, that the format looks wrong
+    (`spread`: visible_spread of the inputs, when the caller has it)."""
+    relative = relative_error(inputs, error_px, spread)
     out: list[list[str]] = [[] for _ in range(len(inputs))]
     flagged = np.flatnonzero(mixup_scores(inputs, error_px, plausibility, relative) > THRESHOLD)  # NaN: False
     if not len(flagged):

@@ -7,7 +7,7 @@ import logging
 import math
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -52,6 +52,9 @@ def model_id_of(metadata: dict[str, str], path: Path) -> str:
 def non_finite_rows(*arrays: np.ndarray) -> BoolArray:
     """(N,) True for each pose with a NaN or infinity in any of the (N, ...) arrays."""
     n = arrays[0].shape[0]
+    with np.errstate(over="ignore", invalid="ignore"):  # a NaN or infinity makes its sum one
+        if all(math.isfinite(a.sum()) for a in arrays):  # the usual case: one reduction each (an
+            return np.zeros(n, bool)  # overflow only takes the long way)
     finite = np.ones(n, bool)
     for a in arrays:
         finite &= np.isfinite(a.reshape(n, math.prod(a.shape[1:]))).all(axis=1)  # N may be 0
@@ -146,9 +149,10 @@ class Prediction:
 
     def slice(self, start: int, stop: int) -> Prediction:
         """Poses start..stop-1 of this prediction (views, no copy)."""
-        values = {f.name: getattr(self, f.name) for f in fields(self)}
-        sliced: dict[str, Any] = {k: None if v is None else v[start:stop] for k, v in values.items()}
-        return replace(self, **sliced)
+        plausibility = None if self.plausibility is None else self.plausibility[start:stop]
+        return Prediction(
+            self.pose_3d[start:stop], self.camera[start:stop], self.failed[start:stop], plausibility
+        )
 
     @classmethod
     def join(cls, parts: Sequence[Prediction]) -> Prediction:

@@ -17,9 +17,9 @@ from repnet.core.errors import LiftError
 from repnet.core.inputs import Limits, ModelInput, PoseInput, Prepared
 from repnet.core.keypoints import prepare_poses
 from repnet.runtime.lifter import Lifter, Prediction
-from repnet.runtime.plans import Plan, TrackedRow, answer_rows, stream_plan
+from repnet.runtime.plans import TrackedRow, answer_rows, stream_plan
 from repnet.runtime.replies import Replies, TemporalRows, build_replies
-from repnet.runtime.temporal import TemporalLifter, Windows
+from repnet.runtime.temporal import TemporalLifter
 from repnet.runtime.tracks import TrackTable
 
 
@@ -134,10 +134,11 @@ def lift_all(lifter: Lifter, inputs: ModelInput, max_batch: int) -> Prediction:
     )
 
 
-def track_rows(job: Job, prepared: Prepared) -> list[TrackedRow]:
-    """The job's valid tracked poses, each with its row among the job's valid poses."""
+def track_rows(job: Job, prepared: Prepared, offset: int) -> list[TrackedRow]:
+    """The job's valid tracked poses, each with its row in the batch (its row among the job's valid
+    poses plus `offset`, the job's first)."""
     rows: list[TrackedRow] = []
-    row = 0
+    row = offset
     for found, spec in zip(prepared.violations, job.tracked, strict=True):
         if found:
             continue
@@ -150,39 +151,34 @@ def track_rows(job: Job, prepared: Prepared) -> list[TrackedRow]:
 def temporal_rows(
     jobs: Sequence[Job],
     prepared: Sequence[Prepared],
+    inputs: ModelInput,
     prediction: Prediction,
     offsets: Sequence[int],
     rotation: np.ndarray,
 ) -> tuple[TemporalRows, list[dict[int, LiftError]]]:
-    """The streams' tracked poses pushed into their tracks, job by job, and answered by their causal
-    model in one run per model: TemporalRows in the batch's rows, and per job why a row has none."""
+    """The streams' tracked poses pushed into their tracks and answered by their causal model, all
+    jobs' poses together, one plan and one run per model: TemporalRows in the batch's rows, and per
+    job why a row (of its own) has none."""
     errors: list[dict[int, LiftError]] = [{} for _ in jobs]
-    plans: dict[int, list[tuple[int, Plan]]] = {}  # id(temporal lifter) -> (job index, its plan)
+    tracked: dict[int, list[tuple[TrackTable, TrackedRow]]] = {}  # id(temporal lifter) -> its poses
     models: dict[int, TemporalLifter] = {}
+    owner: dict[int, int] = {}  # a tracked row -> its job
     for k, (job, ready) in enumerate(zip(jobs, prepared, strict=True)):
         if job.tracks is None or not job.tracked:
             continue
-        tracked = track_rows(job, ready)
-        if not tracked:
+        mine = track_rows(job, ready, offsets[k])
+        if not mine:
             continue
-        span = slice(offsets[k], offsets[k] + len(ready.inputs))
-        mine = prediction.slice(span.start, span.stop)
-        plan = stream_plan(job.tracks.table, tracked, ready.inputs, mine, rotation[span])
-        errors[k] = plan.errors
-        if plan.windows is not None:
-            models[id(job.tracks.temporal)] = job.tracks.temporal
-            plans.setdefault(id(job.tracks.temporal), []).append((k, plan))
+        owner.update((t.row, k) for t in mine)
+        models[id(job.tracks.temporal)] = job.tracks.temporal
+        tracked.setdefault(id(job.tracks.temporal), []).extend((job.tracks.table, t) for t in mine)
     found = [TemporalRows.none()]
-    for key, members in plans.items():
-        temporal = models[key]
-        windows = Windows.join([p.windows.build() for _, p in members if p.windows is not None], causal=True)
-        answer = temporal.run(windows)
-        start = 0
-        for k, plan in members:
-            n = len(plan.rows)
-            held = answer_rows(plan, answer.slice(start, start + n))
-            found.append(TemporalRows(held.rows + offsets[k], held.pose_camera, held.failed))
-            start += n
+    for key, poses in tracked.items():
+        plan = stream_plan(poses, inputs, prediction, rotation)
+        for row, err in plan.errors.items():
+            errors[owner[row]][row - offsets[owner[row]]] = err
+        if plan.windows is not None:
+            found.append(answer_rows(plan, models[key].run(plan.windows.build())))
     return join_rows(found), errors
 
 
@@ -231,7 +227,7 @@ def run_jobs(lifter: Lifter, jobs: Sequence[Job], limits: Limits, max_batch: int
     offsets = np.concatenate([[0], np.cumsum([len(p.inputs) for p in prepared])]).tolist()
     with np.errstate(over="ignore", invalid="ignore"):  # what is not finite fails its pose (replies)
         rotation = geometry.camera_rotation(prediction.camera)  # once for the tracks and the replies
-    rows, errors = temporal_rows(jobs, prepared, prediction, offsets, rotation)
+    rows, errors = temporal_rows(jobs, prepared, inputs, prediction, offsets, rotation)
     replies = None
     if any(j.replies for j in jobs):
         replies = build_replies(inputs, prediction, rows, valid_track_ids(jobs, prepared), rotation)

@@ -12,7 +12,7 @@ from repnet.core import geometry
 from repnet.core.contract import Contract
 from repnet.core.errors import InvalidKeypoints, LiftError, Violation
 from repnet.core.inputs import ModelInput
-from repnet.core.skeleton import BONES, fix_bone_lengths
+from repnet.core.skeleton import BONES, bone_lengths, fix_bone_lengths
 from repnet.runtime.lifter import Prediction
 from repnet.runtime.replies import TemporalRows
 from repnet.runtime.temporal import TemporalAnswer, TemporalBatcher, Windows, WindowSource
@@ -55,14 +55,6 @@ def seen_arrays(
     return poses, points, inputs.visible[rows].astype(np.float32)
 
 
-def observations(
-    inputs: ModelInput, prediction: Prediction, rows: np.ndarray, rotation: np.ndarray | None = None
-) -> list[Observation]:
-    """The single-frame answers of `rows` as a track stores them, one Observation each."""
-    poses, points, visibility = seen_arrays(inputs, prediction, rows, rotation)
-    return [Observation(p, k, v) for p, k, v in zip(poses, points, visibility, strict=True)]
-
-
 @dataclass(frozen=True)
 class Plan:
     """What a temporal run needs: one window per answered row, the bone lengths to hold it to, and
@@ -72,17 +64,6 @@ class Plan:
     rows: np.ndarray  # (n,) rows of the request's inputs the windows answer, in window order
     bones: np.ndarray  # (n, B)
     errors: dict[int, LiftError]  # row -> why it gets no answer (its track's limit, its frame order)
-
-    @classmethod
-    def of(
-        cls, parts: Sequence[tuple[int, Windows, np.ndarray]], errors: dict[int, LiftError], causal: bool
-    ) -> Plan:
-        """A plan from (row, its window (N = 1), its bone lengths) in order."""
-        if not parts:
-            return cls(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), errors)
-        windows = Windows.join([w for _, w, _ in parts], causal=causal)
-        rows = np.array([r for r, _, _ in parts], np.int64)
-        return cls(windows, rows, np.stack([b for _, _, b in parts]), errors)
 
 
 @dataclass(frozen=True)
@@ -97,32 +78,53 @@ class TrackedRow:
 
 
 def stream_plan(
-    table: TrackTable,
-    tracked: Sequence[TrackedRow],
+    tracked: Sequence[tuple[TrackTable, TrackedRow]],
     inputs: ModelInput,
     prediction: Prediction,
     rotation: np.ndarray | None = None,
 ) -> Plan:
-    """Push each tracked pose into its track, in order, and take its causal window (a stream's
-    group: its frames after the earlier groups'; `rotation`: each row's camera_rotation, if known)."""
-    table.expire()
-    seen = observations(inputs, prediction, np.array([t.row for t in tracked], np.int64), rotation)
-    parts: list[tuple[int, Windows, np.ndarray]] = []
+    """Push a batch's tracked poses into their streams' tracks, each stream's in the order it sent
+    them, and take each one's causal window right after its push (the ring moves on). The rows are
+    of `inputs`; each table is expired first; the answers' arrays and bone lengths are computed for
+    all poses at once (`rotation`: every row's camera_rotation, if known). One temporal model's."""
+    for table in {id(table): table for table, _ in tracked}.values():
+        table.expire()
+    rows = np.array([item.row for _, item in tracked], np.int64)
+    poses, points, visibility = seen_arrays(inputs, prediction, rows, rotation)
+    lengths = bone_lengths(poses)
+    taken: list[int] = []
+    slots: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    rates: list[float] = []
+    bones: list[np.ndarray] = []
     errors: dict[int, LiftError] = {}
-    for item, observation in zip(tracked, seen, strict=True):
+    for i, (table, item) in enumerate(tracked):
         try:
             track = table.get(item.track_id, item.fps, item.field)
         except InvalidKeypoints as err:
             errors[item.row] = err
             continue
         try:
-            track.push(item.frame, observation)
+            track.push(item.frame, Observation(poses[i], points[i], visibility[i]), lengths[i])
         except ValueError as err:
             reason = f"{err} (track {item.track_id!r})"
             errors[item.row] = InvalidKeypoints([Violation("frame_id", reason, "frame_order")])
             continue
-        parts.append((item.row, track.window(table.contract), track.bone_reference()))
-    return Plan.of(parts, errors, table.contract.mode == "causal")
+        slots.append(track.window_slots(table.contract))
+        rates.append(track.slot_fps)
+        bones.append(track.bone_reference())
+        taken.append(i)
+    if not taken:
+        return Plan(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), errors)
+    longest = max(len(s[0]) for s in slots)
+    arrays = [np.stack([_front_padded(s[a], longest) for s in slots]) for a in range(3)]
+    windows = Windows(*arrays, np.array(rates, np.float32))
+    return Plan(windows, rows[taken], np.stack(bones), errors)
+
+
+def _front_padded(slots: np.ndarray, count: int) -> np.ndarray:
+    """A causal window's slots, its oldest repeated in front up to `count` (temporal.pad_slots)."""
+    extra = count - len(slots)
+    return slots if extra == 0 else np.concatenate([np.repeat(slots[:1], extra, axis=0), slots])
 
 
 def clip_plan(

@@ -110,7 +110,8 @@ def build_replies(
             pose_3d = pose_3d.copy()
             pose_3d[temporal.rows] = temporal.pose_camera @ rotation[temporal.rows]
             failed[temporal.rows] |= temporal.failed
-        reprojection = geometry.reproject(camera, pose_3d, points, visible)  # (N, J, 2) px
+        stats = geometry.visible_stats(points, visible)  # the input's mean and spread, read twice
+        reprojection = geometry.reproject(camera, pose_3d, points, visible, stats)  # (N, J, 2) px
         error = geometry.reprojection_error(reprojection, points, visible)  # (N,) px
         pose_3d_camera = geometry.rotate_to_camera(pose_3d, camera_orientation(inputs, rotation))
     columns = {
@@ -125,7 +126,7 @@ def build_replies(
         "imputed": inputs.imputed,
         "derived": inputs.derived,
         "plausibility": prediction.plausibility,
-        "warnings": _warnings(inputs, error, prediction.plausibility),
+        "warnings": _warnings(inputs, error, prediction.plausibility, stats[1]),
         "temporal": _marked(len(inputs), temporal.rows),
         "track_id": [None] * len(inputs) if track_ids is None else list(track_ids),
         **root_columns(inputs, pose_3d_camera),
@@ -147,10 +148,13 @@ def _marked(n: int, rows: np.ndarray) -> BoolArray:
 IMPLAUSIBLE_BELOW = 0.01
 
 
-def _warnings(inputs: ModelInput, error: FloatArray, plausibility: FloatArray | None) -> list[list[str]]:
+def _warnings(
+    inputs: ModelInput, error: FloatArray, plausibility: FloatArray | None, spread: np.ndarray
+) -> list[list[str]]:
     """Per pose, why its answer may be wrong: joints read as missing at (0, 0), a format mix-up, else
-    an implausible 3D pose (a mix-up's answer mostly is: its warning names the likelier cause)."""
-    out = format_warnings(inputs, error, plausibility)
+    an implausible 3D pose (a mix-up's answer mostly is: its warning names the likelier cause).
+    `spread`: each input's visible spread (px)."""
+    out = format_warnings(inputs, error, plausibility, spread)
     if plausibility is not None:
         for i in np.flatnonzero(plausibility < IMPLAUSIBLE_BELOW).tolist():  # NaN: False
             if out[i]:

@@ -187,7 +187,9 @@ class TemporalLifter:
         }
         (pose,) = self.session.run([OUTPUT], feed)
         failed = non_finite_rows(pose)
-        return TemporalAnswer(np.where(failed[:, None, None], 0.0, pose).astype(np.float32), failed)
+        if failed.any():  # stand-ins, so that the other windows of the run are still answered
+            pose = np.where(failed[:, None, None], 0.0, pose)
+        return TemporalAnswer(pose.astype(np.float32, copy=False), failed)
 
     def check_outputs(self, poses: np.ndarray, keypoints_2d: np.ndarray, visibility: np.ndarray) -> None:
         """Answer windows of a person standing still at 25 and 60 fps: ModelLoadError unless the

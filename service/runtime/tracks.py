@@ -60,6 +60,8 @@ class Track:
         self.last_seen = time.monotonic()
         self.bone_sum = np.zeros(len(BONES))
         self.bone_count = 0
+        self._steps: np.ndarray | None = None  # frames back from the newest, per window slot
+        self.slot_fps = fps  # the window slots' rate (window_slots)
 
     @property
     def nbytes(self) -> int:
@@ -71,8 +73,9 @@ class Track:
         self.poses[slot], self.keypoints[slot], self.visibility[slot] = pose, keypoints, visibility
         self.stored += 1
 
-    def push(self, frame: int, seen: Observation) -> None:
-        """Add frame number `frame` (larger than the last): bridge a short gap, restart after a long one."""
+    def push(self, frame: int, seen: Observation, lengths: np.ndarray | None = None) -> None:
+        """Add frame number `frame` (larger than the last): bridge a short gap, restart after a long one.
+        `lengths`: the (B,) bone lengths of seen.pose, when the caller has them (a batch's at once)."""
         if self.stored and frame <= self.last_frame:
             raise ValueError(f"frame {frame} comes after frame {self.last_frame} of its track")
         gap = frame - self.last_frame - 1
@@ -87,24 +90,27 @@ class Track:
                 points = ((1 - u) * before[1] + u * seen.keypoints) * seen_both[:, None]
                 self._store((1 - u) * before[0] + u * seen.pose, points, seen_both)
         self._store(seen.pose, seen.keypoints, seen.visibility)
-        self.bone_sum += bone_lengths(seen.pose[None])[0]
+        self.bone_sum += bone_lengths(seen.pose[None])[0] if lengths is None else lengths
         self.bone_count += 1
         self.last_frame = frame
         self.last_seen = time.monotonic()
 
     def window(self, contract: Contract) -> Windows:
         """The causal window of the newest frame (one window, N = 1)."""
-        q = contract.thinning(self.fps)
-        slots = contract.slots(self.fps / q)
-        newest = self.stored - 1
-        back = np.maximum(newest - q * np.arange(slots - 1, -1, -1), max(0, self.stored - self.capacity))
+        poses, keypoints, visibility = self.window_slots(contract)
+        return Windows(poses[None], keypoints[None], visibility[None], np.array([self.slot_fps], np.float32))
+
+    def window_slots(self, contract: Contract) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The causal window of the newest frame as its (K, J, 3) poses, (K, J, 2) keypoints and (K, J)
+        visibility (copies: the ring moves on), its slots slot_fps apart: the newest frame and every
+        q-th before it, the oldest repeated while the track is younger than the window."""
+        if self._steps is None:  # a track's rate never changes: its slots are fixed
+            q = contract.thinning(self.fps)
+            self._steps = q * np.arange(contract.slots(self.fps / q) - 1, -1, -1)
+            self.slot_fps = self.fps / q
+        back = np.maximum((self.stored - 1) - self._steps, max(0, self.stored - self.capacity))
         index = back % self.capacity
-        return Windows(
-            self.poses[index][None],
-            self.keypoints[index][None],
-            self.visibility[index][None],
-            np.array([self.fps / q], np.float32),
-        )
+        return self.poses[index], self.keypoints[index], self.visibility[index]
 
     def bone_reference(self) -> np.ndarray:
         """(B,) the mean bone lengths of the single-frame answers since the track (re)started."""

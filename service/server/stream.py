@@ -190,7 +190,7 @@ class _Reader:
 
     def __init__(self, frames: AsyncIterator[FrameIn], state: StreamState) -> None:
         self.state = state
-        self.wake = asyncio.Event()  # something may be actionable
+        self.wake = _Waker()  # something may be actionable
         self.ended = False  # no frame will come any more
         self.unreadable: Exception | None = None  # why the frames ended, if they failed
         self._room = asyncio.Event()  # a group was answered: the window may have room again
@@ -235,10 +235,7 @@ class _Reader:
             return
         if self.state.held or self.ended:
             self._quiet_since = None
-            if tick_s is None:
-                await self.wake.wait()
-            else:
-                await _wait(self.wake, tick_s)
+            await self.wake.wait(tick_s)
             return
         now = time.monotonic()
         if self._quiet_since is None:
@@ -246,7 +243,7 @@ class _Reader:
         remaining = self._quiet_since + idle_timeout_s - now
         if remaining <= 0:
             raise StreamIdle(f"no frame for {idle_timeout_s:g} s")
-        await _wait(self.wake, remaining if tick_s is None else min(remaining, tick_s))
+        await self.wake.wait(remaining if tick_s is None else min(remaining, tick_s))
 
     def close(self) -> None:
         """Stop reading."""
@@ -310,10 +307,39 @@ def _tick(table: TrackTable | None) -> float | None:
     return table.idle_s / 2 if table is not None and table.tracks else None
 
 
-async def _wait(event: asyncio.Event, timeout_s: float) -> bool:
-    """Wait for `event`; False if `timeout_s` passed first."""
-    try:
-        await asyncio.wait_for(event.wait(), timeout_s)
-    except asyncio.TimeoutError:
-        return False
-    return True
+class _Waker:
+    """An event for one waiting task, whose timed wait needs no task of its own (asyncio.wait_for
+    makes one per wait, and a paced stream waits once a frame)."""
+
+    def __init__(self) -> None:
+        self._set = False
+        self._waiter: asyncio.Future[None] | None = None
+
+    def set(self) -> None:
+        """Something may be actionable: wake the waiting task."""
+        self._set = True
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(None)
+
+    def clear(self) -> None:
+        """Nothing new since now."""
+        self._set = False
+
+    async def wait(self, timeout_s: float | None = None) -> None:
+        """Until set, or at most `timeout_s`."""
+        if self._set:
+            return
+        loop = asyncio.get_running_loop()
+        self._waiter = waiter = loop.create_future()
+        timer = None if timeout_s is None else loop.call_later(timeout_s, _settle, waiter)
+        try:
+            await waiter
+        finally:
+            self._waiter = None
+            if timer is not None:
+                timer.cancel()
+
+
+def _settle(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_result(None)
