@@ -116,8 +116,10 @@ def stream_plan(
     if not taken:
         return Plan(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), errors)
     longest = max(len(s[0]) for s in slots)
-    poses, keypoints, seen = (np.stack([_front_padded(s[a], longest) for s in slots]) for a in range(3))
-    windows = Windows(poses, keypoints, seen, np.array(rates, np.float32))
+    slot_poses, slot_points, slot_seen = (
+        np.stack([_front_padded(s[a], longest) for s in slots]) for a in range(3)
+    )
+    windows = Windows(slot_poses, slot_points, slot_seen, np.array(rates, np.float32))
     return Plan(windows, rows[taken], np.stack(bones), errors)
 
 
