@@ -2,14 +2,16 @@
 and the service's whole pass (runtime.pipeline.run_jobs), each timed in thread CPU, with and without
 an idle gap before each call.
 
-    python -m bench.paced_pass [--gap-ms 8.3] [--calls 300] [--out runs/bench/paced_pass.json]
+    python -m bench.paced_pass [--gap-ms 8.3] [--calls 300] [--streams 32] [--out PATH.json]
 
 A paced camera's frame finds the worker idle since the last one: 8 cameras at 30 fps on 2 workers
 give a worker a frame every 8.3 ms. Back-to-back calls keep the weights, the interpreter's code and
 data in the core's caches; after a gap, on a shared machine, part of them is gone. The gap is spent
 asleep (the core idles) or spinning (the core stays busy with a loop that touches almost no memory);
-each call's cost is its thread CPU time, the sleep or spin not counted. One onnxruntime thread per
-session, as each of two workers has; the bundled single-frame and causal models.
+each call's cost is its thread CPU time, the sleep or spin not counted. The last row is a saturated
+run's pass: one tracked pose of each of --streams streams in one batch, its cost per pose. One
+onnxruntime thread per session, as each of two workers has; the bundled single-frame and causal
+models.
 """
 
 from __future__ import annotations
@@ -68,7 +70,8 @@ class Calls:
         self.clip = moving_clip()
         self.limits = Limits()
         self.frame = 0
-        self.tracks = StreamTracks(TrackTable(causal.contract, 4, 60.0, TrackBudget(4)), causal)
+        self.budget = TrackBudget(1024)
+        self.tracks = self.stream()
         slots = causal.contract.slots(FPS)
         points = self.clip[:slots]
         prediction = lifter.lift(points, np.ones(points.shape[:2], bool))
@@ -93,21 +96,29 @@ class Calls:
         w = self.window
         return {"poses": w.poses, "keypoints_2d": w.keypoints_2d, "visibility": w.visibility, "fps": w.fps}
 
-    def pass_of(self, tracked: bool) -> Callable[[], None]:
-        """The service's pass over one pose of a stream's frame (tracked: pushed into its track and
-        answered by the causal model too), replies built."""
+    def stream(self) -> StreamTracks:
+        """A new stream's tracks."""
+        return StreamTracks(TrackTable(self.causal.contract, 4, 60.0, self.budget), self.causal)
+
+    def pass_of(self, tracked: bool, streams: int = 1) -> Callable[[], None]:
+        """The service's pass over one frame of each of `streams` streams, one pose each (tracked:
+        pushed into its stream's track and answered by the causal model too), replies built."""
+        tracks = [self.tracks] if streams == 1 else [self.stream() for _ in range(streams)]
 
         def call() -> None:
             self.frame += 1
-            pose = PoseInput(self.clip[self.frame % len(self.clip)], np.ones(17, bool), None, "h36m17", None)
+            points = self.clip[self.frame % len(self.clip)]
             spec = [TrackedPose("person", self.frame, FPS, "pose")] if tracked else []
-            job = Job(
-                finish=lambda lifted: lifted,
-                poses=[pose],
-                tracks=self.tracks if tracked else None,
-                tracked=spec,
-            )
-            run_jobs(self.lifter, [job], self.limits, 256)
+            jobs = [
+                Job(
+                    finish=lambda lifted: lifted,
+                    poses=[PoseInput(points, np.ones(17, bool), None, "h36m17", None)],
+                    tracks=stream if tracked else None,
+                    tracked=spec,
+                )
+                for stream in tracks
+            ]
+            run_jobs(self.lifter, jobs, self.limits, 256)
 
         return call
 
@@ -121,15 +132,20 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         "both models, session.run batch 1 each": calls.both_runs,
         "the service's pass, one untracked pose": calls.pass_of(False),
         "the service's pass, one tracked pose": calls.pass_of(True),
+        f"the service's pass, {args.streams} streams' tracked poses, per pose": calls.pass_of(
+            True, args.streams
+        ),
     }
     rows = []
     for name, call in timed.items():
+        per = args.streams if name.endswith("per pose") else 1  # a batch of that many poses a call
+        count = max(10, args.calls // per)
         row: dict[str, Any] = {
             "call": name,
-            "back_to_back_ms": thread_cpu_ms(call, args.calls, 0.0, time.sleep),
+            "back_to_back_ms": thread_cpu_ms(call, count, 0.0, time.sleep) / per,
         }
         for idle_name, idle in GAPS.items():
-            row[f"{idle_name}_ms"] = thread_cpu_ms(call, args.calls, args.gap_ms / 1e3, idle)
+            row[f"{idle_name}_ms"] = thread_cpu_ms(call, count, args.gap_ms / 1e3, idle) / per
         rows.append(row)
         print(_line(row, args.gap_ms), flush=True)
     return {
@@ -152,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--gap-ms", type=float, default=1e3 / (4 * FPS), help="idle before each call (ms)")
     parser.add_argument("--calls", type=int, default=300, help="calls timed per row and gap")
+    parser.add_argument("--streams", type=int, default=32, help="streams of the last row's batch")
     parser.add_argument("--out", type=Path, default=Path("runs/bench/paced_pass.json"))
     args = parser.parse_args(argv)
     gaps = " | ".join(f"after {args.gap_ms:.1f} ms {n}" for n in GAPS)
