@@ -6,13 +6,18 @@ Starts `python -m repnet serve` (or `--module bench.ceiling`) in a child process
 `py-spy record` (a dev dependency; it needs ptrace: root or CAP_SYS_PTRACE) while bench's own load
 generator drives it, and prints the busiest threads and functions: *self* is time in the function's
 own code, *inclusive* counts its callees too. Idle threads (waiting on a lock or on I/O) are not
-sampled, so the shares are of the time the server's threads were running.
+sampled, so the shares are of the time the server's threads were running. Beside the samples, each
+thread's CPU over the recording is read from /proc (every thread of the service and its workers,
+onnxruntime's and gRPC's own included), in cores and in ms per frame of the load.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
+import re
 import shutil
 import subprocess
 import sys
@@ -24,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 if __package__ in (None, ""):  # `python bench/profile.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -67,6 +73,7 @@ class Profile:
     threads: Counter[str] = field(default_factory=Counter)
     self_time: Counter[str] = field(default_factory=Counter)
     inclusive: Counter[str] = field(default_factory=Counter)
+    names: dict[int, str] = field(default_factory=dict)  # thread id -> its Python name
 
     @classmethod
     def parse(cls, text: str) -> Profile:
@@ -80,6 +87,9 @@ class Profile:
             thread, *frames = stack.split(";")
             profile.samples += n
             profile.threads[thread] += n
+            for frame in [thread, *frames[:2]]:  # after the process (and the worker's) with --subprocesses
+                if named := THREAD.fullmatch(frame):
+                    profile.names[int(named[1])] = named[2]
             if frames:
                 profile.self_time[frames[-1]] += n
                 for frame in set(frames):
@@ -94,8 +104,69 @@ class Profile:
         return "\n".join(lines)
 
 
-def record(service: ServiceProcess, load: str, seconds: float, rate: int, raw: Path) -> tuple[Result, str]:
-    """Run py-spy on the service while the load runs; returns the load's Result and py-spy's output."""
+THREAD = re.compile(r"thread \((\d+)\): (.*)")  # py-spy's --threads frame
+
+
+def _processes(root: int) -> list[int]:
+    """`root` and its child processes (the workers)."""
+    found = [root]
+    for entry in Path("/proc").iterdir():
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            if (
+                entry.name.isdigit()
+                and int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == root
+            ):
+                found.append(int(entry.name))
+    return found
+
+
+CpuTimes = dict[int, tuple[int, float]]  # thread id -> (its process, CPU seconds so far)
+
+
+def thread_times(root: int) -> CpuTimes:
+    """CPU seconds so far of every thread of `root` and its children: thread id -> (pid, seconds)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    found: CpuTimes = {}
+    for pid in _processes(root):
+        with contextlib.suppress(OSError):
+            for task in Path(f"/proc/{pid}/task").iterdir():
+                with contextlib.suppress(OSError, IndexError, ValueError):
+                    fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+                    found[int(task.name)] = (pid, (int(fields[11]) + int(fields[12])) / tick)  # utime + stime
+    return found
+
+
+def thread_table(
+    before: dict[int, tuple[int, float]],
+    after: dict[int, tuple[int, float]],
+    seconds: float,
+    per_s: float,
+    names: dict[int, str],
+) -> tuple[str, list[dict[str, Any]]]:
+    """Each thread's CPU over the recording (cores) and per frame of the load (ms), busiest first;
+    the name is Python's where py-spy saw the thread (onnxruntime's and gRPC's own threads have none)."""
+    rows = []
+    for tid, (pid, end) in after.items():
+        cores = (end - before.get(tid, (pid, 0.0))[1]) / seconds
+        if cores >= 0.005:
+            rows.append({"thread": names.get(tid, "(not Python)"), "tid": tid, "pid": pid, "cores": cores})
+    rows.sort(key=lambda r: -r["cores"])
+    lines = ["| thread | process | CPU (cores) | ms per frame |", "|---|---:|---:|---:|"]
+    for r in rows:
+        r["ms_per_frame"] = 1e3 * r["cores"] / per_s if per_s else None
+        per_frame = f"{r['ms_per_frame']:.3f}" if per_s else "-"
+        lines.append(f"| `{r['thread']}` ({r['tid']}) | {r['pid']} | {r['cores']:.3f} | {per_frame} |")
+    return "\n".join(lines), rows
+
+
+Times = tuple[dict[int, tuple[int, float]], dict[int, tuple[int, float]], float]  # before, after, seconds
+
+
+def record(
+    service: ServiceProcess, load: str, seconds: float, rate: int, raw: Path
+) -> tuple[Result, str, Times]:
+    """Run py-spy on the service while the load runs; returns the load's Result, py-spy's output and
+    every thread's CPU times at the recording's start and end (thread_times), with its length."""
     spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
     command = [
         spy,
@@ -119,11 +190,13 @@ def record(service: ServiceProcess, load: str, seconds: float, rate: int, raw: P
     runner = threading.Thread(target=lambda: result.append(LOADS[load](service, seconds + 1.5)))
     runner.start()
     time.sleep(1.0)
+    before, start = thread_times(service.pid), time.monotonic()
     spy_run = subprocess.run(command, capture_output=True, text=True, check=False)
+    times = (before, thread_times(service.pid), time.monotonic() - start)
     runner.join()
     if spy_run.returncode != 0 or not raw.exists():
         raise RuntimeError(f"py-spy failed ({spy_run.returncode}): {spy_run.stderr.strip()[-500:]}")
-    return result[0], spy_run.stderr.strip()
+    return result[0], spy_run.stderr.strip(), times
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,8 +220,9 @@ def main(argv: list[str] | None = None) -> int:
         ServiceProcess(*args.service_flag, module=args.module) as service,
     ):
         raw = Path(tmp) / "profile.txt"
-        result, spy_log = record(service, args.load, args.seconds, args.rate, raw)
+        result, spy_log, (before, after, span) = record(service, args.load, args.seconds, args.rate, raw)
         profile = Profile.parse(raw.read_text())
+    threads, thread_rows = thread_table(before, after, span, result.frames_per_s, profile.names)
     log.info("%s", spy_log.splitlines()[-2] if spy_log else "")
     top = partial(profile.table, top=args.top)
     print(
@@ -158,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{result.frames_per_s:,.0f} frames/s, p50 {result.latency_ms.get('p50', 0):.2f} ms, "
                 f"server CPU {result.server_cpu or 0:.2f} cores, {profile.samples} samples",
                 top(profile.threads, "thread"),
+                "CPU per thread (/proc, over the recording; per frame of the load):\n\n" + threads,
                 top(profile.self_time, "function (self)"),
                 top(profile.inclusive, "function (inclusive)"),
             ]
@@ -171,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
                 "module": args.module,
                 "result": result,
                 "samples": profile.samples,
+                "thread_cpu": thread_rows,
                 "threads": dict(profile.threads.most_common()),
                 "self": dict(profile.self_time.most_common(200)),
                 "inclusive": dict(profile.inclusive.most_common(200)),
