@@ -4,13 +4,13 @@
 
 Everything a request goes through runs as in the service (validation, format conversion, the
 batcher, the reply with its camera geometry, metrics) except onnxruntime: the lifter answers each
-batch with copies of one real prediction. bench.run measures it next to the service, so the
-report shows how close to the roof the Python transports could get at all on the machine.
+batch with copies of one real prediction. It runs the service's workers (--workers, default one per
+usable CPU) under the same supervisor. bench.run measures it next to the service, so the report
+shows how close to the roof the Python transports could get at all on the machine.
 """
 
 from __future__ import annotations
 
-import logging
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -22,7 +22,9 @@ if __package__ in (None, ""):  # `python bench/ceiling.py`
 
 from bench.stats import sample_poses
 from repnet.runtime.lifter import Lifter, Prediction
-from repnet.server.app import build_service, load_lifter, parse_settings, serve
+from repnet.server.app import load_lifter
+from repnet.server.app import main as serve_main
+from repnet.server.config import Settings
 
 
 class ConstantLifter(Lifter):
@@ -40,11 +42,17 @@ class ConstantLifter(Lifter):
         return Prediction(**{k: None if v is None else np.repeat(v, n, axis=0) for k, v in values.items()})
 
 
+def constant_lifter(settings: Settings) -> Lifter:
+    """The service's model, answering with one stored prediction."""
+    return ConstantLifter(load_lifter(settings))
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Serve like `python -m repnet serve`, with the model taken out."""
-    settings = parse_settings(argv)
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
-    return serve(build_service(settings, ConstantLifter(load_lifter(settings))))
+    """Serve like `python -m repnet serve`, with the model taken out: as many workers (each a
+    `python -m bench.ceiling`) under the same supervisor, so that it compares with the service."""
+    return serve_main(
+        sys.argv[1:] if argv is None else argv, module=("bench.ceiling",), lifter=constant_lifter
+    )
 
 
 if __name__ == "__main__":

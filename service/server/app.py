@@ -10,7 +10,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from types import FrameType
 
@@ -33,7 +33,14 @@ from repnet.server.http.api import create_app
 from repnet.server.http.server import HttpServer, http_config, raise_open_file_limit
 from repnet.server.metrics import Metrics
 from repnet.server.startup import load_dir_lifters, load_lifter, load_temporal
-from repnet.server.workers import Peers, follow_supervisor, reuse_port_socket, run_supervised, usable_cpus
+from repnet.server.workers import (
+    SERVE,
+    Peers,
+    follow_supervisor,
+    reuse_port_socket,
+    run_supervised,
+    usable_cpus,
+)
 
 __all__ = ["Service", "build_service", "known_poses", "load_lifter", "load_temporal", "main"]
 
@@ -272,8 +279,15 @@ def parse_settings(argv: Sequence[str] | None) -> Settings:
     return Settings(**{k: v for k, v in vars(args).items() if v is not None})
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m repnet serve`: parse the settings, load the model, serve until a signal; the exit status."""
+def main(
+    argv: Sequence[str] | None = None,
+    *,
+    module: Sequence[str] = SERVE,
+    lifter: Callable[[Settings], Lifter] = load_lifter,
+) -> int:
+    """`python -m repnet serve`: parse the settings, load the model, serve until a signal; the exit
+    status. `module` and `lifter`: what the workers run and how the model is loaded, for a program
+    that serves like `repnet serve` (bench.ceiling: its workers, the model taken out)."""
     try:
         settings = parse_settings(argv)
     except ValidationError as err:
@@ -290,10 +304,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if peers is None and count > 1:  # the supervisor: the workers do the serving
         ports = (settings.http_port, settings.grpc_port)
         flags = list(sys.argv[1:] if argv is None else argv)
-        return run_supervised(flags, count, settings.host, ports, settings.shutdown_grace_s)
+        return run_supervised(flags, count, settings.host, ports, settings.shutdown_grace_s, module)
     raise_open_file_limit()
     try:
-        service = build_service(settings)
+        service = build_service(settings, lifter(settings))
     except (ModelLoadError, OSError, ValueError) as err:  # ValueError: an API keys file without keys
         if peers is None:
             log.error("cannot start: %s", err)

@@ -128,13 +128,24 @@ def reserve(host: str, port: int) -> socket.socket:
     return sock
 
 
+SERVE = ("repnet", "serve")  # what a worker runs: python -m repnet serve
+
+
 class Supervisor:
-    """Runs `count` workers of `repnet serve` with `argv` on the ports it reserved."""
+    """Runs `count` workers of `python -m <module>` (`repnet serve`) with `argv` on the ports it
+    reserved."""
 
     def __init__(
-        self, argv: Sequence[str], count: int, host: str, ports: tuple[int, int], grace_s: float
+        self,
+        argv: Sequence[str],
+        count: int,
+        host: str,
+        ports: tuple[int, int],
+        grace_s: float,
+        module: Sequence[str] = SERVE,
     ) -> None:
         self.argv = list(argv)
+        self.module = list(module)
         self.count = count
         self.grace_s = grace_s
         self.held = [reserve(host, p) for p in ports]  # OSError: a port is taken
@@ -150,7 +161,7 @@ class Supervisor:
         env[SUPERVISOR_ENV] = str(os.getpid())
         # onnxruntime's threads: the CPUs shared out between the workers, unless set (flag or variable)
         env.setdefault("REPNET_INTRA_OP_THREADS", str(max(1, usable_cpus() // self.count)))
-        command = [sys.executable, "-m", "repnet", "serve", *self.argv, "--workers", "1"]
+        command = [sys.executable, "-m", *self.module, *self.argv, "--workers", "1"]
         command += ["--http-port", str(http), "--grpc-port", str(grpc_port)]
         self.workers[index] = subprocess.Popen(command, env=env)
 
@@ -268,10 +279,18 @@ class Supervisor:
         log.info("stopped; requests answered: %s", ", ".join(sorted(counts)) or "none")
 
 
-def run_supervised(argv: Sequence[str], count: int, host: str, ports: tuple[int, int], grace_s: float) -> int:
-    """`repnet serve` with `count` workers; the exit status (1 when the ports are taken)."""
+def run_supervised(
+    argv: Sequence[str],
+    count: int,
+    host: str,
+    ports: tuple[int, int],
+    grace_s: float,
+    module: Sequence[str] = SERVE,
+) -> int:
+    """`repnet serve` (or `python -m <module>`, which takes its flags) with `count` workers; the exit
+    status (1 when the ports are taken)."""
     try:
-        supervisor = Supervisor(argv, count, host, ports, grace_s)
+        supervisor = Supervisor(argv, count, host, ports, grace_s, module)
     except OSError as err:
         log.error("cannot start: %s", err)
         return 1

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import json
+from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 
 from bench import echo
 from bench.ceiling import ConstantLifter
 from bench.roof import RoofRow
 from bench.run import CEILING, FLOOR, Report
+from bench.server import ServiceProcess
 from bench.stats import Result, sample_poses
 from repnet.runtime.lifter import Lifter
 from tests.conftest import reply_of
@@ -92,3 +95,22 @@ def test_the_http_floor_answers_a_lift_as_the_bench_client_reads_it_and_readyz()
     assert status == 200 and len(pose["pose_3d"]) == 17 and len(pose["reprojection"]) == 17
     assert call("GET", "/readyz", [b""]) == (200, b"ok")
     assert call("GET", "/other", [b""])[0] == 404
+
+
+def test_the_ceiling_runs_the_services_workers_and_answers_from_the_stored_prediction() -> None:
+    """bench.ceiling's supervisor starts its workers as `python -m bench.ceiling` (not the service),
+    so its figures compare with a service of as many workers."""
+    with ServiceProcess("--workers", "2", module="bench.ceiling") as service:
+        workers = [
+            Path(f"/proc/{p}/cmdline").read_bytes().split(b"\0")
+            for p in map(int, Path(f"/proc/{service.pid}/task/{service.pid}/children").read_text().split())
+        ]
+        assert len(workers) == 2 and all(cmd[1:3] == [b"-m", b"bench.ceiling"] for cmd in workers)
+        poses = sample_poses(2, seed=1).tolist()
+        first = httpx.post(
+            f"{service.url}/lift", json={"poses": [{"keypoints": poses[0]}]}, timeout=10
+        ).json()
+        second = httpx.post(
+            f"{service.url}/lift", json={"poses": [{"keypoints": poses[1]}]}, timeout=10
+        ).json()
+    assert first["poses"][0]["camera"] == second["poses"][0]["camera"]  # one stored answer, any input
