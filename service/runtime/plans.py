@@ -110,7 +110,7 @@ def stream_plan(
             errors[item.row] = InvalidKeypoints([Violation("frame_id", reason, "frame_order")])
             continue
         slots.append(track.window_slots(table.contract))
-        rates.append(track.slot_fps)
+        rates.append(track.slot_fps(table.contract))
         bones.append(track.bone_reference())
         taken.append(i)
     if not taken:

@@ -60,8 +60,6 @@ class Track:
         self.last_seen = time.monotonic()
         self.bone_sum = np.zeros(len(BONES))
         self.bone_count = 0
-        self._steps: np.ndarray | None = None  # frames back from the newest, per window slot
-        self.slot_fps = fps  # the window slots' rate (window_slots)
 
     @property
     def nbytes(self) -> int:
@@ -98,17 +96,23 @@ class Track:
     def window(self, contract: Contract) -> Windows:
         """The causal window of the newest frame (one window, N = 1)."""
         poses, keypoints, visibility = self.window_slots(contract)
-        return Windows(poses[None], keypoints[None], visibility[None], np.array([self.slot_fps], np.float32))
+        rate = np.array([self.slot_fps(contract)], np.float32)
+        return Windows(poses[None], keypoints[None], visibility[None], rate)
+
+    def slot_fps(self, contract: Contract) -> float:
+        """The rate of the window's slots: every q-th frame (contract.thinning)."""
+        return self.fps / contract.thinning(self.fps)
 
     def window_slots(self, contract: Contract) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The causal window of the newest frame as its (K, J, 3) poses, (K, J, 2) keypoints and (K, J)
-        visibility (copies: the ring moves on), its slots slot_fps apart: the newest frame and every
-        q-th before it, the oldest repeated while the track is younger than the window."""
-        if self._steps is None:  # a track's rate never changes: its slots are fixed
-            q = contract.thinning(self.fps)
-            self._steps = q * np.arange(contract.slots(self.fps / q) - 1, -1, -1)
-            self.slot_fps = self.fps / q
-        back = np.maximum((self.stored - 1) - self._steps, max(0, self.stored - self.capacity))
+        visibility (copies: the ring moves on): the newest frame and every q-th before it, the
+        oldest repeated while the track is younger than the window."""
+        q = contract.thinning(self.fps)
+        newest = self.stored - 1
+        back = np.maximum(
+            newest - q * np.arange(contract.slots(self.fps / q) - 1, -1, -1),
+            max(0, self.stored - self.capacity),
+        )
         index = back % self.capacity
         return self.poses[index], self.keypoints[index], self.visibility[index]
 
