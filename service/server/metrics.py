@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, multiprocess
+from prometheus_client.metrics_core import Metric
 
 from repnet.core.errors import InvalidKeypoints, ModelNotReady, ModelOutputError, Overloaded, Violation
 
@@ -190,9 +193,7 @@ class Metrics:
         folder = os.environ.get("PROMETHEUS_MULTIPROC_DIR")
         if not folder:
             return self.registry
-        registry = CollectorRegistry()
-        multiprocess.MultiProcessCollector(registry, folder)  # type: ignore[no-untyped-call]
-        return registry
+        return worker_metrics(folder)
 
     def set_model(self, model_id: str, skeleton: str) -> None:
         """Label repnet_model_info with the one loaded model (the default)."""
@@ -285,3 +286,32 @@ class Metrics:
         """The open tracks and the bytes they hold (tracks.TrackBudget's on_change)."""
         self.open_tracks.set(tracks)
         self.track_state_bytes.set(nbytes)
+
+
+class _WorkerFiles:
+    """Every worker's metrics from prometheus_client's multiprocess folder, as its own collector
+    reads them, past the files a worker is still creating: a worker opens its file empty, then
+    sizes it, and one empty file failed the whole read (a scrape, or the supervisor's last line,
+    while a worker started)."""
+
+    def __init__(self, folder: str) -> None:
+        self.folder = Path(folder)
+
+    def collect(self) -> Iterable[Metric]:
+        """The merged metrics of every file that holds at least its header."""
+        files = []
+        for path in self.folder.glob("*.db"):
+            with contextlib.suppress(OSError):  # a dead worker's gauge file may go meanwhile
+                if path.stat().st_size >= 8:
+                    files.append(str(path))
+        merge = multiprocess.MultiProcessCollector.merge
+        merged: Iterable[Metric] = merge(files, accumulate=True)  # type: ignore[no-untyped-call]
+        return merged
+
+
+def worker_metrics(folder: str) -> CollectorRegistry:
+    """A registry of every worker's metrics, read from `folder` (prometheus_client's multiprocess
+    folder) at each collect."""
+    registry = CollectorRegistry()
+    registry.register(_WorkerFiles(folder))
+    return registry

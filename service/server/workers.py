@@ -265,10 +265,9 @@ class Supervisor:
 
     def _report(self) -> None:
         """The requests every worker answered, as one line (each worker logs its own too)."""
-        from prometheus_client import CollectorRegistry, multiprocess
+        from repnet.server.metrics import worker_metrics
 
-        registry = CollectorRegistry()
-        multiprocess.MultiProcessCollector(registry, str(self.folder))  # type: ignore[no-untyped-call]
+        registry = worker_metrics(str(self.folder))
         counts = [
             f"{s.labels['transport']} {s.labels['method']} {s.labels['outcome']}={s.value:.0f}"
             for family in registry.collect()

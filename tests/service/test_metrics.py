@@ -4,17 +4,19 @@ from __future__ import annotations
 
 import json
 import re
+import struct
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client import CollectorRegistry, generate_latest, multiprocess
+from prometheus_client.mmap_dict import MmapedDict, mmap_key
 
 from repnet._proto.repnet.v1 import lifter_pb2_grpc
 from repnet.core.errors import InvalidKeypoints, ModelNotReady, Overloaded, Violation
-from repnet.server.metrics import Metrics
+from repnet.server.metrics import Metrics, worker_metrics
 from tests.conftest import POSE_2D
 from tests.service.invalid_inputs import good, to_proto_request
 
@@ -122,3 +124,17 @@ def test_parse_histogram_times_each_request_from_its_arrival(
     assert after - before >= 0.3  # the upload's three pauses
     stub.Lift(to_proto_request({"poses": [good()]}), timeout=10)
     assert count("grpc") == 1
+
+
+def test_worker_metrics_are_read_past_a_file_a_worker_is_still_creating(tmp_path: Path) -> None:
+    """A worker opens its metrics file empty before it sizes it: a scrape (or the supervisor's last
+    line) at that moment reads the other files, where prometheus_client's collector failed."""
+    written = MmapedDict(str(tmp_path / "counter_101.db"))
+    key = mmap_key("repnet_requests", "repnet_requests_total", ["transport"], ["http"], "requests")
+    written.write_value(key, 3.0, 0.0)
+    written.close()
+    (tmp_path / "counter_102.db").touch()  # the starting worker's
+    with pytest.raises(struct.error):
+        list(multiprocess.MultiProcessCollector(CollectorRegistry(), str(tmp_path)).collect())
+    text = generate_latest(worker_metrics(str(tmp_path))).decode()
+    assert 'repnet_requests_total{transport="http"} 3.0' in text
