@@ -13,6 +13,15 @@ The server (`repnet serve`) needs `pip install 'repnet[server]'`; `repnet lift -
 `repnet[local]`; training and `repnet adapt` need `repnet[train]`.
 """
 
+# This folder is the source of `repnet`, the only name an install gives it (pyproject.toml's
+# package-dir). Python run from the checkout's root would also find it under the folder's own name,
+# a second copy of every module beside the installed one: refused, with the name to use.
+if __name__ != "repnet":
+    raise ImportError(
+        f"{__name__!r} is the source folder of the package repnet: import repnet (pip install -e .)"
+    )
+
+
 from repnet.client.http import AsyncLiftClient, LiftClient
 from repnet.client.result import LiftClientError, LiftInputError, LiftResult
 from repnet.client.stream import Frame, FrameResult, Person, PersonResult, StreamClient

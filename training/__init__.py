@@ -56,6 +56,16 @@ mask: the ONNX input `visibility` thresholded at 0.5 (model.LiftingGraph); a joi
 visibility 0 is hidden.
 """
 
+# This folder is the source of `repnet.train`, the only name an install gives it (pyproject.toml's
+# package-dir). Python run from the checkout's root would also find it under the folder's own name,
+# a second copy of every module beside the installed one: refused, with the name to use.
+if __name__ != "repnet.train":
+    raise ImportError(
+        f"{__name__!r} is the source folder of the package repnet.train: import repnet.train "
+        "(pip install -e .)"
+    )
+
+
 # onnxruntime's usage telemetry off before training, export, evaluation or adapt makes a session of
 # its own (issue 31): the service's session module turns it off when it is imported.
 import repnet.runtime.session  # noqa: E402, F401

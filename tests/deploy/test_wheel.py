@@ -101,6 +101,33 @@ def test_an_editable_install_imports_repnet_and_nothing_else(tmp_path: Path) -> 
     assert found.stdout.strip() == str([("repnet", str(ROOT / "service" / "__init__.py"))]), found.stderr
 
 
+@pytest.mark.parametrize(("folder", "package"), [("service", "repnet"), ("training", "repnet.train")])
+def test_from_the_checkouts_root_a_source_folder_is_not_a_second_package(folder: str, package: str) -> None:
+    """Python run in the checkout's root finds service/ and training/ under their own names (the
+    current directory is on sys.path); importing them so is refused with the name to use, while
+    repnet (the install; strict editable: links to the folders) imports from the same files."""
+    refused = subprocess.run(
+        [sys.executable, "-c", f"import {folder}"], capture_output=True, text=True, cwd=ROOT, timeout=60
+    )
+    assert refused.returncode == 1
+    assert (
+        f"ImportError: '{folder}' is the source folder of the package {package}: import {package}"
+        in refused.stderr
+    )
+    used = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            f"import pathlib, {package}; print(pathlib.Path({package}.__file__).resolve())",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert used.stdout.strip() == str(ROOT / folder / "__init__.py"), used.stderr
+
+
 def requirements(wheel: Path) -> dict[str, set[str]]:
     """The wheel's requirements by extra ("" the plain install), as package names."""
     with zipfile.ZipFile(wheel) as z:
