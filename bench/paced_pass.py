@@ -29,11 +29,12 @@ if __package__ in (None, ""):  # `python bench/paced_pass.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.stats import machine, write_json
+from bench.temporal_roof import clip_windows
 from bench.tracked import FPS, moving_clip
 from repnet.core.inputs import Limits, PoseInput
 from repnet.runtime.lifter import Lifter
 from repnet.runtime.pipeline import Job, StreamTracks, TrackedPose, run_jobs
-from repnet.runtime.temporal import OUTPUT, TemporalLifter, Windows
+from repnet.runtime.temporal import OUTPUT, TemporalLifter
 from repnet.runtime.tracks import TrackBudget, TrackTable
 from repnet.server.config import Settings
 from repnet.server.startup import load_lifter
@@ -72,16 +73,9 @@ class Calls:
         self.frame = 0
         self.budget = TrackBudget(1024)
         self.tracks = self.stream()
-        slots = causal.contract.slots(FPS)
-        points = self.clip[:slots]
-        prediction = lifter.lift(points, np.ones(points.shape[:2], bool))
-        self.window = Windows(
-            prediction.pose_3d[None],
-            points[None],
-            np.ones((1, slots, 17), np.float32),
-            np.array([FPS], np.float32),
-        )
-        self.pose_feed = {"keypoints_2d": points[:1], "visibility": np.ones((1, 17), np.float32)}
+        slots = causal.contract.slots(FPS)  # a full window: the newest of a clip that long
+        self.window = clip_windows(lifter, causal.contract, slots).slice(slots - 1, slots)
+        self.pose_feed = {"keypoints_2d": self.clip[:1], "visibility": np.ones((1, 17), np.float32)}
 
     def single_run(self) -> None:
         """The single-frame model's session.run, batch 1."""

@@ -14,9 +14,7 @@ onnxruntime's and gRPC's own included), in cores and in ms per frame of the load
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
-import os
 import re
 import shutil
 import subprocess
@@ -36,7 +34,7 @@ if __package__ in (None, ""):  # `python bench/profile.py`
 
 from bench.grpc_load import measure_stream, measure_unary
 from bench.http_load import measure_http
-from bench.server import ServiceProcess
+from bench.server import CpuTimes, ServiceProcess, thread_cpu_seconds
 from bench.stats import Result, write_json
 from bench.temporal_load import measure_cameras, measure_people, measure_saturated
 
@@ -107,38 +105,9 @@ class Profile:
 THREAD = re.compile(r"thread \((\d+)\): (.*)")  # py-spy's --threads frame
 
 
-def _processes(root: int) -> list[int]:
-    """`root` and its child processes (the workers)."""
-    found = [root]
-    for entry in Path("/proc").iterdir():
-        with contextlib.suppress(OSError, ValueError, IndexError):
-            if (
-                entry.name.isdigit()
-                and int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == root
-            ):
-                found.append(int(entry.name))
-    return found
-
-
-CpuTimes = dict[int, tuple[int, float]]  # thread id -> (its process, CPU seconds so far)
-
-
-def thread_times(root: int) -> CpuTimes:
-    """CPU seconds so far of every thread of `root` and its children: thread id -> (pid, seconds)."""
-    tick = os.sysconf("SC_CLK_TCK")
-    found: CpuTimes = {}
-    for pid in _processes(root):
-        with contextlib.suppress(OSError):
-            for task in Path(f"/proc/{pid}/task").iterdir():
-                with contextlib.suppress(OSError, IndexError, ValueError):
-                    fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
-                    found[int(task.name)] = (pid, (int(fields[11]) + int(fields[12])) / tick)  # utime + stime
-    return found
-
-
 def thread_table(
-    before: dict[int, tuple[int, float]],
-    after: dict[int, tuple[int, float]],
+    before: CpuTimes,
+    after: CpuTimes,
     seconds: float,
     per_s: float,
     names: dict[int, str],
@@ -166,7 +135,7 @@ def record(
     service: ServiceProcess, load: str, seconds: float, rate: int, raw: Path
 ) -> tuple[Result, str, Times]:
     """Run py-spy on the service while the load runs; returns the load's Result, py-spy's output and
-    every thread's CPU times at the recording's start and end (thread_times), with its length."""
+    every thread's CPU times at the recording's start and end (thread_cpu_seconds), with its length."""
     spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
     command = [
         spy,
@@ -190,9 +159,9 @@ def record(
     runner = threading.Thread(target=lambda: result.append(LOADS[load](service, seconds + 1.5)))
     runner.start()
     time.sleep(1.0)
-    before, start = thread_times(service.pid), time.monotonic()
+    before, start = thread_cpu_seconds(service.pid), time.monotonic()
     spy_run = subprocess.run(command, capture_output=True, text=True, check=False)
-    times = (before, thread_times(service.pid), time.monotonic() - start)
+    times = (before, thread_cpu_seconds(service.pid), time.monotonic() - start)
     runner.join()
     if spy_run.returncode != 0 or not raw.exists():
         raise RuntimeError(f"py-spy failed ({spy_run.returncode}): {spy_run.stderr.strip()[-500:]}")

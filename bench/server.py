@@ -88,17 +88,40 @@ def rss_bytes(pid: int) -> int:
     return total
 
 
+def _stat_cpu(stat: str) -> float:
+    """User + system CPU seconds from the text of a /proc stat file (a process's or a thread's)."""
+    fields = stat.rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time used so far by process `pid` and its live workers (Linux /proc)."""
     total = 0.0
     for member in process_tree(pid):
         try:
-            with open(f"/proc/{member}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
+            total += _stat_cpu(Path(f"/proc/{member}/stat").read_text())
         except OSError:
             continue
-        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     return total
+
+
+CpuTimes = dict[int, tuple[int, float]]  # thread id -> (its process, CPU seconds so far)
+
+
+def thread_cpu_seconds(pid: int) -> CpuTimes:
+    """CPU seconds so far of every thread of process `pid` and its workers (Linux /proc)."""
+    found: CpuTimes = {}
+    for member in process_tree(pid):
+        try:
+            tasks = list(Path(f"/proc/{member}/task").iterdir())
+        except OSError:  # the process ended meanwhile
+            continue
+        for task in tasks:
+            try:
+                found[int(task.name)] = (member, _stat_cpu((task / "stat").read_text()))
+            except OSError:
+                continue
+    return found
 
 
 class ServiceProcess:

@@ -160,8 +160,7 @@ def temporal_rows(
     jobs' poses together, one plan and one run per model: TemporalRows in the batch's rows, and per
     job why a row (of its own) has none."""
     errors: list[dict[int, LiftError]] = [{} for _ in jobs]
-    tracked: dict[int, list[tuple[TrackTable, TrackedRow]]] = {}  # id(temporal lifter) -> its poses
-    models: dict[int, TemporalLifter] = {}
+    tracked: dict[int, tuple[TemporalLifter, list[tuple[TrackTable, TrackedRow]]]] = {}  # by id(model)
     owner: dict[int, int] = {}  # a tracked row -> its job
     for k, (job, ready) in enumerate(zip(jobs, prepared, strict=True)):
         if job.tracks is None or not job.tracked:
@@ -170,15 +169,15 @@ def temporal_rows(
         if not mine:
             continue
         owner.update((t.row, k) for t in mine)
-        models[id(job.tracks.temporal)] = job.tracks.temporal
-        tracked.setdefault(id(job.tracks.temporal), []).extend((job.tracks.table, t) for t in mine)
+        model = job.tracks.temporal
+        tracked.setdefault(id(model), (model, []))[1].extend((job.tracks.table, t) for t in mine)
     found = [TemporalRows.none()]
-    for key, poses in tracked.items():
+    for model, poses in tracked.values():
         plan = stream_plan(poses, inputs, prediction, rotation)
         for row, err in plan.errors.items():
             errors[owner[row]][row - offsets[owner[row]]] = err
         if plan.windows is not None:
-            found.append(answer_rows(plan, models[key].run(plan.windows.build())))
+            found.append(answer_rows(plan, model.run(plan.windows.build())))
     return join_rows(found), errors
 
 

@@ -109,8 +109,9 @@ def stream_plan(
             reason = f"{err} (track {item.track_id!r})"
             errors[item.row] = InvalidKeypoints([Violation("frame_id", reason, "frame_order")])
             continue
-        slots.append(track.window_slots(table.contract))
-        rates.append(track.slot_fps(table.contract))
+        window_poses, window_points, window_seen, rate = track.window_slots(table.contract)
+        slots.append((window_poses, window_points, window_seen))
+        rates.append(rate)
         bones.append(track.bone_reference())
         taken.append(i)
     if not taken:

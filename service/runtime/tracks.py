@@ -95,18 +95,14 @@ class Track:
 
     def window(self, contract: Contract) -> Windows:
         """The causal window of the newest frame (one window, N = 1)."""
-        poses, keypoints, visibility = self.window_slots(contract)
-        rate = np.array([self.slot_fps(contract)], np.float32)
-        return Windows(poses[None], keypoints[None], visibility[None], rate)
+        poses, keypoints, visibility, rate = self.window_slots(contract)
+        return Windows(poses[None], keypoints[None], visibility[None], np.array([rate], np.float32))
 
-    def slot_fps(self, contract: Contract) -> float:
-        """The rate of the window's slots: every q-th frame (contract.thinning)."""
-        return self.fps / contract.thinning(self.fps)
-
-    def window_slots(self, contract: Contract) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def window_slots(self, contract: Contract) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """The causal window of the newest frame as its (K, J, 3) poses, (K, J, 2) keypoints and (K, J)
-        visibility (copies: the ring moves on): the newest frame and every q-th before it, the
-        oldest repeated while the track is younger than the window."""
+        visibility (copies: the ring moves on), and the rate of its slots: the newest frame and every
+        q-th before it (contract.thinning), the oldest repeated while the track is younger than the
+        window."""
         q = contract.thinning(self.fps)
         newest = self.stored - 1
         back = np.maximum(
@@ -114,7 +110,7 @@ class Track:
             max(0, self.stored - self.capacity),
         )
         index = back % self.capacity
-        return self.poses[index], self.keypoints[index], self.visibility[index]
+        return self.poses[index], self.keypoints[index], self.visibility[index], self.fps / q
 
     def bone_reference(self) -> np.ndarray:
         """(B,) the mean bone lengths of the single-frame answers since the track (re)started."""

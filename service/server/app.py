@@ -36,9 +36,9 @@ from repnet.server.startup import load_dir_lifters, load_lifter, load_temporal
 from repnet.server.workers import (
     SERVE,
     Peers,
+    Supervisor,
     follow_supervisor,
     reuse_port_socket,
-    run_supervised,
     usable_cpus,
 )
 
@@ -304,7 +304,12 @@ def main(
     if peers is None and count > 1:  # the supervisor: the workers do the serving
         ports = (settings.http_port, settings.grpc_port)
         flags = list(sys.argv[1:] if argv is None else argv)
-        return run_supervised(flags, count, settings.host, ports, settings.shutdown_grace_s, module)
+        try:
+            supervisor = Supervisor(flags, count, settings.host, ports, settings.shutdown_grace_s, module)
+        except OSError as err:  # a port is taken
+            log.error("cannot start: %s", err)
+            return 1
+        return supervisor.run()
     raise_open_file_limit()
     try:
         service = build_service(settings, lifter(settings))

@@ -276,21 +276,3 @@ class Supervisor:
             if s.name == "repnet_requests_total"
         ]
         log.info("stopped; requests answered: %s", ", ".join(sorted(counts)) or "none")
-
-
-def run_supervised(
-    argv: Sequence[str],
-    count: int,
-    host: str,
-    ports: tuple[int, int],
-    grace_s: float,
-    module: Sequence[str] = SERVE,
-) -> int:
-    """`repnet serve` (or `python -m <module>`, which takes its flags) with `count` workers; the exit
-    status (1 when the ports are taken)."""
-    try:
-        supervisor = Supervisor(argv, count, host, ports, grace_s, module)
-    except OSError as err:
-        log.error("cannot start: %s", err)
-        return 1
-    return supervisor.run()

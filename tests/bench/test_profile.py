@@ -6,7 +6,8 @@ import os
 import threading
 import time
 
-from bench.profile import Profile, thread_table, thread_times
+from bench.profile import Profile, thread_table
+from bench.server import thread_cpu_seconds
 
 RAW = """\
 thread (1): MainThread;run (a.py:1);select (b.py:2) 5
@@ -37,11 +38,11 @@ def test_thread_names_are_read_with_or_without_the_process_frames() -> None:
 
 def test_a_threads_cpu_is_read_from_proc_and_counted_per_frame() -> None:
     me = threading.get_native_id()
-    before = thread_times(os.getpid())
+    before = thread_cpu_seconds(os.getpid())
     end = time.thread_time() + 0.05
     while time.thread_time() < end:  # 50 ms of this thread's CPU
         pass
-    after = thread_times(os.getpid())
+    after = thread_cpu_seconds(os.getpid())
     assert after[me][0] == os.getpid() and after[me][1] - before[me][1] >= 0.03  # clock ticks of 10 ms
     text, rows = thread_table(
         {me: (1, 0.0), 5: (1, 0.0)}, {me: (1, 0.5), 5: (1, 0.001)}, 2.0, 100.0, {me: "main"}
