@@ -6,9 +6,11 @@ Starts `python -m repnet serve` (or `--module bench.ceiling`) in a child process
 `py-spy record` (a dev dependency; it needs ptrace: root or CAP_SYS_PTRACE) while bench's own load
 generator drives it, and prints the busiest threads and functions: *self* is time in the function's
 own code, *inclusive* counts its callees too. Idle threads (waiting on a lock or on I/O) are not
-sampled, so the shares are of the time the server's threads were running. Beside the samples, each
-thread's CPU over the recording is read from /proc (every thread of the service and its workers,
-onnxruntime's and gRPC's own included), in cores and in ms per frame of the load.
+sampled, so the shares are of the time the server's threads were running; with `--idle` they are
+(py-spy --idle), and a thread that waits for the GIL shows where it waits: in the Python line it
+cannot run, where a thread waiting for work shows in the wait itself (Condition.wait). Beside the
+samples, each thread's CPU over the recording is read from /proc (every thread of the service and
+its workers, onnxruntime's and gRPC's own included), in cores and in ms per frame of the load.
 """
 
 from __future__ import annotations
@@ -132,10 +134,11 @@ Times = tuple[dict[int, tuple[int, float]], dict[int, tuple[int, float]], float]
 
 
 def record(
-    service: ServiceProcess, load: str, seconds: float, rate: int, raw: Path
+    service: ServiceProcess, load: str, seconds: float, rate: int, raw: Path, idle: bool = False
 ) -> tuple[Result, str, Times]:
-    """Run py-spy on the service while the load runs; returns the load's Result, py-spy's output and
-    every thread's CPU times at the recording's start and end (thread_cpu_seconds), with its length."""
+    """Run py-spy on the service while the load runs (`idle`: idle threads sampled too); returns the
+    load's Result, py-spy's output and every thread's CPU times at the recording's start and end
+    (thread_cpu_seconds), with its length."""
     spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
     command = [
         spy,
@@ -153,6 +156,7 @@ def record(
         "--nonblocking",
         "--threads",
         "--subprocesses",  # the workers (repnet serve --workers N), beside the supervisor
+        *(["--idle"] if idle else []),
     ]
     result: list[Result] = []
     # The load starts first and runs 1 s longer than the recording, which starts once it is warm.
@@ -180,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=int, default=200, help="samples per second")
     parser.add_argument("--module", default="repnet serve", help="'repnet serve' | bench.ceiling (no model)")
     parser.add_argument("--top", type=int, default=25, help="functions listed")
+    parser.add_argument("--idle", action="store_true", help="sample idle threads too (py-spy --idle)")
     parser.add_argument("--service-flag", action="append", default=[], help="extra flag for the service")
     parser.add_argument("--out", type=Path, default=None, help="JSON summary (default: print only)")
     args = parser.parse_args(argv)
@@ -189,7 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         ServiceProcess(*args.service_flag, module=args.module) as service,
     ):
         raw = Path(tmp) / "profile.txt"
-        result, spy_log, (before, after, span) = record(service, args.load, args.seconds, args.rate, raw)
+        result, spy_log, (before, after, span) = record(
+            service, args.load, args.seconds, args.rate, raw, args.idle
+        )
         profile = Profile.parse(raw.read_text())
     threads, thread_rows = thread_table(before, after, span, result.frames_per_s, profile.names)
     log.info("%s", spy_log.splitlines()[-2] if spy_log else "")
@@ -197,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "\n\n".join(
             [
-                f"`python -m bench.profile --load {args.load} --module {args.module}`: "
+                f"`python -m bench.profile --load {args.load} --module {args.module}"
+                f"{' --idle' if args.idle else ''}`: "
                 f"{result.frames_per_s:,.0f} frames/s, p50 {result.latency_ms.get('p50', 0):.2f} ms, "
                 f"server CPU {result.server_cpu or 0:.2f} cores, {profile.samples} samples",
                 top(profile.threads, "thread"),
@@ -213,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
             {
                 "load": args.load,
                 "module": args.module,
+                "idle": args.idle,
                 "result": result,
                 "samples": profile.samples,
                 "thread_cpu": thread_rows,

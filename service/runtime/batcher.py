@@ -73,12 +73,12 @@ def _wake(room: asyncio.Future[None]) -> None:
 class Batcher(Generic[In, Out]):
     """One worker thread runs one model on batches of queued requests' rows; adapters get its answers.
 
-    An idle batcher runs a request at once, unless another source is expected to send within
-    company_wait_s of it (a paced camera's next frame); under load (work queued during the last run)
-    a batch starts when max_batch poses are queued or max_wait_s after the last run ended
-    (runtime.window). Requests larger
-    than max_batch are split into chunks. The queue holds at most queue_size poses: a request that
-    does not fit is refused at once with Overloaded. The engine knows no reply and no wire format.
+    A request that finds nothing queued after the last run runs at once, unless another source is
+    expected to send within company_wait_s of it (a paced camera's next frame); under load (work
+    queued during the last run) a batch starts when max_batch poses are queued or max_wait_s after
+    the last run ended (runtime.window.Window). Requests larger than max_batch are split into
+    chunks. The queue holds at most queue_size poses: a request that does not fit is refused at once
+    with Overloaded. The engine knows no reply and no wire format.
 
     A batcher runs one model (a service holds one per model; adapters pick one by the request). A
     subclass says how a batch runs (_run) and how answers join (_join).
@@ -290,7 +290,7 @@ class Batcher(Generic[In, Out]):
             deadline, company = self.window.deadlines(self._queue.first().enqueued, loaded)
             while self._queue.cost < self.max_batch and not self._closed:
                 now = time.monotonic()
-                until = self.window.due(now, deadline, company, self._queue.queued_by)
+                until = self.window.due(now, deadline, company, self._queue.queued_by, self._queue.rows)
                 if until <= now:
                     break
                 self._cond.wait(until - now)

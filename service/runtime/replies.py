@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from repnet._proto.repnet.v1 import lifter_pb2
 from repnet.core import geometry
 from repnet.core.errors import ModelOutputError
 from repnet.core.fields import NAMES
@@ -66,10 +65,12 @@ class Replies:
         lists = self._lists(flat=False)
         return [{name: values[i] for name, values in lists.items()} for i in range(len(self))]
 
-    def to_proto(self) -> list[lifter_pb2.PoseResult]:
-        """One proto PoseResult per pose (gRPC)."""
+    def proto_fields(self) -> list[dict[str, Any]]:
+        """Per pose, the fields of its proto PoseResult as keyword arguments (None: unset). gRPC
+        builds each reply once, in the message that carries it: LiftResponse(poses=...),
+        LiftFrameResult(pose=...), instead of a PoseResult copied into it."""
         lists = self._lists(flat=True)
-        return [lifter_pb2.PoseResult(**{k: v[i] for k, v in lists.items()}) for i in range(len(self))]
+        return [{k: v[i] for k, v in lists.items()} for i in range(len(self))]
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,11 @@ from dataclasses import dataclass
 
 BUSY_TO_WAIT = 0.25  # a batcher busier than this share of its time lets requests wait for others
 BUSY_SMOOTHING = 0.1  # the weight of the last run in the busy share (an average over ~10 runs)
-COMPANY_BUSY = 0.5  # a batcher busier than this share of its time waits for no expected company
+# Queued poses with which a run waits for no more expected company. Both bundled models' runs cost
+# per tracked pose 0.81 ms at batch 1, 0.49 at 2, 0.32 at 4, 0.24 at 8 and 0.20 at 64 (raw
+# onnxruntime, one thread, 2026-12-06): four poses take 80 % of what batching can save; waiting on
+# for eight kept 32 paced cameras' p99 over 25 ms (docs/BENCHMARKS.md).
+COMPANY_ENOUGH = 4
 HORIZON_S = 0.5  # a gap longer than this is not a period: the source starts again
 SMOOTHING = 0.25  # the weight of the last gap in a source's period
 LATE = 0.5  # a source later than this share of its period is not expected any more
@@ -92,12 +96,14 @@ class Arrivals:
 class Window:
     """When a batcher's next run is due (not thread-safe: the batcher calls it under its lock).
 
-    The window follows the load. A request that finds the batcher idle runs at once (a client that
-    waits for each answer never has company), unless a source with nothing queued is expected to send
-    within company_wait_s of it (Arrivals: paced cameras' frames then share runs instead of each
-    paying a run) while the batcher is busy less than COMPANY_BUSY of its time. When work queued
-    during the last run, the oldest queued request may wait for more, up to batch_window(max_wait_s,
-    the share of its time the batcher ran lately), so that runs grow with the load.
+    The window follows the load. A request that finds nothing queued after the last run runs at once
+    (a client that waits for each answer never has company), unless a source with nothing queued is
+    expected to send within company_wait_s of it (Arrivals: paced cameras' frames then share runs
+    instead of each paying a run), until COMPANY_ENOUGH poses wait. However busy the batcher is:
+    cameras that each run alone keep it busy, and only waiting for them makes their runs larger.
+    When work queued during the last run, the oldest queued request may wait for more, up to
+    batch_window(max_wait_s, the share of its time the batcher ran lately), so that runs grow with
+    the load.
     """
 
     def __init__(self, max_wait_s: float, company_wait_s: float) -> None:
@@ -121,14 +127,17 @@ class Window:
     def deadlines(self, first: float, loaded: bool) -> tuple[float, float]:
         """For a queue whose oldest request came at `first`, and whether work queued during the last
         run: until when it waits for more (the load's window), and for expected company."""
-        window = batch_window(self.max_wait_s, self.busy) if loaded else 0.0
-        light = not loaded and self.busy < COMPANY_BUSY  # under load, the window above instead
-        return first + window, first + (self.company_wait_s if light else 0.0)
+        if loaded:  # under load, the load's window instead of expected company
+            return first + batch_window(self.max_wait_s, self.busy), first
+        return first, first + self.company_wait_s
 
-    def due(self, now: float, deadline: float, company: float, queued: Callable[[Hashable], int]) -> float:
-        """When the run is due: the load's deadline, or later while a source with nothing `queued`
-        (what it has queued) is expected to send by the company deadline."""
-        if company <= now or not len(self.arrivals):
+    def due(
+        self, now: float, deadline: float, company: float, queued: Callable[[Hashable], int], waiting: int
+    ) -> float:
+        """When the run is due: the load's deadline, or later while fewer than COMPANY_ENOUGH poses
+        are `waiting` and a source with nothing `queued` (what it has queued) is expected to send by
+        the company deadline."""
+        if company <= now or waiting >= COMPANY_ENOUGH or not len(self.arrivals):
             return deadline
         expected = self.arrivals.expected(now, company, queued)
         return deadline if expected is None else max(deadline, expected)

@@ -146,9 +146,10 @@ class Settings(BaseSettings):
         default=12.0,
         ge=0,
         description="the longest a request waits for a client that is expected to send within it (a "
-        "paced camera's next frame, from the gaps between its last ones) to join its run, even when the "
-        "batcher is idle: cameras share runs instead of each paying a run per frame. A client that waits "
-        "for each answer is never waited for (0: never wait)",
+        "paced camera's next frame, from the gaps between its last ones) to join its run, however busy "
+        "the batcher is, until 4 poses wait: cameras share runs instead of each paying a run per frame. "
+        "A client that waits for each answer is never waited for; under load (work queued during the "
+        "last run) the batching window applies instead (0: never wait)",
     )
     queue_size: int = Field(
         default=8192,

@@ -44,6 +44,27 @@ def test_one_arrival_a_long_gap_or_a_late_source_is_not_expected() -> None:
     assert found.expected(1.2 + 0.06, 9.0) is None  # more than LATE of its period late: gone quiet
 
 
+def test_a_busy_batcher_waits_for_expected_company_until_enough_poses_wait() -> None:
+    """Paced cameras that each run alone keep a batcher busy; it still holds a run for a camera due
+    within company_wait_s (before 2026-12-06 a batcher busy half of its time did not, and 8 cameras
+    on one worker ran one frame a run). Once COMPANY_ENOUGH poses wait, the run is due. Under load
+    (work queued during the last run), the load's window applies instead of expected company."""
+    timing = window.Window(max_wait_s=0.004, company_wait_s=0.012)
+    timing.busy = 0.9
+    timing.arrived("camera", 1.000)
+    timing.arrived("camera", 1.010)  # every 10 ms: due at 1.020
+    deadline, company = timing.deadlines(1.015, loaded=False)
+    assert deadline == 1.015 and company == pytest.approx(1.027)
+    nothing = {}.__contains__  # no source has anything queued
+    expected = 1.020 + window.SLACK_S + window.SLACK_SHARE * 0.010
+    assert timing.due(1.015, deadline, company, nothing, 1) == pytest.approx(expected)
+    assert timing.due(1.015, deadline, company, nothing, window.COMPANY_ENOUGH - 1) == pytest.approx(expected)
+    assert timing.due(1.015, deadline, company, nothing, window.COMPANY_ENOUGH) == deadline
+    deadline, company = timing.deadlines(1.015, loaded=True)
+    assert company == 1.015 and deadline == pytest.approx(1.015 + window.batch_window(0.004, 0.9))
+    assert timing.due(1.015, deadline, company, nothing, 1) == deadline
+
+
 def test_the_sources_followed_are_bounded_and_swept() -> None:
     found = Arrivals()
     for k in range(window.MAX_SOURCES + 100):

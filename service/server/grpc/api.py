@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import AsyncIterator
-from dataclasses import replace
 from functools import partial
 from typing import Any
 
@@ -85,25 +84,26 @@ def frame_violations(message: lifter_pb2.LiftFrame, max_people: int) -> list[Vio
     return found
 
 
-def proto_replies(lifted: Lifted) -> list[lifter_pb2.PoseResult]:
-    """The PoseResults of a Lift (on the batcher's thread); InvalidKeypoints naming every pose that
-    breaks a rule, ModelOutputError when the model failed on any of its poses."""
+def proto_response(model_id: str, joints: list[str], lifted: Lifted) -> lifter_pb2.LiftResponse:
+    """A Lift's answer, built on the batcher's thread with each PoseResult in place; InvalidKeypoints
+    naming every pose that breaks a rule, ModelOutputError when the model failed on any of its poses."""
     lifted.prepared.check()
     assert lifted.replies is not None  # the job asks for them
-    return lifted.replies.check().to_proto()
+    poses = lifted.replies.check().proto_fields()
+    return lifter_pb2.LiftResponse(model_id=model_id, joints=joints, poses=poses)
 
 
 def proto_report(
-    metrics: Metrics, count: int, readable: report.Readable, lifted: Lifted
-) -> tuple[list[Any], list[Any]]:
-    """The PoseResults and PoseErrors of an INVALID_POSES_REPORT Lift (on the batcher's thread): an
-    empty PoseResult for each pose not lifted (counted as rejected input, once per reason);
+    metrics: Metrics, count: int, readable: report.Readable, model_id: str, joints: list[str], lifted: Lifted
+) -> lifter_pb2.LiftResponse:
+    """The answer of an INVALID_POSES_REPORT Lift (on the batcher's thread): an empty PoseResult for
+    each pose not lifted (counted as rejected input, once per reason) and a PoseError naming why;
     ModelOutputError when the model failed on any pose."""
     assert lifted.replies is not None  # the job asks for them
     result = report.outcome(count, readable, lifted.prepared)
     metrics.reject(TRANSPORT, result.errors)
-    replies = iter(lifted.replies.check().to_proto())
-    results = [next(replies) if row >= 0 else lifter_pb2.PoseResult() for row in result.rows]
+    replies = iter(lifted.replies.check().proto_fields())
+    poses = [next(replies) if row >= 0 else {} for row in result.rows]
     by_pose: dict[int, list[Violation]] = {}
     for v in result.errors:
         by_pose.setdefault(v.pose or 0, []).append(v)
@@ -112,7 +112,7 @@ def proto_report(
         lifter_pb2.PoseError(pose=i, error=frame_error(InvalidKeypoints(found), room))
         for i, found in by_pose.items()
     ]
-    return results, errors
+    return lifter_pb2.LiftResponse(model_id=model_id, joints=joints, poses=poses, errors=errors)
 
 
 class PoseLifterServicer:
@@ -171,16 +171,15 @@ class PoseLifterServicer:
                 with self.metrics.parsing(TRANSPORT):
                     engine = self.models.pick(request.model)
                     readable, threshold = await offload(count, self._read_request, request)
+                head = (engine.model, self.joints)
                 if request.invalid_poses == lifter_pb2.INVALID_POSES_REPORT:
-                    job = Job(
-                        partial(proto_report, self.metrics, count, readable),
-                        readable.poses,
-                        threshold=threshold,
-                    )
-                    results, errors = await engine.run_async(job, TRANSPORT, source=context.peer())
+                    finish = partial(proto_report, self.metrics, count, readable, *head)
                 else:
-                    job = Job(finish=proto_replies, poses=readable.poses, threshold=threshold)
-                    results, errors = await engine.run_async(job, TRANSPORT, source=context.peer()), []
+                    finish = partial(proto_response, *head)
+                job = Job(finish, readable.poses, threshold=threshold)
+                response: lifter_pb2.LiftResponse = await engine.run_async(
+                    job, TRANSPORT, source=context.peer()
+                )
         except LiftError as err:
             if isinstance(err, ModelOutputError):  # counted by track(); one line, no traceback
                 log.error("Lift: %s", err)
@@ -190,8 +189,7 @@ class PoseLifterServicer:
             await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_MESSAGE)
         finally:
             self._unary -= 1
-        joints = self.joints
-        return lifter_pb2.LiftResponse(model_id=engine.model, joints=joints, poses=results, errors=errors)
+        return response
 
     def _read_request(self, request: lifter_pb2.LiftRequest) -> tuple[report.Readable, float | None]:
         """A Lift's poses as read from the wire, and its threshold: read_request's rules, or with
@@ -293,14 +291,14 @@ class PoseLifterServicer:
         fps = float(message.fps)
         if not several:
             try:
-                pose = to_pose_input(message.pose, message.pose.format or DEFAULT_FORMAT, None)
+                pose = to_pose_input(message.pose, message.pose.format or DEFAULT_FORMAT, None, threshold=cut)
             except InvalidKeypoints as err:
                 named = InvalidKeypoints([v.within(POSE_FIELD) for v in err.violations])
                 return FrameIn(frame_id, read_at, error=named, model=model)
             return FrameIn(
                 frame_id,
                 read_at,
-                replace(pose, confidence_threshold=cut),
+                pose,
                 None,
                 message.track_id,
                 fps,
@@ -310,31 +308,34 @@ class PoseLifterServicer:
         for k, person in enumerate(message.people):
             field = f"people[{k}]"
             try:
-                pose = to_pose_input(person.pose, person.pose.format or DEFAULT_FORMAT, None)
+                pose = to_pose_input(person.pose, person.pose.format or DEFAULT_FORMAT, None, threshold=cut)
             except InvalidKeypoints as err:
                 named = InvalidKeypoints([v.within(f"{field}.pose") for v in err.violations])
                 people.append(PersonIn(person.track_id, f"{field}.pose", error=named))
                 continue
-            people.append(PersonIn(person.track_id, f"{field}.pose", replace(pose, confidence_threshold=cut)))
+            people.append(PersonIn(person.track_id, f"{field}.pose", pose))
         return FrameIn(frame_id, read_at, track_id="", fps=fps, people=tuple(people), model=model)
 
     def _results(self, answered: Answers) -> list[tuple[lifter_pb2.LiftFrameResult, Answer]]:
         """A group's LiftFrameResults in frame order, each beside its answer."""
-        poses = answered.replies.to_proto() if answered.replies is not None else []
+        poses = answered.replies.proto_fields() if answered.replies is not None else []
         out = []
         for answer in answered.items:
-            result = lifter_pb2.LiftFrameResult(frame_id=answer.frame.frame_id, model_id=answer.frame.model)
+            frame_id, model_id = answer.frame.frame_id, answer.frame.model
             if isinstance(answer.outcome, LiftError):
-                result.error.CopyFrom(frame_error(answer.outcome))
+                error = frame_error(answer.outcome)
+                result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=model_id, error=error)
             elif answer.outcome is not None:
-                result.pose.CopyFrom(poses[answer.outcome])
+                pose = poses[answer.outcome]
+                result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=model_id, pose=pose)
+            else:
+                result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=model_id)
             room = ErrorRoom()  # shared by the frame's people
             for person, outcome in zip(answer.frame.people or (), answer.people, strict=True):
-                item = result.people.add(track_id=person.track_id)
                 if isinstance(outcome, LiftError):
-                    item.error.CopyFrom(frame_error(outcome, room))
+                    result.people.add(track_id=person.track_id, error=frame_error(outcome, room))
                 else:
-                    item.pose.CopyFrom(poses[outcome])
+                    result.people.add(track_id=person.track_id, pose=poses[outcome])
             out.append((result, answer))
         return out
 

@@ -61,10 +61,12 @@ def to_pose_input(
     default_intrinsics: lifter_pb2.CameraIntrinsics | None,
     default_size: lifter_pb2.ImageSize | None = None,
     default_height: float | None = None,
+    threshold: float | None = None,
 ) -> PoseInput:
     """A proto pose in its wire-independent form, float32 as the wire carries it; InvalidKeypoints
     (named within the pose) on a bad layout. default_intrinsics, default_size, default_height: those
-    of a pose without its own. Normalised keypoints are multiplied by the image size, as over HTTP."""
+    of a pose without its own; threshold: its confidence threshold (a stream frame's; None: the
+    request's). Normalised keypoints are multiplied by the image size, as over HTTP."""
     if found := _structure_violations(pose):
         raise InvalidKeypoints(found)
     points = np.array(pose.keypoints, dtype=np.float32).reshape(-1, 2)
@@ -77,4 +79,4 @@ def to_pose_input(
     intrinsics = None if camera is None else (camera.fx, camera.fy, camera.cx, camera.cy)
     height = pose.person_height_m if pose.HasField("person_height_m") else default_height
     fmt = pose.format or default_format
-    return PoseInput(points, present, confidence, fmt, intrinsics, person_height_m=height)
+    return PoseInput(points, present, confidence, fmt, intrinsics, threshold, height)
