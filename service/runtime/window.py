@@ -9,9 +9,9 @@ from dataclasses import dataclass
 BUSY_TO_WAIT = 0.25  # a batcher busier than this share of its time lets requests wait for others
 BUSY_SMOOTHING = 0.1  # the weight of the last run in the busy share (an average over ~10 runs)
 # Queued poses with which a run waits for no more expected company. Both bundled models' runs cost
-# per tracked pose 0.81 ms at batch 1, 0.49 at 2, 0.32 at 4, 0.24 at 8 and 0.20 at 64 (raw
-# onnxruntime, one thread, 2026-12-06): four poses take 80 % of what batching can save; waiting on
-# for eight kept 32 paced cameras' p99 over 25 ms (docs/BENCHMARKS.md).
+# per tracked pose 0.99 ms at batch 1, 0.60 at 2, 0.38 at 4, 0.27 at 8 and 0.17 at 64 (bench.
+# temporal_load's roof, 2026-12-06): four poses take three quarters of what batching saves; waiting
+# on for eight put 32 paced cameras' p99 over 25 ms (docs/BENCHMARKS.md).
 COMPANY_ENOUGH = 4
 HORIZON_S = 0.5  # a gap longer than this is not a period: the source starts again
 SMOOTHING = 0.25  # the weight of the last gap in a source's period
