@@ -65,9 +65,11 @@ async def offload(count: int, work: Callable[..., T], *args: Any) -> T:
     return await asyncio.get_running_loop().run_in_executor(None, work, *args)
 
 
-def _wake(room: asyncio.Future[None]) -> None:
-    if not room.done():  # a waiter that timed out cancelled its future
-        room.set_result(None)
+def settle(waiter: asyncio.Future[None]) -> None:
+    """Wake the task that awaits `waiter`, unless it has given up (a waiter that timed out cancelled
+    its future) or was woken already."""
+    if not waiter.done():
+        waiter.set_result(None)
 
 
 class Batcher(Generic[In, Out]):
@@ -259,7 +261,7 @@ class Batcher(Generic[In, Out]):
         self._cond.notify_all()
         for loop, room in self._room_waiters:
             with contextlib.suppress(RuntimeError):  # that loop has closed: nobody waits any more
-                loop.call_soon_threadsafe(_wake, room)
+                loop.call_soon_threadsafe(settle, room)
         self._room_waiters.clear()
 
     def lift(self, inputs: In, transport: str) -> Out:

@@ -15,7 +15,7 @@ from repnet.core.inputs import ModelInput
 from repnet.core.skeleton import BONES, bone_lengths, fix_bone_lengths
 from repnet.runtime.lifter import Prediction
 from repnet.runtime.replies import TemporalRows
-from repnet.runtime.temporal import TemporalAnswer, TemporalBatcher, Windows, WindowSource
+from repnet.runtime.temporal import TemporalAnswer, TemporalBatcher, Windows, WindowSource, edge_padded
 from repnet.runtime.tracks import Observation, TrackBudget, TrackTable, clip_windows, fps_violations
 
 
@@ -118,16 +118,10 @@ def stream_plan(
         return Plan(None, np.zeros(0, np.int64), np.zeros((0, len(BONES))), errors)
     longest = max(len(s[0]) for s in slots)
     slot_poses, slot_points, slot_seen = (
-        np.stack([_front_padded(s[a], longest) for s in slots]) for a in range(3)
+        np.stack([edge_padded(s[a], longest - len(s[a]), axis=0) for s in slots]) for a in range(3)
     )
     windows = Windows(slot_poses, slot_points, slot_seen, np.array(rates, np.float32))
     return Plan(windows, rows[taken], np.stack(bones), errors)
-
-
-def _front_padded(slots: np.ndarray, count: int) -> np.ndarray:
-    """A causal window's slots, its oldest repeated in front up to `count` (temporal.pad_slots)."""
-    extra = count - len(slots)
-    return slots if extra == 0 else np.concatenate([np.repeat(slots[:1], extra, axis=0), slots])
 
 
 def clip_plan(

@@ -117,11 +117,20 @@ def pad_slots(windows: Windows, slots: int, causal: bool) -> Windows:
     if extra == 0:
         return windows
     before, after = (extra, 0) if causal else (extra // 2, extra - extra // 2)
+    poses, points, seen = (
+        edge_padded(a, before, after) for a in (windows.poses, windows.keypoints_2d, windows.visibility)
+    )
+    return Windows(poses, points, seen, windows.fps)
 
-    def pad(a: np.ndarray) -> np.ndarray:
-        return np.pad(a, [(0, 0), (before, after)] + [(0, 0)] * (a.ndim - 2), mode="edge")
 
-    return Windows(pad(windows.poses), pad(windows.keypoints_2d), pad(windows.visibility), windows.fps)
+def edge_padded(slots: np.ndarray, before: int, after: int = 0, axis: int = 1) -> np.ndarray:
+    """`slots` with its first slot along `axis` repeated `before` times in front and its last `after`
+    times behind (a window's slots: axis 1 of a batch's, axis 0 of one window's)."""
+    if before == after == 0:
+        return slots
+    widths = [(0, 0)] * slots.ndim
+    widths[axis] = (before, after)
+    return np.pad(slots, widths, mode="edge")
 
 
 def read_contract(meta: dict[str, str], path: Path) -> Contract:

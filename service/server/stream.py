@@ -14,7 +14,7 @@ from typing import TypeVar
 from repnet.core.errors import LiftError, ModelOutputError
 from repnet.core.inputs import Limits
 from repnet.core.keypoints import prepare_poses
-from repnet.runtime.batcher import offload
+from repnet.runtime.batcher import offload, settle
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.catalog import Catalog
 from repnet.runtime.pipeline import TRACKED_COST, Job, Lifted, StreamTracks
@@ -318,8 +318,8 @@ class _Waker:
     def set(self) -> None:
         """Something may be actionable: wake the waiting task."""
         self._set = True
-        if self._waiter is not None and not self._waiter.done():
-            self._waiter.set_result(None)
+        if self._waiter is not None:
+            settle(self._waiter)
 
     def clear(self) -> None:
         """Nothing new since now."""
@@ -331,15 +331,10 @@ class _Waker:
             return
         loop = asyncio.get_running_loop()
         self._waiter = waiter = loop.create_future()
-        timer = None if timeout_s is None else loop.call_later(timeout_s, _settle, waiter)
+        timer = None if timeout_s is None else loop.call_later(timeout_s, settle, waiter)
         try:
             await waiter
         finally:
             self._waiter = None
             if timer is not None:
                 timer.cancel()
-
-
-def _settle(waiter: asyncio.Future[None]) -> None:
-    if not waiter.done():
-        waiter.set_result(None)

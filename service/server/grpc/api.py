@@ -321,15 +321,12 @@ class PoseLifterServicer:
         poses = answered.replies.proto_fields() if answered.replies is not None else []
         out = []
         for answer in answered.items:
-            frame_id, model_id = answer.frame.frame_id, answer.frame.model
+            fields: dict[str, Any] = {"frame_id": answer.frame.frame_id, "model_id": answer.frame.model}
             if isinstance(answer.outcome, LiftError):
-                error = frame_error(answer.outcome)
-                result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=model_id, error=error)
+                fields["error"] = frame_error(answer.outcome)
             elif answer.outcome is not None:
-                pose = poses[answer.outcome]
-                result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=model_id, pose=pose)
-            else:
-                result = lifter_pb2.LiftFrameResult(frame_id=frame_id, model_id=model_id)
+                fields["pose"] = poses[answer.outcome]
+            result = lifter_pb2.LiftFrameResult(**fields)
             room = ErrorRoom()  # shared by the frame's people
             for person, outcome in zip(answer.frame.people or (), answer.people, strict=True):
                 if isinstance(outcome, LiftError):
