@@ -21,9 +21,11 @@ RUN python3 -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['
 x = p['optional-dependencies']; print('\n'.join(d for d in p['dependencies'] + x['server'] + x['local'] \
 if not d.startswith('repnet')))" > /tmp/requirements.txt \
     && /opt/repnet/bin/pip install -r /tmp/requirements.txt
-# The package is built from service/ (repnet) and training/ (repnet.train, which the wheel holds); the
+# The package is built from service/ (repnet) and training/ (repnet.train, which the wheel holds) by the
+# project's build backend (deploy/packaging, pyproject.toml's build-system); the
 # server never imports training, so repnet/train is taken out of the image again (no torch here).
 COPY README.md LICENSE ./
+COPY deploy/packaging ./deploy/packaging
 COPY service ./service
 COPY training ./training
 RUN test -f service/models/repnet-h36m.onnx \

@@ -28,15 +28,38 @@ class Light(importlib.abc.MetaPathFinder):
         return None
 sys.meta_path.insert(0, Light())
 """
+# The project's build backend as a build front end loads it (pyproject.toml: build-backend, backend-path),
+# run in the checkout's root: `b` is the module whose PEP 517 and PEP 660 hooks pip calls.
+BACKEND = "import sys; sys.path.insert(0, 'deploy/packaging'); import repnet_backend as b"
 
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("wheel")
+    return wheel_of(ROOT, tmp_path_factory.mktemp("wheel"))
+
+
+def wheel_of(source: Path, out: Path) -> Path:
+    """The wheel `pip wheel` builds from the source tree `source` into `out` (the project's backend,
+    pyproject.toml's build-system)."""
     build = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(out)]
-    subprocess.run([*build, str(ROOT)], check=True, capture_output=True, timeout=300)
+    subprocess.run([*build, str(source)], check=True, capture_output=True, timeout=300)
     (found,) = out.glob("repnet-*.whl")
     return found
+
+
+@pytest.fixture(scope="module")
+def sdist(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The sdist, built by the project's backend as `python -m build --sdist` builds it, unpacked:
+    its source tree."""
+    out = tmp_path_factory.mktemp("sdist")
+    hook = f"{BACKEND}; print(b.build_sdist({str(out)!r}))"
+    made = subprocess.run(
+        [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+    with tarfile.open(out / made.stdout.split()[-1]) as archive:
+        archive.extractall(out / "src", filter="data")
+    (source,) = (out / "src").iterdir()
+    return source
 
 
 def test_the_wheel_holds_repnet_alone(wheel: Path) -> None:
@@ -55,24 +78,29 @@ def test_the_wheel_holds_repnet_alone(wheel: Path) -> None:
         assert any(n.startswith(part) for n in names), part
 
 
-def test_a_wheel_built_from_the_sdist_is_the_checkouts_wheel(wheel: Path, tmp_path: Path) -> None:
+def test_a_wheel_built_from_the_sdist_is_the_checkouts_wheel(
+    wheel: Path, sdist: Path, tmp_path: Path
+) -> None:
     """`pip install repnet` from an index that has only the sdist builds a wheel from it: the same
     files as the checkout's wheel (repnet alone at the top level, every model and page file), while
     the sdist carries the source folders under their own names and no tests (MANIFEST.in)."""
-    hook = f"import setuptools.build_meta as b; print(b.build_sdist({str(tmp_path)!r}))"  # PEP 517, as build
-    made = subprocess.run(
-        [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=ROOT, timeout=300
-    )
-    with tarfile.open(tmp_path / made.stdout.split()[-1]) as sdist:
-        sdist.extractall(tmp_path / "src", filter="data")
-        tops = {Path(n).parts[1] for n in sdist.getnames() if len(Path(n).parts) > 1}
+    tops = {p.name for p in sdist.iterdir()}
     assert {"service", "training", "pyproject.toml"} <= tops and not {"repnet", "tests"} & tops
-    (source,) = (tmp_path / "src").iterdir()
-    build = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w"]
-    subprocess.run(
-        [*build, str(tmp_path / "dist"), str(source)], check=True, capture_output=True, timeout=300
-    )
-    (rebuilt,) = (tmp_path / "dist").glob("repnet-*.whl")
+    rebuilt = wheel_of(sdist, tmp_path)
+    assert sorted(zipfile.ZipFile(rebuilt).namelist()) == sorted(zipfile.ZipFile(wheel).namelist())
+
+
+def test_a_tree_that_built_the_old_flat_layout_still_builds_repnet_alone(
+    wheel: Path, sdist: Path, tmp_path: Path
+) -> None:
+    """setuptools copies its build folder into the wheel whole and never empties it, so a checkout
+    that once built the old top-level `service` and `training` packages shipped them again beside
+    repnet (`import service` after `pip install .`). The project's backend builds every wheel from
+    an empty build/lib."""
+    for stale in ("service", "training"):
+        (sdist / "build" / "lib" / stale).mkdir(parents=True, exist_ok=True)
+        (sdist / "build" / "lib" / stale / "__init__.py").write_text("OLD = True\n")
+    rebuilt = wheel_of(sdist, tmp_path)
     assert sorted(zipfile.ZipFile(rebuilt).namelist()) == sorted(zipfile.ZipFile(wheel).namelist())
 
 
@@ -102,7 +130,7 @@ def test_an_editable_install_imports_repnet_and_nothing_else(tmp_path: Path) -> 
     looked for outside the checkout, in a fresh venv."""
     built = tmp_path / "editable"
     built.mkdir()
-    hook = f"import setuptools.build_meta as b; print(b.build_editable({str(built)!r}))"  # PEP 660, as pip -e
+    hook = f"{BACKEND}; print(b.build_editable({str(built)!r}))"  # PEP 660, as pip -e
     made = subprocess.run(
         [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=ROOT, timeout=300
     )
