@@ -37,9 +37,12 @@ from repnet.server.workers import (
     SERVE,
     Peers,
     Supervisor,
+    allowed_cpus,
     follow_supervisor,
+    pin_worker,
     reuse_port_socket,
     usable_cpus,
+    worker_cpus,
 )
 
 __all__ = ["Service", "build_service", "known_poses", "load_lifter", "load_temporal", "main"]
@@ -296,16 +299,21 @@ def main(
     peers = Peers.from_env()
     if peers is not None:
         follow_supervisor()
+        pin_worker()  # before any thread of the models or the servers starts
     worker = "" if peers is None else f"[worker {peers.index}] "
     logging.basicConfig(
         level=settings.log_level.upper(), format=f"%(asctime)s %(levelname)s {worker}%(name)s: %(message)s"
     )
-    count = settings.workers or usable_cpus()
+    usable = usable_cpus()
+    count = settings.workers or usable
     if peers is None and count > 1:  # the supervisor: the workers do the serving
         ports = (settings.http_port, settings.grpc_port)
         flags = list(sys.argv[1:] if argv is None else argv)
+        cpus = worker_cpus(count, settings.cpu_affinity, allowed_cpus(), usable)
         try:
-            supervisor = Supervisor(flags, count, settings.host, ports, settings.shutdown_grace_s, module)
+            supervisor = Supervisor(
+                flags, count, settings.host, ports, settings.shutdown_grace_s, module, cpus
+            )
         except OSError as err:  # a port is taken
             log.error("cannot start: %s", err)
             return 1

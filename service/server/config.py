@@ -66,6 +66,14 @@ class Settings(BaseSettings):
         "batchers and streams; the limits below are per worker (0: one per CPU this process may use: "
         "its CPU affinity, and a container's CPU limit; see [Workers](#workers))",
     )
+    cpu_affinity: Literal["auto", "on", "off"] = Field(
+        default="auto",
+        description="with several workers, each worker's threads run on CPUs of its own: worker i on "
+        "the i-th of the CPUs this process may use, or its i-th share of them when there are more "
+        "CPUs than workers (`on`); `auto`: only when the workers are as many as those CPUs and no "
+        "container CPU limit is below them (the workers own the CPUs: a machine or a cpuset of "
+        "their own); `off`: the kernel places every thread (see [Workers](#workers))",
+    )
     grpc_workers: int = Field(
         default=32,
         ge=1,

@@ -203,7 +203,8 @@ class Metrics:
         """Label repnet_model_info with the loaded models (model_id, skeleton), the default first.
         Only these ids ever label a metric: the `model` label's values are bounded by the models
         loaded at start, never by what requests name."""
-        self.model_info.clear()
+        if not os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # a worker's values cannot be cleared
+            self.model_info.clear()  # (prometheus_client warns): a worker sets them once, at start
         for k, (model_id, skeleton) in enumerate(models):
             self.model_info.labels(model_id=model_id, skeleton=skeleton, default=str(k == 0).lower()).set(1)
 

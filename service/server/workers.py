@@ -33,6 +33,7 @@ log = logging.getLogger("repnet.server")
 WORKER_ENV = "REPNET_WORKER"  # "i/n" in a worker: its index and the number of workers
 METRICS_ENV = "PROMETHEUS_MULTIPROC_DIR"  # prometheus_client's multiprocess folder
 SUPERVISOR_ENV = "REPNET_SUPERVISOR_PID"  # in a worker: the process that started it
+CPUS_ENV = "REPNET_WORKER_CPUS"  # in a worker: the CPUs its threads run on, comma-separated (unset: any)
 PR_SET_PDEATHSIG = 1  # Linux prctl(2): the signal a process gets when its parent dies
 RESTART_DELAY_S = 1.0  # before a worker that died is started again
 START_TIMEOUT_S = 120.0  # a worker not ready by then stops the start
@@ -50,6 +51,47 @@ def usable_cpus(cpu_max: Path = CPU_MAX) -> int:
         if quota != "max":
             count = min(count, math.ceil(int(quota) / int(period)))
     return max(1, count)
+
+
+def allowed_cpus() -> list[int]:
+    """The CPUs this process may run on (its affinity), in order."""
+    if hasattr(os, "sched_getaffinity"):
+        return sorted(os.sched_getaffinity(0))
+    return list(range(os.cpu_count() or 1))
+
+
+def worker_cpus(count: int, mode: str, allowed: Sequence[int], usable: int) -> list[tuple[int, ...] | None]:
+    """The CPUs each of `count` workers runs on (None: wherever the kernel puts it), for the setting
+    `cpu_affinity` (`mode`): `on`, worker i gets the i-th of the `allowed` CPUs (in turn, when the
+    workers are more), or its i-th share of them when they are more than the workers; `auto`, the
+    same only when the workers are exactly as many as the allowed CPUs and `usable` (a container's
+    CPU limit included) is not below them, so that each worker owns a CPU; `off`, none."""
+    cpus = list(allowed)
+    if mode == "off" or count < 2 or not cpus:
+        return [None] * count
+    if mode == "auto" and (count != len(cpus) or usable < len(cpus)):
+        return [None] * count
+    if count >= len(cpus):
+        return [(cpus[i % len(cpus)],) for i in range(count)]
+    share = len(cpus) // count
+    return [tuple(cpus[i * share : (i + 1) * share]) for i in range(count)]
+
+
+def pin_worker() -> tuple[int, ...] | None:
+    """In a worker: run every thread of this process, and every thread it starts later, on the CPUs
+    its supervisor chose (CPUS_ENV); those CPUs, or None when it chose none."""
+    value = os.environ.get(CPUS_ENV, "")
+    if not value or not hasattr(os, "sched_setaffinity"):
+        return None
+    cpus = tuple(int(c) for c in value.split(","))
+    try:
+        threads = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        threads = [0]  # this thread: the others inherit its affinity when they start
+    for thread in threads:
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            os.sched_setaffinity(thread, cpus)
+    return cpus
 
 
 @dataclass(frozen=True)
@@ -143,8 +185,10 @@ class Supervisor:
         ports: tuple[int, int],
         grace_s: float,
         module: Sequence[str] = SERVE,
+        cpus: Sequence[tuple[int, ...] | None] = (),
     ) -> None:
         self.argv = list(argv)
+        self.cpus = list(cpus) or [None] * count  # each worker's CPUs (worker_cpus)
         self.module = list(module)
         self.count = count
         self.grace_s = grace_s
@@ -159,6 +203,11 @@ class Supervisor:
         http, grpc_port = self.ports
         env = {**os.environ, WORKER_ENV: f"{index}/{self.count}", METRICS_ENV: str(self.folder)}
         env[SUPERVISOR_ENV] = str(os.getpid())
+        cpus = self.cpus[index]
+        if cpus is None:
+            env.pop(CPUS_ENV, None)
+        else:
+            env[CPUS_ENV] = ",".join(map(str, cpus))
         # onnxruntime's threads: the CPUs shared out between the workers, unless set (flag or variable)
         env.setdefault("REPNET_INTRA_OP_THREADS", str(max(1, usable_cpus() // self.count)))
         command = [sys.executable, "-m", *self.module, *self.argv, "--workers", "1"]
@@ -171,6 +220,9 @@ class Supervisor:
         signal.signal(signal.SIGTERM, self._on_signal)
         signal.signal(signal.SIGINT, self._on_signal)
         log.info("starting %d workers on HTTP :%d and gRPC :%d", self.count, *self.ports)
+        if any(c is not None for c in self.cpus):
+            placed = ", ".join(f"{i}: {','.join(map(str, c or ()))}" for i, c in enumerate(self.cpus))
+            log.info("each worker on CPUs of its own (cpu_affinity): %s", placed)
         for index in range(self.count):
             if not self.stopping:
                 self._start(index)
