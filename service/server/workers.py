@@ -6,7 +6,8 @@ The ports are shared with SO_REUSEPORT: the kernel spreads new connections over 
 stream lives, with its tracks, in the process that accepted it. The supervisor holds each port bound
 (not listening) for the whole run, so that the port is the service's while workers come and go.
 Readiness is the whole service's: a worker answers ready (HTTP /readyz, gRPC health) once every
-worker is (a marker file each, in the metrics folder).
+worker is (a marker file each, in the metrics folder). Where the workers own the CPUs, each runs on
+CPUs of its own (the setting cpu_affinity: worker_cpus, pin_worker).
 """
 
 from __future__ import annotations
