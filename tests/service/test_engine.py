@@ -133,6 +133,26 @@ def test_large_request_is_run_in_chunks_and_answered_in_order(
     np.testing.assert_allclose(prediction.pose_3d, alone.pose_3d, rtol=1e-4, atol=1e-2)
 
 
+def test_another_clients_request_waits_for_one_run_of_a_large_prediction_not_all(
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter
+) -> None:
+    # A temporal request's poses are predicted max_batch at a time, each queued apart: a one-pose
+    # request of another client rides along with the next run instead of waiting for all of them.
+    engine = engine_factory(gated, max_batch=4, queue_size=64)
+    gated.gate.clear()
+    large = engine.submit(model_input(*(variant(i) for i in range(12))), "test", source="large")
+    wait_until(gated.entered.is_set, "the large prediction's first run")
+    small = engine.submit(model_input(variant(20)), "test", source="small")
+    done: list[str] = []
+    for name, futures in (("large", large), ("small", small)):
+        for future in futures:
+            future.add_done_callback(lambda _, name=name: done.append(name))
+    gated.gate.set()
+    wait_until(lambda: len(done) == len(large) + len(small), "every answer")
+    assert len(large) == 3 and done[-1] == "large" and done.index("small") < 2
+    assert max(gated.batches) <= 5 and sum(gated.batches) == 13  # the small one rode along
+
+
 def test_close_finishes_queued_work_then_refuses_new(engine: LiftBatcher, gated: GatedLifter) -> None:
     gated.gate.clear()
     futures = engine.submit(model_input(variant(0)), "test")
