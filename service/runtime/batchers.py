@@ -17,9 +17,9 @@ from repnet.runtime.pipeline import Batch, Job, job_cost, prediction_only, run_j
 class LiftBatcher(Batcher[Any, Any]):
     """A single-frame model's batcher: jobs in (runtime.pipeline), each answered whole by one pass
     over its batch on this batcher's thread (the input rules, the model, a stream's tracks and
-    causal model, the replies, the job's own encoding); a ModelInput submitted alone is a job that
-    asks for its Prediction. Its metrics are labelled with the model's id (its runs hold only that
-    model's poses)."""
+    causal model, the replies, the job's own encoding); a ModelInput submitted alone is answered with
+    its Prediction, max_batch rows a chunk, each chunk a job of its own. Its metrics are labelled
+    with the model's id (its runs hold only that model's poses)."""
 
     def __init__(
         self,
@@ -84,7 +84,8 @@ class LiftBatcher(Batcher[Any, Any]):
     async def predict_async(
         self, inputs: ModelInput, transport: str, wait_s: float = 0.0, source: Hashable = None
     ) -> Prediction:
-        """The model's answers to prepared inputs (queued as a job of their own)."""
+        """The model's answers to prepared inputs (queued max_batch rows a chunk, other requests
+        riding along between them)."""
         found: Prediction = await self.lift_async(inputs, transport, wait_s, source)
         return found
 
