@@ -45,19 +45,18 @@ class LiftBatcher(Batcher[Any, Any]):
         )
 
     def _chunks(self, inputs: Job | ModelInput, transport: str, source: Hashable) -> list[Chunk[Job, Any]]:
-        # A job is lifted whole. Prepared inputs (a temporal request's poses) are jobs that ask for
-        # the prediction, max_batch rows each, queued apart: another client's request then waits
-        # for one run, not for all of a 6,000-pose request's runs in one pass (about 0.5 s).
-        if isinstance(inputs, Job):
-            jobs = [inputs]
-        else:
-            n, size = len(inputs), self.max_batch
-            parts = [inputs] if n <= size else [inputs.slice(a, min(a + size, n)) for a in range(0, n, size)]
-            jobs = [prediction_only(part) for part in parts]
-        return [Chunk(job, transport, 0.0, Future(), source, job_cost(job)) for job in jobs]
+        if isinstance(inputs, Job):  # lifted whole
+            return [Chunk(inputs, transport, 0.0, Future(), source, job_cost(inputs))]
+        # Prepared inputs (a temporal request's poses): the batcher's chunks of max_batch rows, queued
+        # apart, so that another client's request waits for one run, not for all of a 6,000-pose
+        # request's runs in one pass (about 0.5 s); no rows, one empty chunk (answered empty).
+        return super()._chunks(inputs, transport, source) or [
+            Chunk(inputs, transport, 0.0, Future(), source, 0.0)
+        ]
 
-    def _run(self, parts: list[Job]) -> Batch:
-        return run_jobs(self.lifter, parts, self.limits, self.max_batch)
+    def _run(self, parts: list[Job | ModelInput]) -> Batch:
+        jobs = [part if isinstance(part, Job) else prediction_only(part) for part in parts]
+        return run_jobs(self.lifter, jobs, self.limits, self.max_batch)
 
     def _results(self, answer: Batch, batch: list[Chunk[Job, Any]]) -> list[Any]:
         return answer.answers

@@ -43,22 +43,22 @@ START_TIMEOUT_S = 120.0  # a worker not ready by then stops the start
 CPU_MAX = Path("/sys/fs/cgroup/cpu.max")  # cgroup v2: "QUOTA PERIOD" in microseconds, or "max PERIOD"
 
 
-def usable_cpus(cpu_max: Path = CPU_MAX) -> int:
-    """The CPUs this process may run on: its affinity, capped by the cgroup's CPU quota (a container's
-    CPU limit), rounded up; at least 1."""
-    count = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    with contextlib.suppress(OSError, ValueError):
-        quota, period = cpu_max.read_text().split()[:2]
-        if quota != "max":
-            count = min(count, math.ceil(int(quota) / int(period)))
-    return max(1, count)
-
-
 def allowed_cpus() -> list[int]:
     """The CPUs this process may run on (its affinity), in order."""
     if hasattr(os, "sched_getaffinity"):
         return sorted(os.sched_getaffinity(0))
     return list(range(os.cpu_count() or 1))
+
+
+def usable_cpus(cpu_max: Path = CPU_MAX) -> int:
+    """The CPUs this process may run on: its affinity, capped by the cgroup's CPU quota (a container's
+    CPU limit), rounded up; at least 1."""
+    count = len(allowed_cpus())
+    with contextlib.suppress(OSError, ValueError):
+        quota, period = cpu_max.read_text().split()[:2]
+        if quota != "max":
+            count = min(count, math.ceil(int(quota) / int(period)))
+    return max(1, count)
 
 
 def worker_cpus(count: int, mode: str, allowed: Sequence[int], usable: int) -> list[tuple[int, ...] | None]:
@@ -78,12 +78,12 @@ def worker_cpus(count: int, mode: str, allowed: Sequence[int], usable: int) -> l
     return [tuple(cpus[i * share : (i + 1) * share]) for i in range(count)]
 
 
-def pin_worker() -> tuple[int, ...] | None:
+def pin_worker() -> None:
     """In a worker: run every thread of this process, and every thread it starts later, on the CPUs
-    its supervisor chose (CPUS_ENV); those CPUs, or None when it chose none."""
+    its supervisor chose (CPUS_ENV), if it chose any."""
     value = os.environ.get(CPUS_ENV, "")
     if not value or not hasattr(os, "sched_setaffinity"):
-        return None
+        return
     cpus = tuple(int(c) for c in value.split(","))
     try:
         threads = [int(t) for t in os.listdir("/proc/self/task")]
@@ -92,7 +92,6 @@ def pin_worker() -> tuple[int, ...] | None:
     for thread in threads:
         with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
             os.sched_setaffinity(thread, cpus)
-    return cpus
 
 
 @dataclass(frozen=True)
