@@ -13,7 +13,10 @@ requests cost the server, measured as its peak resident memory over what it held
   never read a reply, for --duration s;
 - temporal-bodies: 8 clients each sending the widest causal request (6,000 poses, every gap
   bridged) back to back for --duration s: the parsing and the bridged work of big bodies;
-- frame-overflow: a tracked pose with `frame` 2^63 (the status).
+- frame-overflow: a tracked pose with `frame` 2^63 (the status);
+- widest-untracked: 2 clients each sending the largest untracked request (1,024 poses, no track)
+  to POST /lift back to back for --duration s;
+- widest-unary: the same through gRPC Lift (2 clients, 1,024 poses a call).
 
 Each prints the server's resident memory before, its peak (VmHWM), the peak's growth, the status
 and the server CPU seconds the attack cost, and what a bystander saw meanwhile (issue 30's targets:
@@ -40,18 +43,17 @@ import httpx
 if __package__ in (None, ""):  # `python bench/memory_attacks.py`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench.overload import _probe_once
+from bench.bystander import JSON, Bystander, bystanders_line
 from bench.server import ServiceProcess, cpu_seconds, process_tree, rss_bytes
-from bench.stats import latency_summary, machine, sample_poses, write_json
+from bench.stats import machine, sample_poses, write_json
 from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 
 MB = 1024 * 1024
 STREAMS = 4
 BODY_CLIENTS = 8
+UNTRACKED_CLIENTS = 2
+WIDEST_POSES = 1024  # the defaults' largest untracked request (Limits.max_request_poses)
 POSES = sample_poses(64)
-VICTIM_EVERY_S = 0.02
-READYZ_EVERY_S = 0.25
-JSON = {"content-type": "application/json"}
 
 
 def peak_rss_bytes(pid: int) -> int:
@@ -152,15 +154,20 @@ def _send_bodies(url: str, body: bytes, stop: float, out: Any) -> None:
 
 
 def temporal_bodies(service: ServiceProcess, duration_s: float) -> str:
-    """8 clients (processes of their own, so that they do not slow the bystander's measuring)
-    sending 6,000-pose causal requests with every gap bridged, back to back."""
+    """BODY_CLIENTS clients sending 6,000-pose causal requests with every gap bridged, back to back."""
     body = temporal_body(list(range(0, 6000 * 120, 120)), "causal")
+    stop = time.monotonic() + duration_s  # CLOCK_MONOTONIC is one clock for the whole machine
+    statuses = _clients(_send_bodies, (service.url, body, stop), BODY_CLIENTS)
+    kb = len(body) / 1024
+    return f"{_counts(statuses)} ({kb:.0f} KB bodies, {BODY_CLIENTS} clients for {duration_s:g} s)"
+
+
+def _clients(target: Callable[..., None], args: tuple[Any, ...], count: int) -> list[str]:
+    """`count` attacking client processes (their own, so that they do not slow the bystander's
+    measuring) running target(*args, out); the statuses they put in `out`."""
     context = multiprocessing.get_context("fork")
     out = context.Queue()
-    stop = time.monotonic() + duration_s  # CLOCK_MONOTONIC is one clock for the whole machine
-    clients = [
-        context.Process(target=_send_bodies, args=(service.url, body, stop, out)) for _ in range(BODY_CLIENTS)
-    ]
+    clients = [context.Process(target=target, args=(*args, out)) for _ in range(count)]
     for client in clients:
         client.start()
     statuses: list[str] = []
@@ -171,62 +178,43 @@ def temporal_bodies(service: ServiceProcess, duration_s: float) -> str:
             continue
     for client in clients:
         client.join()
-    counts = ", ".join(f"{statuses.count(s)} x {s}" for s in sorted(set(statuses)))
-    return f"{counts} ({len(body) / 1024:.0f} KB bodies, {BODY_CLIENTS} clients for {duration_s:g} s)"
+    return statuses
 
 
-class Bystander:
-    """A client that uses the service normally while an attack runs: one pose every 20 ms on its own
-    keep-alive connection, and /readyz on a fresh connection every 0.25 s."""
+def _counts(statuses: list[str]) -> str:
+    return ", ".join(f"{statuses.count(s)} x {s}" for s in sorted(set(statuses)))
 
-    def __init__(self, service: ServiceProcess) -> None:
-        self.service = service
-        self.lift_s: list[float] = []
-        self.statuses: list[int] = []
-        self.readyz_s: list[float | None] = []
-        self._stop = threading.Event()
-        body = {"poses": [{"keypoints": POSES[0].round(1).tolist()}]}
-        self._body = json.dumps(body).encode()
-        self._threads = [threading.Thread(target=self._lift), threading.Thread(target=self._ready)]
 
-    def _lift(self) -> None:
-        with httpx.Client(timeout=30) as http:
-            while not self._stop.wait(VICTIM_EVERY_S):
-                start = time.perf_counter()
-                try:
-                    status = http.post(
-                        self.service.url + "/lift", content=self._body, headers=JSON
-                    ).status_code
-                except httpx.HTTPError:
-                    status = 0
-                self.lift_s.append(time.perf_counter() - start)
-                self.statuses.append(status)
+def untracked_bodies(service: ServiceProcess, duration_s: float) -> str:
+    """UNTRACKED_CLIENTS clients sending 1,024-pose untracked requests back to back."""
+    poses = [{"keypoints": POSES[k % len(POSES)].round(1).tolist()} for k in range(WIDEST_POSES)]
+    body = json.dumps({"poses": poses}, separators=(",", ":")).encode()
+    stop = time.monotonic() + duration_s  # CLOCK_MONOTONIC is one clock for the whole machine
+    statuses = _clients(_send_bodies, (service.url, body, stop), UNTRACKED_CLIENTS)
+    kb = len(body) / 1024
+    return f"{_counts(statuses)} ({kb:.0f} KB bodies, {UNTRACKED_CLIENTS} clients for {duration_s:g} s)"
 
-    def _ready(self) -> None:
-        while not self._stop.wait(READYZ_EVERY_S):
-            self.readyz_s.append(_probe_once("127.0.0.1", self.service.http_port))
 
-    def __enter__(self) -> Bystander:
-        for thread in self._threads:
-            thread.start()
-        return self
+def _send_unary(target: str, stop: float, out: Any) -> None:
+    """One attacking client: gRPC Lift calls of WIDEST_POSES poses back to back until `stop`."""
+    poses = [lifter_pb2.Pose2D(keypoints=POSES[k % len(POSES)].ravel().tolist()) for k in range(WIDEST_POSES)]
+    request = lifter_pb2.LiftRequest(poses=poses)
+    with grpc.insecure_channel(target) as channel:
+        stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
+        while time.monotonic() < stop:
+            try:
+                stub.Lift(request, timeout=300)
+                out.put("OK")
+            except grpc.RpcError as err:
+                out.put(err.code().name)
 
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join()
 
-    def summary(self) -> dict[str, Any]:
-        """The bystander's lift latencies (ms), how many were not 200, and the worst /readyz (None:
-        one did not answer within the probe's timeout)."""
-        answered = [s for s in self.readyz_s if s is not None]
-        return {
-            "lift_ms": latency_summary(self.lift_s) if self.lift_s else None,
-            "lift_not_200": sum(s != 200 for s in self.statuses),
-            "lifts": len(self.statuses),
-            "readyz_worst_ms": max(answered) * 1000 if answered else None,
-            "readyz_missed": len(self.readyz_s) - len(answered),
-        }
+def unary_calls(service: ServiceProcess, duration_s: float) -> str:
+    """UNTRACKED_CLIENTS gRPC clients sending 1,024-pose Lift calls back to back."""
+    stop = time.monotonic() + duration_s
+    statuses = _clients(_send_unary, (service.target, stop), UNTRACKED_CLIENTS)
+    calls = f"{WIDEST_POSES}-pose Lift calls"
+    return f"{_counts(statuses)} ({calls}, {UNTRACKED_CLIENTS} clients for {duration_s:g} s)"
 
 
 def frame_overflow(service: ServiceProcess, _: float) -> str:
@@ -242,6 +230,8 @@ ATTACKS: dict[str, Callable[[ServiceProcess, float], str]] = {
     "silent-streams": silent_streams,
     "temporal-bodies": temporal_bodies,
     "frame-overflow": frame_overflow,
+    "widest-untracked": untracked_bodies,
+    "widest-unary": unary_calls,
 }
 
 
@@ -268,16 +258,6 @@ def measure(name: str, duration_s: float, flags: list[str]) -> dict[str, Any]:
             "server_cpu_s": cpu_seconds(service.pid) - cpu if alive else float("nan"),
             "bystander": bystander.summary(),
         }
-
-
-def bystanders_line(seen: dict[str, Any]) -> str:
-    """What the bystander saw, in one line."""
-    lift = seen["lift_ms"] or {"p50": float("nan"), "p99": float("nan")}
-    worst = "none answered" if seen["readyz_worst_ms"] is None else f"{seen['readyz_worst_ms']:.0f} ms"
-    return (
-        f"{seen['lifts']} lifts, p50 {lift['p50']:.1f} / p99 {lift['p99']:.1f} ms, "
-        f"{seen['lift_not_200']} not 200; worst /readyz {worst}, {seen['readyz_missed']} missed"
-    )
 
 
 def main(argv: list[str] | None = None) -> int:

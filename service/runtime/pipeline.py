@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from repnet.core import geometry
-from repnet.core.errors import LiftError
+from repnet.core.errors import LiftError, Violation
 from repnet.core.inputs import Limits, ModelInput, PoseInput, Prepared
 from repnet.core.keypoints import prepare_poses
 from repnet.runtime.lifter import Lifter, Prediction
@@ -79,10 +79,87 @@ class Job:
         return len(self.inputs) if self.inputs is not None else len(self.poses)
 
     def slice(self, start: int, stop: int) -> Job:
-        """The job itself: a batcher never splits a job (its poses are answered together)."""
+        """The job itself: a batcher never slices a job (its poses are answered together; one that
+        costs more than a run is split into jobs of its own before it is queued: split_job)."""
         if (start, stop) != (0, len(self)):
             raise ValueError("a job is lifted whole")
         return self
+
+
+@dataclass(frozen=True)
+class Parts:
+    """A large job's poses in parts of at most a run's cost, each queued and answered apart (its
+    Lifted), so that other clients' requests ride along with the next run instead of waiting for all
+    of this job's runs; `job`'s finish answers their join (join_lifted)."""
+
+    job: Job
+    parts: list[Job]
+
+    def __len__(self) -> int:
+        return len(self.job)
+
+
+def split_job(job: Job, max_cost: float) -> Parts | None:
+    """`job` in consecutive parts of at most `max_cost` (job_cost; a pose that costs more is a part
+    of its own), or None when it is lifted whole: a job of at most `max_cost`, or of prepared
+    inputs. A stream's job keeps its tracks in every part: the parts run in order (one source's
+    chunks leave the queue in order), so each track gets its poses in order, as in one pass."""
+    if job.inputs is not None or job_cost(job) <= max_cost:
+        return None
+    tracked = job.tracks is not None
+    bounds, cost, start = [], 0.0, 0
+    for i in range(len(job.poses)):
+        pose = TRACKED_COST if tracked and job.tracked[i] is not None else 1.0
+        if i > start and cost + pose > max_cost:
+            bounds.append((start, i))
+            start, cost = i, 0.0
+        cost += pose
+    bounds.append((start, len(job.poses)))
+    if len(bounds) == 1:  # one pose that costs more than a run: lifted whole
+        return None
+    parts = [
+        Job(
+            lifted_only,
+            job.poses[a:b],
+            threshold=job.threshold,
+            tracks=job.tracks,
+            tracked=job.tracked[a:b] if tracked else (),
+            replies=job.replies,
+            track_ids=None if job.track_ids is None else job.track_ids[a:b],
+        )
+        for a, b in bounds
+    ]
+    return Parts(job, parts)
+
+
+def lifted_only(lifted: Lifted) -> Lifted:
+    """A part's answer: what it got (joined for the whole job's finish)."""
+    return lifted
+
+
+def join_lifted(parts: Sequence[Lifted]) -> Lifted:
+    """What the consecutive parts of a job got, as the whole job would have got it: violations and
+    errors renumbered within the whole job."""
+    if len(parts) == 1:
+        return parts[0]
+    violations: list[tuple[Violation, ...]] = []
+    errors: dict[int, LiftError] = {}
+    row = 0  # the part's first valid row in the job
+    for part in parts:
+        start = len(violations)
+        violations += [
+            tuple(v if v.pose is None else replace(v, pose=v.pose + start) for v in found)
+            for found in part.prepared.violations
+        ]
+        errors.update((row + k, err) for k, err in part.errors.items())
+        row += len(part.prepared.inputs)
+    replies = [p.replies for p in parts]
+    return Lifted(
+        Prepared(join_inputs([p.prepared.inputs for p in parts]), tuple(violations)),
+        Prediction.join([p.prediction for p in parts]),
+        None if any(r is None for r in replies) else Replies.join([r for r in replies if r is not None]),
+        errors,
+    )
 
 
 def prepare_jobs(jobs: Sequence[Job], limits: Limits) -> list[Prepared]:

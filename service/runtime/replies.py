@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +39,21 @@ class Replies:
         """The replies of poses start..stop-1 (views of the arrays)."""
         columns = {k: None if v is None else v[start:stop] for k, v in self.columns.items()}
         return Replies(columns, self.failed[start:stop])
+
+    @classmethod
+    def join(cls, parts: Sequence[Replies]) -> Replies:
+        """The replies of consecutive poses as one."""
+        if len(parts) == 1:
+            return parts[0]
+        columns: dict[str, Any] = {}
+        for name, first in parts[0].columns.items():
+            if first is None:
+                columns[name] = None
+            elif isinstance(first, np.ndarray):
+                columns[name] = np.concatenate([p.columns[name] for p in parts])
+            else:
+                columns[name] = [item for p in parts for item in p.columns[name]]
+        return cls(columns, np.concatenate([p.failed for p in parts]))
 
     def check(self) -> Replies:
         """These replies when no pose failed; else ModelOutputError naming the poses that did."""

@@ -3,6 +3,7 @@ grouped to be lifted together, and each frame's answer (no wire format, no event
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -79,7 +80,9 @@ class Group:
 
     frames: list[FrameIn]
     prepared: Prepared | None = None  # the input rules' outcome for the frames that have a pose
-    futures: list[Future[Any]] = field(default_factory=list)  # its job's run: the encoded answers
+    futures: list[Future[Any]] = field(default_factory=list)  # its job's runs (one, or one a part)
+    # Once every future is done: the encoded answers (LiftBatcher.answer); None: its job was not queued.
+    answer: Callable[[], Awaitable[Any]] | None = None
     failure: LiftError | None = None  # why its valid poses get no reply (queue full, a failed run)
     temporal: TemporalRows | None = None  # the temporal model's answers to its tracked poses
 

@@ -132,7 +132,8 @@ async def _start(
     source: Hashable,
 ) -> None:
     """Queue the group's poses as one job of the group's model: its batch runs the input rules, the
-    model, the stream's tracks and causal model, and encodes the group's answers."""
+    model, the stream's tracks and causal model, and encodes the group's answers (a frame of more
+    people than a run holds is queued in parts: LiftBatcher.queue_async)."""
     engine = models.engines.get(group.model) or models.default_engine  # frames name known models
     poses, tracked = group.poses(), group.tracked() if tracks is not None else []
     if not poses:
@@ -145,7 +146,8 @@ async def _start(
         track_ids=[t.track_id if t is not None else None for t in tracked] if tracked else None,
     )
     try:
-        group.futures = await engine.submit_async(job, transport, wait_s=QUEUE_WAIT_S, source=source)
+        group.futures = await engine.queue_async(job, transport, wait_s=QUEUE_WAIT_S, source=source)
+        group.answer = partial(engine.answer, job, group.futures)
     except LiftError as err:  # queue full for too long, or shutting down
         group.failure = err
 
@@ -153,9 +155,9 @@ async def _start(
 async def _finish(group: Group, encode: Callable[[Answers], R], limits: Limits) -> R:
     """The encoded answers of a group whose job has finished (its batch encoded them); a failed job
     fails its frames, not the stream (their poses' own rules still answered, off the event loop)."""
-    if group.futures and group.failure is None:
+    if group.answer is not None and group.failure is None:
         try:
-            answered: R = group.futures[0].result()
+            answered: R = await group.answer()
             return answered
         except LiftError as err:
             group.failure = err

@@ -15,15 +15,18 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
+from repnet._proto.repnet.v1 import lifter_pb2, lifter_pb2_grpc
 from repnet.core.errors import ModelNotReady, Overloaded
 from repnet.core.inputs import ModelInput, PoseInput
 from repnet.core.keypoints import prepare_poses
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter, Prediction
+from repnet.runtime.pipeline import Job, Lifted
 from repnet.runtime.window import BUSY_TO_WAIT, batch_window
 from repnet.server.app import limits_of
 from repnet.server.config import Settings
-from tests.conftest import POSE_2D, GatedLifter, GrpcHandle
+from repnet.server.metrics import Metrics
+from tests.conftest import POSE_2D, GatedLifter, GrpcHandle, build_app, build_grpc_server
 from tests.service.invalid_inputs import to_proto_pose
 
 
@@ -151,6 +154,126 @@ def test_another_clients_request_waits_for_one_run_of_a_large_prediction_not_all
     wait_until(lambda: len(done) == len(large) + len(small), "every answer")
     assert len(large) == 3 and done[-1] == "large" and done.index("small") < 2
     assert max(gated.batches) <= 5 and sum(gated.batches) == 13  # the small one rode along
+
+
+def twelve_poses(*invalid: int) -> list[dict[str, Any]]:
+    """12 distinct poses; those at `invalid` break a rule of the batch's input rules (3 of 17 joints
+    visible, or every joint at one point)."""
+    poses: list[dict[str, Any]] = [{"keypoints": variant(i).tolist()} for i in range(12)]
+    for k, i in enumerate(invalid):
+        keypoints: list[Any] = variant(i).tolist()
+        poses[i] = {"keypoints": [p if j < 3 else None for j, p in enumerate(keypoints)]}
+        if k % 2:
+            poses[i] = {"keypoints": [[10.0, 20.0]] * 17}
+    return poses
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        {"poses": twelve_poses()},
+        {"poses": twelve_poses(5, 9)},
+        {"poses": twelve_poses(5, 9), "invalid_poses": "report"},
+        {"poses": twelve_poses(*range(12)), "invalid_poses": "report"},
+    ],
+    ids=["valid", "refused", "report", "report-none-valid"],
+)
+def test_a_large_untracked_request_is_answered_in_parts_as_it_would_be_whole(
+    engine_factory: Callable[..., LiftBatcher],
+    gated: GatedLifter,
+    lifter: Lifter,
+    metrics: Metrics,
+    settings: Settings,
+    body: dict[str, Any],
+) -> None:
+    # More poses than a run holds: queued as parts of max_batch, each answered apart, their join
+    # answered as the whole request would be (poses named by their index in the request).
+    answers = []
+    for engine in (engine_factory(gated, max_batch=4), engine_factory(lifter, max_batch=64)):
+        with TestClient(build_app(engine, metrics, settings), base_url="http://localhost") as http:
+            reply = http.post("/lift", json=body)
+            answers.append((reply.status_code, reply.json()))
+    valid = [p == {"keypoints": variant(i).tolist()} for i, p in enumerate(body["poses"])]
+    runs = [sum(valid[a : a + 4]) for a in range(0, 12, 4)]
+    assert gated.batches == [n for n in runs if n]  # a run per part, of its valid poses
+    (status, parts), (whole_status, whole) = answers
+    assert status == whole_status
+    if status == 422:
+        fields = [e["field"] for e in parts["detail"]]
+        assert fields == [e["field"] for e in whole["detail"]]
+        assert fields == ["poses[5].keypoints", "poses[9].keypoints"]
+        return
+    assert status == 200, parts
+    if "errors" in whole:
+        assert parts["errors"] == whole["errors"]
+        assert sorted({e["pose"] for e in parts["errors"]}) == [i for i, ok in enumerate(valid) if not ok]
+    assert [p is None for p in parts["poses"]] == [p is None for p in whole["poses"]]
+    for mine, theirs in zip(parts["poses"], whole["poses"], strict=True):
+        if theirs is not None:
+            np.testing.assert_allclose(mine["pose_3d"], theirs["pose_3d"], rtol=1e-5, atol=1e-4)
+            np.testing.assert_allclose(mine["camera"], theirs["camera"], rtol=1e-5, atol=1e-6)
+
+
+def test_a_large_grpc_lift_is_answered_in_parts_as_it_would_be_whole(
+    engine_factory: Callable[..., LiftBatcher],
+    gated: GatedLifter,
+    lifter: Lifter,
+    metrics: Metrics,
+    settings: Settings,
+) -> None:
+    request = lifter_pb2.LiftRequest(
+        poses=[to_proto_pose(p) for p in twelve_poses(5, 9)],
+        invalid_poses=lifter_pb2.INVALID_POSES_REPORT,
+    )
+    answers = []
+    for engine in (engine_factory(gated, max_batch=4), engine_factory(lifter, max_batch=64)):
+        server = build_grpc_server(engine, metrics, settings)
+        server.start()
+        try:
+            with grpc.insecure_channel(f"localhost:{server.port}") as channel:
+                stub = lifter_pb2_grpc.PoseLifterStub(channel)  # type: ignore[no-untyped-call]
+                answers.append(stub.Lift(request, timeout=30))
+        finally:
+            server.stop(0).wait()
+    parts, whole = answers
+    assert gated.batches == [4, 3, 3]
+    assert [e.pose for e in parts.errors] == [5, 9] and list(parts.errors) == list(whole.errors)
+    for mine, theirs in zip(parts.poses, whole.poses, strict=True):
+        np.testing.assert_allclose(mine.pose_3d, theirs.pose_3d, rtol=1e-5, atol=1e-4)
+
+
+def test_another_clients_request_waits_for_one_run_of_a_large_untracked_request_not_all(
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter
+) -> None:
+    # A 12-pose request with max_batch 4 is queued as three parts: a one-pose request of another
+    # client that comes during the first run runs next (before: after all three), and the large
+    # request is answered once, whole, after its last part.
+    engine = engine_factory(gated, max_batch=4, queue_size=64)
+    gated.gate.clear()
+    done: list[str] = []
+    got: list[Any] = []
+
+    def finish(name: str) -> Callable[[Lifted], Any]:
+        def answer(lifted: Lifted) -> Lifted:
+            done.append(name)
+            return lifted
+
+        return answer
+
+    poses = [PoseInput(variant(i), np.ones(17, bool)) for i in range(12)]
+    large = threading.Thread(target=lambda: got.append(engine.run(Job(finish("large"), poses), "test")))
+    large.start()
+    wait_until(gated.entered.is_set, "the large request's first run")
+    small = engine.submit(Job(finish("small"), [PoseInput(variant(20), np.ones(17, bool))]), "test")
+    gated.gate.set()
+    large.join(10)
+    assert small[0].result(10).prediction.pose_3d.shape == (1, 17, 3)
+    assert done == ["small", "large"]  # the large one's finish ran once, on the join of its parts
+    assert gated.batches == [4, 1, 4, 4]  # the small one ran after one of the large one's runs
+    whole = got[0]
+    assert len(whole.prepared.inputs) == 12 and whole.replies is not None and len(whole.replies) == 12
+    alone = engine_factory(gated, max_batch=64).run(Job(lambda lifted: lifted, poses), "test")
+    np.testing.assert_allclose(whole.prediction.pose_3d, alone.prediction.pose_3d, rtol=1e-5, atol=1e-4)
 
 
 def test_close_finishes_queued_work_then_refuses_new(engine: LiftBatcher, gated: GatedLifter) -> None:

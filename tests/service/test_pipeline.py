@@ -8,8 +8,9 @@ import pytest
 
 from repnet.core.errors import LiftError
 from repnet.core.inputs import Limits, PoseInput
+from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
-from repnet.runtime.pipeline import Job, Lifted, StreamTracks, TrackedPose, run_jobs
+from repnet.runtime.pipeline import Job, Lifted, StreamTracks, TrackedPose, run_jobs, split_job
 from repnet.runtime.temporal import TemporalLifter
 from repnet.runtime.tracks import TrackBudget, TrackTable
 from repnet.server.config import Settings
@@ -88,3 +89,46 @@ def test_a_refused_pose_fails_alone_and_the_batchs_other_streams_are_answered(
     refused, answered = batch.answers
     assert [v.code for v in refused.errors[0].violations] == ["frame_order"]
     assert answers(answered)[1] and not answered.errors
+
+
+def crowd_job(tracks: StreamTracks, clips: list[np.ndarray], frame: int) -> Job:
+    """One frame of a stream: a tracked person per clip, then two untracked poses and a pose that
+    breaks an input rule (3 of 17 joints visible)."""
+    visible = np.ones(17, bool)
+    poses = [PoseInput(c[frame], visible, None, "h36m17", None) for c in clips]
+    poses += [PoseInput(clips[k][frame] + 40.0, visible, None, "h36m17", None) for k in range(2)]
+    poses.append(PoseInput(clips[0][frame], np.arange(17) < 3, None, "h36m17", None))
+    tracked: list[TrackedPose | None] = [
+        TrackedPose(f"p{k}", frame, 30.0, f"people[{k}].pose") for k in range(len(clips))
+    ]
+    return Job(finish=lambda lifted: lifted, poses=poses, tracks=tracks, tracked=[*tracked, None, None, None])
+
+
+def test_a_frame_of_more_people_than_a_run_holds_is_lifted_in_parts_as_in_one_pass(
+    lifter: Lifter, causal: TemporalLifter
+) -> None:
+    """A frame whose tracked people cost more than a run (max_batch 16: two tracked people a run)
+    is queued in parts that run in order, and gets what one pass gives it: every track's causal
+    answer, the stream's track limit (4) refusing the same people, errors and violations named within
+    the whole frame."""
+    clips = [clip(seed, 6) for seed in range(6)]
+    whole, parted = stream(causal), stream(causal)
+    engine = LiftBatcher(lifter, None, max_batch=16, max_wait_s=0.0, queue_size=256)
+    try:
+        for frame in range(6):
+            job = crowd_job(whole, clips, frame)
+            parts = split_job(job, 16)
+            assert parts is not None and [len(p) for p in parts.parts] == [2, 2, 2, 3]
+            one: Lifted = run_jobs(lifter, [job], Limits(), 256).answers[0]
+            got: Lifted = engine.run(crowd_job(parted, clips, frame), "test")
+            assert sorted(got.errors) == sorted(one.errors) == [4, 5]  # rows of p4, p5: over the limit
+            assert [v.pose for found in got.prepared.violations for v in found] == [8]
+            assert got.prepared.violations == one.prepared.violations
+            assert got.replies is not None and one.replies is not None
+            np.testing.assert_array_equal(got.replies.columns["temporal"], one.replies.columns["temporal"])
+            assert got.replies.columns["temporal"][:4].all()  # p0-p3: their tracks' causal answers
+            np.testing.assert_allclose(
+                got.replies.columns["pose_3d_camera"], one.replies.columns["pose_3d_camera"], atol=1e-2
+            )
+    finally:
+        engine.close(10)

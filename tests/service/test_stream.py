@@ -16,7 +16,7 @@ from repnet.core.inputs import Limits, PoseInput
 from repnet.core.keypoints import prepare_poses
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
-from repnet.runtime.pipeline import TRACKED_COST
+from repnet.runtime.pipeline import TRACKED_COST, Job
 from repnet.runtime.replies import build_replies
 from repnet.server.stream import (
     Answer,
@@ -243,6 +243,34 @@ def test_a_stream_of_many_people_per_frame_is_answered_within_the_queue(
     assert [a.frame.frame_id for a in answers] == list(range(12))
     assert all(isinstance(o, int) for a in answers for o in a.people), [a.error for a in answers]
     assert max(gated.batches) <= 8 and sum(gated.batches) == 36
+
+
+def test_a_frame_of_more_people_than_a_run_holds_is_lifted_in_parts_and_another_client_waits_for_one(
+    engine_factory: Callable[..., LiftBatcher], gated: GatedLifter, limits: Limits
+) -> None:
+    """A frame of 12 people with max_batch 4 is queued as 3 parts (before: one job whose 3 runs ran in
+    one pass); a one-pose request of another client that comes during the first part's run runs
+    next, and the frame is answered once, every person with its own pose's reply."""
+    engine = engine_factory(gated, max_batch=4, queue_size=64)
+    lone = Future[object]()
+
+    async def scenario() -> list[Answer]:
+        stream = answer_stream(
+            source([crowd(0, 12)], []), engine, limits, same, window=16, idle_timeout_s=30, transport="t"
+        )
+        gated.gate.clear()
+        answered = asyncio.create_task(collect(stream))
+        await until(gated.entered.is_set)  # the frame's first part is in its run
+        other = Job(finish=lambda lifted: lifted, poses=[pose(20)])
+        (future,) = await engine.queue_async(other, "t", source="another client")
+        future.add_done_callback(lambda f: lone.set_result(len(gated.batches)))
+        gated.gate.set()
+        return await answered
+
+    answers = asyncio.run(scenario())
+    assert gated.batches == [4, 1, 4, 4] and lone.result(1) == 2  # the other request ran second
+    (answer,) = answers
+    assert answer.people == tuple(range(12))  # each person's row of the replies, in order
 
 
 def test_the_reader_stops_reading_when_the_window_is_full(
