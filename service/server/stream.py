@@ -155,9 +155,11 @@ async def _start(
 async def _finish(group: Group, encode: Callable[[Answers], R], limits: Limits) -> R:
     """The encoded answers of a group whose job has finished (its batch encoded them); a failed job
     fails its frames, not the stream (their poses' own rules still answered, off the event loop)."""
-    if group.answer is not None and group.failure is None:
+    # The job's finish holds the group: taking its answer out leaves no cycle for the collector.
+    answer, group.answer = group.answer, None
+    if answer is not None and group.failure is None:
         try:
-            answered: R = await group.answer()
+            answered: R = await answer()
             return answered
         except LiftError as err:
             group.failure = err

@@ -3,6 +3,9 @@ are pushed, windowed and answered together, and each stream gets what it gets al
 
 from __future__ import annotations
 
+import gc
+import weakref
+
 import numpy as np
 import pytest
 
@@ -132,3 +135,23 @@ def test_a_frame_of_more_people_than_a_run_holds_is_lifted_in_parts_as_in_one_pa
             )
     finally:
         engine.close(10)
+
+
+def test_a_pose_refused_by_its_streams_track_limit_leaves_no_garbage_for_the_collector(
+    lifter: Lifter, causal: TemporalLifter
+) -> None:
+    """The refusal is kept as the pose's answer without its traceback, which tied the pass's frame
+    and every refusal in it into a cycle: under frames of 1,024 tracked people, the collector's full
+    collections then took 110-137 ms of a worker's interpreter lock each."""
+    tracks = StreamTracks(TrackTable(causal.contract, 1, 60.0, TrackBudget(16)), causal)
+    clips = [clip(seed, 1) for seed in range(3)]
+    gc.disable()
+    try:
+        lifted: Lifted = run_jobs(lifter, [crowd_job(tracks, clips, 0)], Limits(), 256).answers[0]
+        assert sorted(lifted.errors) == [1, 2]  # p1, p2: over the stream's one track
+        assert [v.code for v in lifted.errors[1].violations] == ["too_many_tracks"]
+        refusals = [weakref.ref(err) for err in lifted.errors.values()]
+        del lifted
+        assert [r() for r in refusals] == [None, None]  # freed at once, not by the collector
+    finally:
+        gc.enable()
