@@ -155,3 +155,25 @@ def test_a_pose_refused_by_its_streams_track_limit_leaves_no_garbage_for_the_col
         assert [r() for r in refusals] == [None, None]  # freed at once, not by the collector
     finally:
         gc.enable()
+
+
+def test_a_jobs_refusal_leaves_no_garbage_for_the_collector(lifter: Lifter) -> None:
+    """A job refused by its own finish (a pose that breaks a rule: InvalidKeypoints) is answered with
+    that error, without the traceback that tied the pass's frame, and with it every array of the
+    batch, into a cycle for the collector (the adapters check most rules before a job is queued, so
+    this was rare; a stream group's failure is kept the same way)."""
+
+    def refuse(lifted: Lifted) -> None:
+        lifted.prepared.check()
+
+    poses = [PoseInput(clip(0, 1)[0], np.arange(17) < 3, None, "h36m17", None)]
+    gc.disable()
+    try:
+        batch = run_jobs(lifter, [Job(finish=refuse, poses=poses)], Limits(), 256)
+        (refusal,) = batch.answers
+        assert isinstance(refusal, LiftError) and refusal.violations[0].code == "too_few_visible"
+        seen = weakref.ref(refusal)
+        del batch, refusal
+        assert seen() is None  # freed at once, not by the collector
+    finally:
+        gc.enable()
