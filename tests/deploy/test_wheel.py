@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -149,6 +150,49 @@ def test_an_editable_install_imports_repnet_and_nothing_else(tmp_path: Path) -> 
         [str(python), "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60
     )
     assert found.stdout.strip() == str([("repnet", str(ROOT / "service" / "__init__.py"))]), found.stderr
+
+
+# What the image copies to build the package (Dockerfile): the source tree without the checkout's build/.
+SOURCE_TREE = (
+    "pyproject.toml", "README.md", "LICENSE", "MANIFEST.in", "deploy/packaging", "service", "training",
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("mode", ["strict", "compat"])
+def test_an_editable_install_in_another_mode_imports_repnet_alone(mode: str, tmp_path: Path) -> None:
+    """`pip install -e . --config-settings editable_mode=strict|compat`. setuptools' compat mode puts
+    the checkout's root on sys.path, where service/ and training/ are found under their own names and
+    repnet is not: the project's backend builds it in strict mode (a tree of links) instead. Built
+    from a copy of the source tree (strict mode writes its links into the tree's build/)."""
+    source = tmp_path / "src"
+    for name in SOURCE_TREE:
+        copy = shutil.copytree if (ROOT / name).is_dir() else shutil.copy2
+        (source / name).parent.mkdir(parents=True, exist_ok=True)
+        copy(ROOT / name, source / name)
+    built = tmp_path / "editable"
+    built.mkdir()
+    hook = f"{BACKEND}; print(b.build_editable({str(built)!r}, {{'editable_mode': {mode!r}}}))"
+    made = subprocess.run(
+        [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=source, timeout=300
+    )
+    assert ("building in strict mode instead" in made.stderr) == (mode == "compat")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
+    python = venv / "bin" / "python"
+    install = [sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-deps"]
+    subprocess.run(
+        [*install, str(built / made.stdout.split()[-1])], check=True, capture_output=True, timeout=300
+    )
+    code = (
+        "import importlib.util as u, pathlib, sys; print([n for n in ('repnet', 'service', 'training') "
+        f"if u.find_spec(n) is not None], {str(source)!r} in sys.path, "
+        "pathlib.Path(u.find_spec('repnet').origin).resolve())"
+    )
+    found = subprocess.run(
+        [str(python), "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60
+    )
+    expected = ["['repnet']", "False", str(source / "service" / "__init__.py")]  # the root not on sys.path
+    assert found.stdout.split() == expected, found.stderr
 
 
 @pytest.mark.parametrize(("folder", "package"), [("service", "repnet"), ("training", "repnet.train")])
