@@ -58,10 +58,9 @@ class LiftBatcher(Batcher[Any, Any]):
     def _chunks(
         self, inputs: Job | Parts | ModelInput, transport: str, source: Hashable
     ) -> list[Chunk[Job, Any]]:
-        if isinstance(inputs, Job):  # lifted whole
-            return [Chunk(inputs, transport, 0.0, Future(), source, job_cost(inputs))]
-        if isinstance(inputs, Parts):  # a job that costs more than a run: each part queued apart
-            return [Chunk(p, transport, 0.0, Future(), source, job_cost(p)) for p in inputs.parts]
+        if isinstance(inputs, (Job, Parts)):  # a job lifted whole, or each part of one queued apart
+            jobs = inputs.parts if isinstance(inputs, Parts) else [inputs]
+            return [Chunk(j, transport, 0.0, Future(), source, job_cost(j)) for j in jobs]
         # Prepared inputs (a temporal request's poses): the batcher's chunks of max_batch rows, queued
         # apart, so that another client's request waits for one run, not for all of a 6,000-pose
         # request's runs in one pass (about 0.5 s); no rows, one empty chunk (answered empty).
@@ -103,7 +102,7 @@ class LiftBatcher(Batcher[Any, Any]):
         event loop; split_job makes two parts or more). A failed run raises its error."""
         if len(futures) == 1:
             return futures[0].result()
-        return await offload(len(job), job.finish, join_lifted([f.result() for f in futures]))
+        return await offload(len(job), job.finish, self._join([f.result() for f in futures]))
 
     async def run_async(self, job: Job, transport: str, wait_s: float = 0.0, source: Hashable = None) -> Any:
         """Queue `job` for `source` (Overloaded when the queue stays full for wait_s) and await its

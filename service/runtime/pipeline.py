@@ -104,7 +104,8 @@ def split_job(job: Job, max_cost: float) -> Parts | None:
     of its own), or None when it is lifted whole: a job of at most `max_cost`, or of prepared
     inputs. A stream's job keeps its tracks in every part: the parts run in order (one source's
     chunks leave the queue in order), so each track gets its poses in order, as in one pass."""
-    if job.inputs is not None or job_cost(job) <= max_cost:
+    # Most jobs (a camera's frame, a small request) fit whatever they hold: no cost summed for them.
+    if job.inputs is not None or len(job.poses) * TRACKED_COST <= max_cost or job_cost(job) <= max_cost:
         return None
     tracked = job.tracks is not None
     bounds, cost, start = [], 0.0, 0
