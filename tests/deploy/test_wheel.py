@@ -125,15 +125,15 @@ def test_the_installed_wheel_imports_repnet_and_nothing_else(wheel: Path, tmp_pa
     assert (target / "repnet" / "train" / "__init__.py").is_file()  # training/ is repnet.train
 
 
-def test_an_editable_install_imports_repnet_and_nothing_else(tmp_path: Path) -> None:
-    """`pip install -e .` (setuptools' default editable mode, what a user running it from a checkout
-    gets) maps service/ to repnet and exposes neither service/ nor training/ under its own name:
-    looked for outside the checkout, in a fresh venv."""
+def editable_venv(source: Path, tmp_path: Path, settings: dict[str, str] | None = None) -> tuple[Path, str]:
+    """An editable wheel built from the source tree `source` by the project's backend's PEP 660 hook
+    (as `pip install -e` calls it, with `settings` as --config-settings), installed into a fresh venv
+    without its dependencies: the venv's python, and what the hook printed on stderr."""
     built = tmp_path / "editable"
     built.mkdir()
-    hook = f"{BACKEND}; print(b.build_editable({str(built)!r}))"  # PEP 660, as pip -e
+    hook = f"{BACKEND}; print(b.build_editable({str(built)!r}, {settings!r}))"
     made = subprocess.run(
-        [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=ROOT, timeout=300
+        [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=source, timeout=300
     )
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
@@ -142,6 +142,14 @@ def test_an_editable_install_imports_repnet_and_nothing_else(tmp_path: Path) -> 
     subprocess.run(
         [*install, str(built / made.stdout.split()[-1])], check=True, capture_output=True, timeout=300
     )
+    return python, made.stderr
+
+
+def test_an_editable_install_imports_repnet_and_nothing_else(tmp_path: Path) -> None:
+    """`pip install -e .` (setuptools' default editable mode, what a user running it from a checkout
+    gets) maps service/ to repnet and exposes neither service/ nor training/ under its own name:
+    looked for outside the checkout, in a fresh venv."""
+    python, _ = editable_venv(ROOT, tmp_path)
     code = (
         "import importlib.util as u; print([(n, u.find_spec(n).origin) for n in ('repnet', 'service', "
         "'training') if u.find_spec(n) is not None])"
@@ -169,20 +177,8 @@ def test_an_editable_install_in_another_mode_imports_repnet_alone(mode: str, tmp
         copy = shutil.copytree if (ROOT / name).is_dir() else shutil.copy2
         (source / name).parent.mkdir(parents=True, exist_ok=True)
         copy(ROOT / name, source / name)
-    built = tmp_path / "editable"
-    built.mkdir()
-    hook = f"{BACKEND}; print(b.build_editable({str(built)!r}, {{'editable_mode': {mode!r}}}))"
-    made = subprocess.run(
-        [sys.executable, "-c", hook], check=True, capture_output=True, text=True, cwd=source, timeout=300
-    )
-    assert ("building in strict mode instead" in made.stderr) == (mode == "compat")
-    venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
-    python = venv / "bin" / "python"
-    install = [sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-deps"]
-    subprocess.run(
-        [*install, str(built / made.stdout.split()[-1])], check=True, capture_output=True, timeout=300
-    )
+    python, said = editable_venv(source, tmp_path, {"editable_mode": mode})
+    assert ("building in strict mode instead" in said) == (mode == "compat")
     code = (
         "import importlib.util as u, pathlib, sys; print([n for n in ('repnet', 'service', 'training') "
         f"if u.find_spec(n) is not None], {str(source)!r} in sys.path, "
