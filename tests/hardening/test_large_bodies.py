@@ -5,6 +5,7 @@ no room is refused at once, before its body is read, while small requests go on.
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import threading
 import time
@@ -23,7 +24,7 @@ from repnet.core.errors import Overloaded
 from repnet.runtime.batchers import LiftBatcher
 from repnet.runtime.lifter import Lifter
 from repnet.server.config import Settings
-from repnet.server.http.body import OFF_LOOP_BYTES, LargeBodies, decode_json
+from repnet.server.http.body import OFF_LOOP_BYTES, CollectorPause, LargeBodies, decode_json
 from tests.conftest import POSE_2D, GatedLifter, live_settings
 from tests.hardening.conftest import running
 
@@ -186,3 +187,51 @@ def test_a_large_request_without_room_is_refused_before_its_body_while_small_one
     for thread in [first, *waiting]:
         thread.join(60)
     assert [r.status_code for r in replies] == [200, 200, 200]
+
+
+def test_a_large_body_is_handled_with_the_collector_paused_and_it_runs_again_after(
+    client: TestClient, monkeypatch: Any
+) -> None:
+    """The collector's full collections walked a large body's objects again and again (7 a request,
+    10-47 ms each with the GIL held): it is paused from the body's decode to its answer, refusals
+    included, and runs again after."""
+    during: list[bool] = []
+
+    class Watched(body_module._Parsed):
+        def __init__(self, model: Any, content: bytes) -> None:
+            during.append(gc.isenabled())
+            super().__init__(model, content)
+
+    monkeypatch.setattr(body_module, "_Parsed", Watched)
+    answered = client.post("/lift", content=dump(large_body()), headers=JSON)
+    refused = client.post("/lift", content=BROKEN["NaN coordinates"](large_body()), headers=JSON)
+    broken = client.post("/lift", content=BROKEN["JSON cut short"](large_body()), headers=JSON)
+    assert [answered.status_code, refused.status_code, broken.status_code] == [200, 422, 422]
+    assert during == [False, False, False]
+    assert gc.isenabled()
+
+
+def test_collector_pauses_nest_across_threads_and_leave_it_as_they_found_it() -> None:
+    pause, entered, leave = CollectorPause(), threading.Event(), threading.Event()
+
+    def other() -> None:
+        with pause():
+            entered.set()
+            leave.wait(5)
+
+    thread = threading.Thread(target=other)
+    with pause():
+        assert not gc.isenabled()
+        thread.start()
+        assert entered.wait(5)
+    assert not gc.isenabled()  # the other thread's pause still holds it
+    leave.set()
+    thread.join(5)
+    assert gc.isenabled()
+    gc.disable()  # off before the first pause: off after the last
+    try:
+        with pause():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()

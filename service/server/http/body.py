@@ -13,15 +13,20 @@ go one at a time per worker, parse to answer, through a LargeBodies gate. A larg
 the gate busy waits (costing no CPU) behind at most `waiting` others; beyond, it is refused at once
 with 503 and Retry-After: its body is not even decoded. Small bodies take FastAPI's own path and do
 not wait. The answers, errors included, are the same on both paths: the same JSON decoder errors,
-and pydantic's errors at FastAPI's `body` location.
+and pydantic's errors at FastAPI's `body` location. While a large request is handled, Python's
+cyclic collector is paused (CollectorPause): its full collections walked the body's objects again
+and again, each a stall of the whole worker.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import email.message
+import gc
 import json
-from collections.abc import Callable, Coroutine
+import threading
+from collections.abc import Callable, Coroutine, Iterator
 from typing import Any
 
 import pydantic_core
@@ -144,9 +149,48 @@ class LargeBodies:
         self._turn.release()
 
 
+class CollectorPause:
+    """Python's cyclic garbage collector held off while large bodies' requests are handled.
+
+    Decoding and validating a 6,000-pose body makes about 200,000 Python containers that live until
+    its request is answered. Each time a quarter more containers than the last full collection left
+    had come, the collector walked all of them again: 7 full collections a request, 10-47 ms each with
+    the GIL held, freeing almost nothing, so every other request and `/readyz` of the worker waited
+    (docs/BENCHMARKS.md, "The collector and large bodies"). The requests' own paths make no cyclic
+    garbage (tests/service/test_pipeline.py, test_stream.py): what is freed is freed by reference
+    counts, paused or not; cycles made meanwhile wait for the first collection after the pause.
+    Process-wide, as the collector is: pauses nest across threads and event loops, and the collector
+    runs again when the last one ends, if it ran when the first began."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._held = 0
+        self._resume = False
+
+    @contextlib.contextmanager
+    def __call__(self) -> Iterator[None]:
+        """The collector held off until the block ends (and every other pause has)."""
+        with self._lock:
+            if self._held == 0:
+                self._resume = gc.isenabled()
+                gc.disable()
+            self._held += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._held -= 1
+                if self._held == 0 and self._resume:
+                    gc.enable()
+
+
+COLLECTOR_PAUSE = CollectorPause()  # one per process: the collector is
+
+
 def off_loop_route(model: type[BaseModel], gate: LargeBodies) -> type[APIRoute]:
     """A route class for a route whose body is `model`: a JSON body over OFF_LOOP_BYTES is decoded
-    and validated on a worker thread, and the request handled, while it holds `gate`."""
+    and validated on a worker thread, and the request handled, while it holds `gate`, with the
+    collector paused (COLLECTOR_PAUSE)."""
 
     class OffLoopBodyRoute(APIRoute):
         def get_route_handler(self) -> Handler:
@@ -158,11 +202,15 @@ def off_loop_route(model: type[BaseModel], gate: LargeBodies) -> type[APIRoute]:
                 if len(body) <= OFF_LOOP_BYTES or not is_json(request.headers.get("content-type")):
                     return await handle(parsed)
                 async with gate:
-                    loop = asyncio.get_running_loop()
-                    parsed.parsed = await loop.run_in_executor(None, _Parsed, model, body)
-                    if parsed.parsed.errors is not None:
-                        raise RequestValidationError(parsed.parsed.errors, body=parsed.parsed.value)
-                    return await handle(parsed)
+                    with COLLECTOR_PAUSE():
+                        loop = asyncio.get_running_loop()
+                        parsed.parsed = await loop.run_in_executor(None, _Parsed, model, body)
+                        try:
+                            if parsed.parsed.errors is not None:
+                                raise RequestValidationError(parsed.parsed.errors, body=parsed.parsed.value)
+                            return await handle(parsed)
+                        finally:  # the body's objects are freed before the collector runs again
+                            parsed.parsed = None
 
             return handler
 
