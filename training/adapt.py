@@ -46,7 +46,9 @@ from repnet.train.trainer import Terms, Trainer
 class AdaptConfig:
     """One adaptation run. steps and minutes stop it; they may change on resume, nothing else may."""
 
-    steps: int = 500
+    # 2,000: on the validation shifts of people and views 0.4-1.0 mm better than 500, the same on SH
+    # detections (docs/RESULTS.md, "Longer runs"); 4,000 added at most 0.2 mm more.
+    steps: int = 2000
     minutes: float = 25.0  # wall-time limit of this call (checkpointed, --resume goes on); 0 = none
     lr: float = 3e-5  # constant: a stop at any step leaves a usable model
     batch_size: int = 256
