@@ -72,6 +72,12 @@ class Violation:
 class LiftError(Exception):
     """Base class of every error the service core raises on purpose."""
 
+    def as_answer(self) -> LiftError:
+        """This error kept as an answer (a pose's, a job's, a stream group's) after the `except` that
+        caught it: without its traceback, whose frames hold what holds the answer, a cycle that only
+        the collector's full collections would free (tests/service/test_pipeline.py)."""
+        return self.with_traceback(None)
+
 
 class InvalidKeypoints(LiftError):
     """The request's keypoints break a documented input rule (HTTP 422, INVALID_ARGUMENT)."""

@@ -314,8 +314,8 @@ def run_jobs(lifter: Lifter, jobs: Sequence[Job], limits: Limits, max_batch: int
         mine = replies.slice(a, b) if replies is not None and job.replies else None
         try:
             answers.append(job.finish(Lifted(ready, prediction.slice(a, b), mine, errors[k])))
-        except LiftError as err:  # the job's own refusal (InvalidKeypoints, ModelOutputError): its
-            answers.append(err.with_traceback(None))  # answer, not tied by a traceback to this pass
+        except LiftError as err:  # the job's own refusal (InvalidKeypoints, ModelOutputError): its answer
+            answers.append(err.as_answer())
         except Exception as err:  # a bug: kept with its traceback for the adapter's log
             answers.append(err)
     return Batch(answers, prediction, [len(p.inputs) for p in prepared])

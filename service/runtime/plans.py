@@ -100,8 +100,8 @@ def stream_plan(
     for i, (table, item) in enumerate(tracked):
         try:
             track = table.get(item.track_id, item.fps, item.field)
-        except InvalidKeypoints as err:  # kept as the pose's answer, without the traceback that
-            errors[item.row] = err.with_traceback(None)  # ties this frame (and `errors`) in a cycle
+        except InvalidKeypoints as err:  # the pose's answer
+            errors[item.row] = err.as_answer()
             continue
         try:
             track.push(item.frame, Observation(poses[i], points[i], visibility[i]), lengths[i])

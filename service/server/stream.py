@@ -148,8 +148,8 @@ async def _start(
     try:
         group.futures = await engine.queue_async(job, transport, wait_s=QUEUE_WAIT_S, source=source)
         group.answer = partial(engine.answer, job, group.futures)
-    except LiftError as err:  # queue full for too long, or shutting down (kept without the traceback,
-        group.failure = err.with_traceback(None)  # whose frame holds the group: no cycle)
+    except LiftError as err:  # queue full for too long, or shutting down
+        group.failure = err.as_answer()
 
 
 async def _finish(group: Group, encode: Callable[[Answers], R], limits: Limits) -> R:
@@ -162,7 +162,7 @@ async def _finish(group: Group, encode: Callable[[Answers], R], limits: Limits) 
             answered: R = await answer()
             return answered
         except LiftError as err:
-            group.failure = err.with_traceback(None)  # as in _start
+            group.failure = err.as_answer()
         except Exception:  # one run's fault must not end the stream
             log.exception("stream frames %d..: lifting failed", group.frames[0].frame_id)
             group.failure = LiftError("internal error while lifting this frame")

@@ -215,12 +215,12 @@ def test_collector_pauses_nest_across_threads_and_leave_it_as_they_found_it() ->
     pause, entered, leave = CollectorPause(), threading.Event(), threading.Event()
 
     def other() -> None:
-        with pause():
+        with pause:
             entered.set()
             leave.wait(5)
 
     thread = threading.Thread(target=other)
-    with pause():
+    with pause:
         assert not gc.isenabled()
         thread.start()
         assert entered.wait(5)
@@ -230,7 +230,7 @@ def test_collector_pauses_nest_across_threads_and_leave_it_as_they_found_it() ->
     assert gc.isenabled()
     gc.disable()  # off before the first pause: off after the last
     try:
-        with pause():
+        with pause:
             pass
         assert not gc.isenabled()
     finally:

@@ -21,12 +21,11 @@ and again, each a stall of the whole worker.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import email.message
 import gc
 import json
 import threading
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Coroutine
 from typing import Any
 
 import pydantic_core
@@ -118,9 +117,45 @@ class _ParsedRequest(Request):
         return self.parsed.value
 
 
+class CollectorPause:
+    """Python's cyclic garbage collector held off while large bodies' requests are handled.
+
+    Decoding and validating a 6,000-pose body makes about 200,000 Python containers that live until
+    its request is answered. Each time a quarter more containers than the last full collection left
+    had come, the collector walked all of them again: 7 full collections a request, 10-47 ms each with
+    the GIL held, freeing almost nothing, so every other request and `/readyz` of the worker waited
+    (docs/BENCHMARKS.md, "The collector and large bodies"). The requests' own paths make no cyclic
+    garbage (tests/service/test_pipeline.py, test_stream.py): what is freed is freed by reference
+    counts, paused or not; cycles made meanwhile wait for the first collection after the pause.
+    Process-wide, as the collector is: pauses (`with pause:`) nest across threads and event loops, and
+    the collector runs again when the last one ends, if it ran when the first began."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._held = 0
+        self._resume = False
+
+    def __enter__(self) -> None:
+        with self._lock:
+            if self._held == 0:
+                self._resume = gc.isenabled()
+                gc.disable()
+            self._held += 1
+
+    def __exit__(self, *exc: object) -> None:
+        with self._lock:
+            self._held -= 1
+            if self._held == 0 and self._resume:
+                gc.enable()
+
+
+COLLECTOR_PAUSE = CollectorPause()  # one per process: the collector is
+
+
 class LargeBodies:
     """One large request at a time (per worker: one per event loop), `waiting` more queued; beyond,
-    Overloaded at once (503)."""
+    Overloaded at once (503). The one that holds the gate holds the collector's pause too
+    (COLLECTOR_PAUSE): what it frees before it leaves, reference counts free."""
 
     def __init__(self, waiting: int) -> None:
         self.waiting = waiting
@@ -144,53 +179,17 @@ class LargeBodies:
             await self._turn.acquire()
         finally:
             self._queued -= 1
+        COLLECTOR_PAUSE.__enter__()
 
     async def __aexit__(self, *exc: object) -> None:
+        COLLECTOR_PAUSE.__exit__(*exc)
         self._turn.release()
-
-
-class CollectorPause:
-    """Python's cyclic garbage collector held off while large bodies' requests are handled.
-
-    Decoding and validating a 6,000-pose body makes about 200,000 Python containers that live until
-    its request is answered. Each time a quarter more containers than the last full collection left
-    had come, the collector walked all of them again: 7 full collections a request, 10-47 ms each with
-    the GIL held, freeing almost nothing, so every other request and `/readyz` of the worker waited
-    (docs/BENCHMARKS.md, "The collector and large bodies"). The requests' own paths make no cyclic
-    garbage (tests/service/test_pipeline.py, test_stream.py): what is freed is freed by reference
-    counts, paused or not; cycles made meanwhile wait for the first collection after the pause.
-    Process-wide, as the collector is: pauses nest across threads and event loops, and the collector
-    runs again when the last one ends, if it ran when the first began."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._held = 0
-        self._resume = False
-
-    @contextlib.contextmanager
-    def __call__(self) -> Iterator[None]:
-        """The collector held off until the block ends (and every other pause has)."""
-        with self._lock:
-            if self._held == 0:
-                self._resume = gc.isenabled()
-                gc.disable()
-            self._held += 1
-        try:
-            yield
-        finally:
-            with self._lock:
-                self._held -= 1
-                if self._held == 0 and self._resume:
-                    gc.enable()
-
-
-COLLECTOR_PAUSE = CollectorPause()  # one per process: the collector is
 
 
 def off_loop_route(model: type[BaseModel], gate: LargeBodies) -> type[APIRoute]:
     """A route class for a route whose body is `model`: a JSON body over OFF_LOOP_BYTES is decoded
-    and validated on a worker thread, and the request handled, while it holds `gate`, with the
-    collector paused (COLLECTOR_PAUSE)."""
+    and validated on a worker thread, and the request handled, while it holds `gate` (and with it the
+    collector's pause)."""
 
     class OffLoopBodyRoute(APIRoute):
         def get_route_handler(self) -> Handler:
@@ -201,16 +200,15 @@ def off_loop_route(model: type[BaseModel], gate: LargeBodies) -> type[APIRoute]:
                 body = await parsed.body()
                 if len(body) <= OFF_LOOP_BYTES or not is_json(request.headers.get("content-type")):
                     return await handle(parsed)
-                async with gate:
-                    with COLLECTOR_PAUSE():
-                        loop = asyncio.get_running_loop()
-                        parsed.parsed = await loop.run_in_executor(None, _Parsed, model, body)
-                        try:
-                            if parsed.parsed.errors is not None:
-                                raise RequestValidationError(parsed.parsed.errors, body=parsed.parsed.value)
-                            return await handle(parsed)
-                        finally:  # the body's objects are freed before the collector runs again
-                            parsed.parsed = None
+                async with gate:  # and the collector's pause
+                    loop = asyncio.get_running_loop()
+                    parsed.parsed = await loop.run_in_executor(None, _Parsed, model, body)
+                    try:
+                        if parsed.parsed.errors is not None:
+                            raise RequestValidationError(parsed.parsed.errors, body=parsed.parsed.value)
+                        return await handle(parsed)
+                    finally:  # the body's objects are freed before the collector runs again
+                        parsed.parsed = None
 
             return handler
 
