@@ -57,9 +57,11 @@ class FairQueue:
     not the others'. Ordering by start times instead (start-time fair queuing) made a light request
     wait one chunk of every busy source: ~8 runs behind 8 flooding streams. A chunk due no earlier
     than a light one may still be in the run under way, so small chunks also ride along in a run
-    that large ones fill (take_small). An idle source earns no credit: it starts from the virtual
-    time now. Memory: one entry per source with work queued or a finish ahead of the virtual time
-    (the others are dropped as they are served, and swept every PRUNE_EVERY chunks).
+    that large ones fill (take_small), and they run ahead of a large one, in a short run of their
+    own, rather than wait for the length of its run (take_run). An idle source earns no credit: it
+    starts from the virtual time now. Memory: one entry per source with work queued or a finish
+    ahead of the virtual time (the others are dropped as they are served, and swept every
+    PRUNE_EVERY chunks).
     """
 
     def __init__(self) -> None:
@@ -70,6 +72,7 @@ class FairQueue:
         self.virtual = 0.0
         self.rows = 0  # rows queued, all sources
         self.cost = 0.0  # their cost
+        self._put_off = False  # the last run was small chunks run ahead of a large one (take_run)
 
     def __bool__(self) -> bool:
         return bool(self._heads)
@@ -120,13 +123,27 @@ class FairQueue:
     def take_run(self, capacity: float) -> list[Chunk[Any, Any]]:
         """The chunks of the next run (the queue is not empty): the first whatever its cost (a
         request larger than a run), those after it in tag order while their cost fits `capacity`,
-        then the small ones that ride along (take_small)."""
+        then the small ones that ride along (take_small).
+
+        Small chunks do not wait for the length of a large one's run (a camera's frame behind a
+        1,024-pose call's part): a run led by a small chunk takes small ones only, and when a large
+        chunk leads while small ones wait, they run first, alone, in a short run of their own. That
+        puts a large chunk off by one short run, never two in a row, so a stream of small chunks
+        cannot hold it off."""
+        small = capacity * RIDE_ALONG_COST
+        if self.first().cost > small and not self._put_off:
+            alone = self.take_small(small, capacity)
+            if alone:
+                self._put_off = True
+                return alone
+        self._put_off = False
         batch = [self.pop()]
         cost = batch[0].cost
-        while self and cost + self.first().cost <= capacity:
+        largest = small if cost <= small else capacity
+        while self and cost + self.first().cost <= capacity and self.first().cost <= largest:
             batch.append(self.pop())
             cost += batch[-1].cost
-        return batch + self.take_small(capacity * RIDE_ALONG_COST, capacity * RIDE_ALONG_BUDGET)
+        return batch + self.take_small(small, capacity * RIDE_ALONG_BUDGET)
 
     def take_small(self, max_cost: float, budget: float) -> list[Chunk[Any, Any]]:
         """Take, in tag order, the sources' first chunks of at most `max_cost` each, `budget` in all:

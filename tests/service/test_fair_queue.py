@@ -1,5 +1,5 @@
-"""The batch queue's fair share: self-clocked fair queuing between sources, small chunks riding along, and
-each source's share of the queue."""
+"""The batch queue's fair share: self-clocked fair queuing between sources, small chunks riding along or
+running ahead of large ones, and each source's share of the queue."""
 
 from __future__ import annotations
 
@@ -93,6 +93,29 @@ def test_small_chunks_ride_along_in_tag_order_within_their_budget() -> None:
     assert all(queue.queued_by(c.source) == 0 for c in riders)
     assert queue.take_small(max_cost=0.5, budget=16) == []  # nothing that small
     assert drain(queue) == [f"camera{n}" for n in range(16, 20)] + ["flood", "other", "flood", "flood"]
+
+
+def test_a_run_led_by_a_small_chunk_takes_no_large_one() -> None:
+    queue = FairQueue()
+    for _ in range(4):
+        queue.push(chunk("flood", 64))  # 64, 128, 192, 256
+    assert queue.pop().source == "flood"  # a run of the flood under way: the virtual time is 64
+    queue.push(chunk("camera"))  # 65: next, and three of the flood's chunks would fit beside it
+    assert [c.source for c in queue.take_run(256)] == ["camera"]  # a short run, not one of 193 rows
+    assert [c.source for c in queue.take_run(256)] == ["flood"] * 3
+
+
+def test_small_chunks_run_ahead_of_a_large_one_that_leads_but_only_once_in_a_row() -> None:
+    queue = FairQueue()
+    for _ in range(2):
+        queue.push(chunk("a", 64))  # 64, 128
+        queue.push(chunk("b", 64))  # 64, 128
+    assert queue.pop().source == "a"  # a's run under way: the virtual time is 64, b's first is due
+    queue.push(chunk("camera1"))  # 65: after b's 64, it would wait for b's run
+    assert [c.source for c in queue.take_run(256)] == ["camera1"]  # it runs first, alone
+    queue.push(chunk("camera2"))  # 66: b's chunk has been put off once, so it leads now
+    assert [c.source for c in queue.take_run(256)] == ["b", "camera2", "a", "b"]
+    assert not queue
 
 
 def test_removed_chunks_leave_the_order_of_the_rest_unchanged() -> None:
