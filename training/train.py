@@ -187,7 +187,10 @@ def train(
         run.loop(history, bar)
         bar.close()
     run.save(out / "last.pt")
-    for kind, val in val_sets.items():
+    untrained = config.critic_only and not config.init_from  # a critic stage from scratch
+    if untrained:  # its generator stayed as made: the preset exports another stage's
+        log.info("critic only, from scratch: the generator was never trained, so it is not validated")
+    for kind, val in {} if untrained else val_sets.items():
         log.info("final validation on %s: %s", kind, validate(trainer.generator, val, device))
     if not (out / "best.pt").exists():
         run.save(out / "best.pt")

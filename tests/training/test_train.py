@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -233,6 +234,17 @@ def test_critic_only_stage_trains_the_critic_and_leaves_the_generator(
     assert after["step"] == 30
     assert all(torch.equal(v, after["generator"][k]) for k, v in before["generator"].items())
     assert any(not torch.equal(v, after["critic"][k]) for k, v in before["critic"].items())
+
+
+def test_a_critic_stage_from_scratch_does_not_report_its_untrained_generator(
+    synthetic_h36m: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    config = dataclasses.replace(_config(synthetic_h36m, tmp_path, 6), critic_only=True)
+    with caplog.at_level(logging.INFO, logger=train.log.name):
+        train.train(config, TINY)
+    said = [r.getMessage() for r in caplog.records]
+    assert not [m for m in said if m.startswith("final validation")]
+    assert "critic only, from scratch: the generator was never trained, so it is not validated" in said
 
 
 def test_init_from_takes_the_weights_but_starts_at_step_zero(synthetic_h36m: Path, tmp_path: Path) -> None:
