@@ -46,9 +46,10 @@ from repnet.train.trainer import Terms, Trainer
 class AdaptConfig:
     """One adaptation run. steps and minutes stop it; they may change on resume, nothing else may."""
 
-    # 2,000: on the validation shifts of people and views 0.4-1.0 mm better than 500, the same on SH
-    # detections (docs/RESULTS.md, "Longer runs"); 4,000 added at most 0.2 mm more.
-    steps: int = 2000
+    # 500: on clips of consecutive frames (video, as users' 2D comes) 2,000 steps gained half as much
+    # (SH detections: -1.35 against -2.72 mm) and broke the jitter rule; on spread-out frames they
+    # gained 0-2.7 mm more (docs/RESULTS.md, "Longer runs"): --steps 2000 is for such input.
+    steps: int = 500
     minutes: float = 25.0  # wall-time limit of this call (checkpointed, --resume goes on); 0 = none
     lr: float = 3e-5  # constant: a stop at any step leaves a usable model
     batch_size: int = 256

@@ -163,13 +163,8 @@ def train(
     if config.detector_error_prob > 0:
         pool = sequences.with_residuals(pool, data_dir, config.val_fraction, config.exclude_actions)
     hashes = lineage.data_hashes(data_dir, data.training_files(config.inputs))
-    log.info(
-        "training on %s: %d 3D poses, %d 2D poses, device %s",
-        config.inputs,
-        len(pool.poses_aligned),
-        len(pool.points_2d),
-        device,
-    )
+    sizes = f"{len(pool.poses_aligned)} 3D poses, {len(pool.points_2d)} 2D poses"
+    log.info("training on %s: %s, device %s", config.inputs, sizes, device)
     trainer = Trainer(config, model_config, pool, device, torch.Generator().manual_seed(config.seed))
     init = None
     if config.init_from and state is None:
@@ -187,8 +182,7 @@ def train(
         run.loop(history, bar)
         bar.close()
     run.save(out / "last.pt")
-    untrained = config.critic_only and not config.init_from  # a critic stage from scratch
-    if untrained:  # its generator stayed as made: the preset exports another stage's
+    if untrained := config.critic_only and not config.init_from:  # its generator stayed as made
         log.info("critic only, from scratch: the generator was never trained, so it is not validated")
     for kind, val in {} if untrained else val_sets.items():
         log.info("final validation on %s: %s", kind, validate(trainer.generator, val, device))
