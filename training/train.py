@@ -184,7 +184,7 @@ def train(
     run.save(out / "last.pt")
     if untrained := config.critic_only and not config.init_from:  # its generator stayed as made
         log.info("critic only, from scratch: the generator was never trained, so it is not validated")
-    for kind, val in {} if untrained else val_sets.items():
+    for kind, val in ({} if untrained else val_sets).items():
         log.info("final validation on %s: %s", kind, validate(trainer.generator, val, device))
     if not (out / "best.pt").exists():
         run.save(out / "best.pt")

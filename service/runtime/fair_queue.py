@@ -147,8 +147,8 @@ class FairQueue:
 
     def take_small(self, max_cost: float, budget: float) -> list[Chunk[Any, Any]]:
         """Take, in tag order, the sources' first chunks of at most `max_cost` each, `budget` in all:
-        the small ones that ride along in a run that large chunks fill (a camera's frame, a one-pose
-        request), so that they wait for the run under way and no more."""
+        the small ones (a camera's frame, a one-pose request) that ride along in a run that large
+        chunks fill, or that run ahead of a large one alone (take_run)."""
         taken: list[Chunk[Any, Any]] = []
         for _, _, key in sorted(self._heads):
             chunk = self.sources[key].chunks[0]
