@@ -13,8 +13,9 @@ from typing import Any, Generic, TypeVar
 
 In = TypeVar("In", bound=Sized)  # the input rows of a run
 PRUNE_EVERY = 256  # chunks taken between two sweeps of the idle sources
-# Chunks of at most this share of a run's capacity (a camera's frame, a one-pose request) ride along
-# in a run, beyond its capacity, up to RIDE_ALONG_BUDGET of it in all (FairQueue.take_run).
+# Chunks of at most this share of a run's capacity (a camera's frame, a one-pose request) are small:
+# they run ahead of a large chunk, or ride along in a run beyond its capacity, up to RIDE_ALONG_BUDGET
+# of it in all (FairQueue.take_run).
 RIDE_ALONG_COST = 1 / 16
 RIDE_ALONG_BUDGET = 1 / 4
 Out = TypeVar("Out")  # the output rows of a run
@@ -140,9 +141,9 @@ class FairQueue:
         batch = [self.pop()]
         cost = batch[0].cost
         largest = small if cost <= small else capacity
-        while self and cost + self.first().cost <= capacity and self.first().cost <= largest:
+        while self and (head := self.first()).cost <= largest and cost + head.cost <= capacity:
             batch.append(self.pop())
-            cost += batch[-1].cost
+            cost += head.cost
         return batch + self.take_small(small, capacity * RIDE_ALONG_BUDGET)
 
     def take_small(self, max_cost: float, budget: float) -> list[Chunk[Any, Any]]:
