@@ -46,9 +46,8 @@ from repnet.train.trainer import Terms, Trainer
 class AdaptConfig:
     """One adaptation run. steps and minutes stop it; they may change on resume, nothing else may."""
 
-    # 500: on clips of consecutive frames (video, as users' 2D comes) 2,000 steps gained half as much
-    # (SH detections: -1.35 against -2.72 mm) and broke the jitter rule; on spread-out frames they
-    # gained 0-2.7 mm more (docs/RESULTS.md, "Longer runs"): --steps 2000 is for such input.
+    # `repnet adapt` without --steps chooses 500 or 2,000 from the user's held-out 2D
+    # (repnet.train.adapt_report.default_steps: clips of consecutive frames or spread poses).
     steps: int = 500
     minutes: float = 25.0  # wall-time limit of this call (checkpointed, --resume goes on); 0 = none
     lr: float = 3e-5  # constant: a stop at any step leaves a usable model

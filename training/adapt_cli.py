@@ -33,7 +33,10 @@ from repnet.train.adapt import Adaptation, AdaptConfig, ConfigMismatch, split_ho
 from repnet.train.adapt_report import (
     MIN_HOLDOUT,
     SHARE_STEP_PCT,
-    compare,
+    Figures,
+    adapted_figures,
+    answers,
+    default_steps,
     export_adapted,
     measure,
     parent_scorer,
@@ -98,10 +101,10 @@ def _given(value: float | None, default: float) -> float:
     return default if value is None else value
 
 
-def _config(args: argparse.Namespace) -> AdaptConfig:
+def _config(args: argparse.Namespace, steps: int) -> AdaptConfig:
     defaults = AdaptConfig()
     return AdaptConfig(
-        steps=int(_given(args.steps, defaults.steps)),
+        steps=steps,
         minutes=_given(args.minutes, defaults.minutes),
         holdout_fraction=args.holdout_fraction,
         prior_poses=args.prior_poses,
@@ -112,6 +115,16 @@ def _config(args: argparse.Namespace) -> AdaptConfig:
         residual_mode=args.residuals if args.residuals in ("mean", "pose") else defaults.residual_mode,
         seed=args.seed,
     )
+
+
+def _steps(args: argparse.Namespace, before: Figures, runs: list[int]) -> int:
+    """--steps, or the length default_steps chooses from the parent's figures on the held-out 2D and
+    their runs (said with its reason)."""
+    if args.steps is not None:
+        return int(args.steps)
+    steps, why = default_steps(before, max(runs))
+    say(f"{steps} steps: {why} (--steps sets another length)")
+    return steps
 
 
 def _progress(adaptation: Adaptation, probe: tuple[np.ndarray, np.ndarray], scorer: Any, bar: tqdm) -> Any:
@@ -149,6 +162,7 @@ def run(
     train = (points[~held], visible[~held])
     links = None if previous is None else kept_links(previous, ~held)
     test = (points[held], visible[held]) if held.any() else train
+    runs = [int(part.sum()) for part in np.split(held, np.cumsum(counts)[:-1])] if held.any() else None
     say(
         f"{len(points)} poses ({skipped} skipped by the input rules): {len(train[0])} to adapt on, "
         f"{int(held.sum())} held out"
@@ -158,7 +172,8 @@ def run(
     meta = parent["metadata"]
     scorer = parent_scorer(parent, meta)
     mirror = bool(json.loads(meta.get("mirror_average", "false")))
-    config = _config(args)
+    before, was = answers(generator_of(parent), scorer, *test, mirror, runs)
+    config = _config(args, _steps(args, before, runs or [len(test[0])]))
     parent_sha = lineage.file_sha256(parent_path)
     adaptation = Adaptation(
         config, parent, *train, prior=prior, mirror_average=mirror, threads=args.threads, previous=links
@@ -182,8 +197,7 @@ def run(
         f"{adaptation.step} of {config.steps} steps in {adaptation.elapsed / 60:.1f} min "
         f"({rate:.0f} samples/s){'' if done else f'; {kept(state)}: run again with --resume to go on'}"
     )
-    runs = [int(part.sum()) for part in np.split(held, np.cumsum(counts)[:-1])] if held.any() else None
-    before, after = compare(generator_of(parent), adaptation.trainer.generator, scorer, test, mirror, runs)
+    after = adapted_figures(was, adaptation.trainer.generator, scorer, test, mirror, runs)
     print(render(before, after, len(test[0])))
     reasons = worse(before, after)
     if reasons and not args.force:

@@ -144,21 +144,49 @@ def measure(
     return answers(generator, scorer, points, visible, mirror_average)[0]
 
 
-def compare(
-    parent: RepNet,
+def adapted_figures(
+    was: np.ndarray,
     adapted: RepNet,
     scorer: Plausibility,
     held_out: tuple[np.ndarray, np.ndarray],
     mirror_average: bool,
     runs: Sequence[int] | None = None,
-) -> tuple[Figures, Figures]:
-    """The parent's and the adapted model's figures on the held-out 2D, the adapted model's with the
-    share of the parent's plausible answers (>= IMPLAUSIBLE) whose adapted answer is not."""
-    before, was = answers(parent, scorer, *held_out, mirror_average, runs)
+) -> Figures:
+    """The adapted model's figures on the held-out 2D, with the share of the parent's plausible answers
+    (`was`: the parent's plausibility of each, from answers(); >= IMPLAUSIBLE) whose adapted answer is not."""
     after, now = answers(adapted, scorer, *held_out, mirror_average, runs)
     kept = was >= IMPLAUSIBLE
     lost = 100.0 * float((kept & (now < IMPLAUSIBLE)).sum() / max(kept.sum(), 1))
-    return before, replace(after, plausible_lost_pct=lost)
+    return replace(after, plausible_lost_pct=lost)
+
+
+# How long a run is when --steps is not given, by what the user's held-out 2D are (docs/RESULTS.md,
+# "Longer runs"). Clips of consecutive frames, as video gives them, hold few distinct poses: on SH
+# detections in runs of 32 frames at 25 Hz, 2,000 steps gained -1.35 mm against 500's -2.72 and were
+# refused for their jitter. Poses spread over many frames, people or views (every 5th frame) gained
+# 0-2.7 mm more at 2,000 steps than at 500, on four shifts of five without loss (SH's S8: 0.4 mm less).
+STEPS_FOR_CLIPS = 500
+STEPS_FOR_SPREAD = 2000
+
+
+def default_steps(before: Figures, longest_run: int) -> tuple[int, str]:
+    """The steps of a run without --steps, and why in words, from the parent's figures on the held-out
+    2D and the longest of their runs: clips where a run has 3 poses or more and the parent's answers
+    move along them as along a video's frames (jitter under SEQUENCE_JITTER_MM), else spread poses."""
+    if longest_run >= 3 and before.jitter_mm < SEQUENCE_JITTER_MM:
+        why = (
+            f"the held-out 2D are clips of consecutive frames (the parent's answers move "
+            f"{before.jitter_mm:.1f} mm / pose^2 along them, under {SEQUENCE_JITTER_MM:g})"
+        )
+        return STEPS_FOR_CLIPS, why
+    if longest_run < 3:
+        why = "the held-out 2D have no runs of 3 poses or more: spread poses"
+    else:
+        why = (
+            f"the held-out 2D are spread poses, not a video's consecutive frames (the parent's answers jump "
+            f"{before.jitter_mm:.1f} mm / pose^2 between them, {SEQUENCE_JITTER_MM:g} or more)"
+        )
+    return STEPS_FOR_SPREAD, why
 
 
 # Each figure's name, unit and decimals, in the report's order.

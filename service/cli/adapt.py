@@ -156,7 +156,12 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], size: A
         type=_positive(float),
         help="wall-time limit (default 25); the run checkpoints, --resume goes on",
     )
-    adapt.add_argument("--steps", type=_positive(int), help="training steps in all (default 500)")
+    adapt.add_argument(
+        "--steps",
+        type=_positive(int),
+        help="training steps in all (default: chosen from the held-out 2D and said: 500 on clips of "
+        "consecutive frames, 2000 on spread poses)",
+    )
     adapt.add_argument("--threads", type=_positive(int), default=0, help="torch threads (default: all cores)")
     adapt.add_argument("--resume", action="store_true", help="go on from the last checkpoint of this run")
     adapt.add_argument(

@@ -188,7 +188,8 @@ def test_a_depth_flipped_or_collapsed_model_is_refused_though_it_reprojects_the_
     visible = np.isfinite(points).all(axis=-1).astype(np.float32)
     held = (np.nan_to_num(points), visible)
     broken = DepthScaled(generator, factor).eval()
-    before, after = adapt_report.compare(generator, broken, scorer, held, True, runs=[150, 150])
+    before, was = adapt_report.answers(generator, scorer, *held, True, runs=[150, 150])
+    after = adapt_report.adapted_figures(was, broken, scorer, held, True, runs=[150, 150])
     assert after.reprojection_px == pytest.approx(before.reprojection_px, rel=1e-4)
     reasons = worse(before, after)
     if decided is None:
@@ -224,6 +225,50 @@ def test_the_command_refuses_a_depth_flipped_adaptation_and_says_why(
     err = capsys.readouterr().err
     assert not out.exists()
     assert "not written" in err and "parent's plausible answers lost" in err, err
+
+
+def test_without_steps_clips_get_the_short_run_and_spread_poses_the_long_one() -> None:
+    figures = Figures(
+        reprojection_px=5.0, plausibility=0.5, implausible_pct=1.0, symmetry_mm=5.0, bone_std_mm=2.0
+    )
+    clip = replace(figures, jitter_mm=34.0)
+    spread = replace(figures, jitter_mm=89.0)
+    assert adapt_report.default_steps(clip, 32)[0] == adapt_report.STEPS_FOR_CLIPS == 500
+    assert adapt_report.default_steps(spread, 32)[0] == adapt_report.STEPS_FOR_SPREAD == 2000
+    assert adapt_report.default_steps(clip, 2)[0] == 2000  # runs too short to be clips
+    assert "34.0 mm / pose^2" in adapt_report.default_steps(clip, 32)[1]
+
+
+def test_the_command_chooses_its_steps_from_the_held_out_2d_and_says_why(
+    poses_file: Path, parent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    monkeypatch.setattr(Adaptation, "run", lambda *_args, **_kwargs: True)  # the choice, not the training
+    clip = np.concatenate([_example_clip()] * 3)  # 120 frames of a slow turn
+    clip_file = tmp_path / "clip.npz"
+    np.savez(clip_file, keypoints=clip, format="h36m17", frame=np.arange(len(clip)))
+    chosen = {}
+    for name, source in (("clip", clip_file), ("spread", poses_file)):
+        out = tmp_path / f"{name}.onnx"
+        assert adapt(source, parent, out, "--run-dir", str(tmp_path / name), "--force") == 0
+        err = capsys.readouterr().err
+        chosen[name] = json.loads(read_metadata(out)["lineage"])["config"]["steps"]
+        assert f"{chosen[name]} steps: the held-out 2D are" in err, err
+    assert chosen == {"clip": 500, "spread": 2000}
+    assert (
+        adapt(
+            poses_file,
+            parent,
+            tmp_path / "given.onnx",
+            "--steps",
+            "7",
+            "--run-dir",
+            str(tmp_path / "g"),
+            "--force",
+        )
+        == 0
+    )
+    assert "steps: the held-out" not in capsys.readouterr().err
 
 
 def test_the_caches_checkpoint_goes_on_success_and_stays_named_on_refusal_or_interruption(
