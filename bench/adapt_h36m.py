@@ -18,6 +18,10 @@ validation tails, repnet.train.data.build_training_sets, are never adapted on):
   for a parent that never saw those actions (--parent, preset repnet-h36m-nositting). Scored on those
   actions' tails seen the same way, and on GT 2D of all the tails.
 
+--run-length N gives any shift's 2D as clips: runs of N consecutive frames (25 Hz) spread over each
+sequence, numbered in the NPZ's `frame` array, each run seen by one camera (built shifts), as a video
+gives them; the default, 1, is every k-th frame, no numbers.
+
 It writes the 2D to an NPZ the command reads as a user's file, runs `repnet adapt` on it (the
 command and its report are printed), then scores the parent (--parent, default the bundled model)
 and the adapted model: P-II, P-I along the ray (where intrinsics exist), symmetry (mm). Choose on
@@ -109,7 +113,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--run-length",
         type=int,
         default=1,
-        help="sh: runs of this many consecutive frames, numbered (default 1: every k-th frame)",
+        help="runs of this many consecutive frames (25 Hz), numbered, as a video's clips; built shifts: "
+        "one camera per run (default 1: every k-th frame)",
     )
     parser.add_argument("adapt_flags", nargs="*", help="more `repnet adapt` flags (after --)")
     args = parser.parse_args(argv)

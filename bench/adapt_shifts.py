@@ -19,12 +19,18 @@ HIGH_DEG = (45.0, 65.0)
 
 
 def high_views(
-    world: np.ndarray, seed: int, elevation: tuple[float, float] = HIGH_DEG
+    world: np.ndarray, seed: int, elevation: tuple[float, float] = HIGH_DEG, runs: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N, J, 3) world poses (mm, pelvis at the origin) seen from random cameras looking down by
     U(elevation) degrees (default: high ones): pixels (N, J, 2) and the poses in each camera's frame
-    (mm, pelvis at the origin)."""
-    rot, position = synthetic.random_views(len(world), torch.Generator().manual_seed(seed), elevation)
+    (mm, pelvis at the origin). `runs` (N,): each pose's run, one camera per run (None: per pose)."""
+    gen = torch.Generator().manual_seed(seed)
+    if runs is None:
+        rot, position = synthetic.random_views(len(world), gen, elevation)
+    else:
+        index = torch.from_numpy(np.unique(runs, return_inverse=True)[1].reshape(-1))
+        rot, position = synthetic.random_views(int(index.max()) + 1, gen, elevation)
+        rot, position = rot[index], position[index]
     w = torch.from_numpy(world).double()
     pixels = synthetic.project(w, rot, position).numpy()
     camera = synthetic.to_camera(w, rot, position).numpy() * 1000.0
@@ -47,14 +53,41 @@ def s8_sh(found: list[tuple[str, np.ndarray, data.Camera, np.ndarray]]) -> data.
 def source_frames(poses: dict[str, np.ndarray], count: int) -> np.ndarray:
     """About `count` of the source subjects' training frames (data.load_poses' "train" poses, the
     validation tails left out), pelvis at the origin."""
+    return source_runs(poses, count, 1)[0]
+
+
+def source_runs(poses: dict[str, np.ndarray], count: int, run_length: int) -> tuple[np.ndarray, np.ndarray]:
+    """About `count` of the source subjects' training frames, pelvis at the origin, and their frame
+    numbers: every k-th frame (run_length 1), or runs of `run_length` consecutive frames (25 Hz)
+    spread over each sequence, numbered with a gap between runs and between sequences."""
     heads = [
         seq[: data.sequence_split(len(seq), 0.1)]
         for key, seq in sorted(poses.items())
         if key.split("/")[0] in SOURCE
     ]
-    world = np.concatenate(heads)
-    world = world[:: max(1, len(world) // count)]
-    return world - world[:, :1]
+    step = max(1, sum(len(h) for h in heads) // count)
+    if run_length <= 1:  # every k-th frame of all of them in a row
+        every = np.concatenate(heads)[::step]
+        return every - every[:, :1], np.arange(len(every)) * step
+    world, frames, offset = [], [], 0
+    for head in heads:
+        starts = np.arange(0, max(len(head) - run_length + 1, 0), step * run_length)
+        take = (starts[:, None] + np.arange(run_length)).reshape(-1)
+        world.append(head[take])
+        frames.append(offset + take)
+        offset += len(head) + 2
+    out = np.concatenate(world)
+    return out - out[:, :1], np.concatenate(frames)
+
+
+def clip_views(
+    world: np.ndarray, frames: np.ndarray, run_length: int, seed: int, elevation: tuple[float, float]
+) -> np.ndarray:
+    """Pixels of `world` at `frames` (source_runs), one camera per run of consecutive frame numbers
+    (every pose its own with run_length 1), + N(0, 2 px)."""
+    runs = np.concatenate([[0], np.cumsum(np.diff(frames) != 1)]) if run_length > 1 else None
+    pixels, _ = high_views(world, seed=seed, elevation=elevation, runs=runs)
+    return pixels + np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
 
 
 def tail_frames(poses: dict[str, np.ndarray]) -> np.ndarray:
@@ -106,12 +139,13 @@ def sh_shift(
 
 def high_shift(
     data_dir: Path, poses: int, run_length: int = 1
-) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], None]:
+) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], np.ndarray | None]:
     """The source subjects' training frames from high cameras, and the tails from other high ones."""
     train = data.load_poses(data_dir, "train")
-    pixels, _ = high_views(source_frames(train, poses), seed=1)
-    pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
-    return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high_tails(train)}, None
+    world, frames = source_runs(train, poses, run_length)
+    pixels = clip_views(world, frames, run_length, seed=1, elevation=HIGH_DEG)
+    numbers = frames if run_length > 1 else None
+    return pixels, np.ones(pixels.shape[:2], np.float32), {"high": high_tails(train)}, numbers
 
 
 # Shifts built from Human3.6M's 3D, stand-ins for a new dataset's people and a detector's joint
@@ -162,16 +196,17 @@ def built_shift(name: str, change: Any, truth_changes: bool, actions: str = "") 
 
     def shift(
         data_dir: Path, poses: int, run_length: int = 1
-    ) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], None]:
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, data.ValidationSet], np.ndarray | None]:
         train = of_actions(data.load_poses(data_dir, "train"), actions)
-        pixels, _ = high_views(change(source_frames(train, poses)), seed=1, elevation=synthetic.ELEVATION_DEG)
-        pixels += np.random.default_rng(0).normal(0.0, 2.0, pixels.shape).astype(np.float32)
+        world, frames = source_runs(train, poses, run_length)
+        pixels = clip_views(change(world), frames, run_length, seed=1, elevation=synthetic.ELEVATION_DEG)
         tail = tail_frames(train)
         seen, truth = high_views(change(tail), seed=2, elevation=synthetic.ELEVATION_DEG)
         if not truth_changes:
             _, truth = high_views(tail, seed=2, elevation=synthetic.ELEVATION_DEG)
         tails = data.ValidationSet(truth, seen, np.ones(seen.shape[:2], np.float32))
-        return pixels, np.ones(pixels.shape[:2], np.float32), {name: tails}, None
+        numbers = frames if run_length > 1 else None
+        return pixels, np.ones(pixels.shape[:2], np.float32), {name: tails}, numbers
 
     return shift
 
