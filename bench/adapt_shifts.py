@@ -50,16 +50,19 @@ def s8_sh(found: list[tuple[str, np.ndarray, data.Camera, np.ndarray]]) -> data.
     return data.ValidationSet(*(np.concatenate(a).astype(np.float32) for a in s8))
 
 
-def source_frames(poses: dict[str, np.ndarray], count: int) -> np.ndarray:
-    """About `count` of the source subjects' training frames (data.load_poses' "train" poses, the
-    validation tails left out), pelvis at the origin."""
-    return source_runs(poses, count, 1)[0]
+def run_frames(frames: int, run_length: int, step: int) -> np.ndarray:
+    """The frames of a sequence of `frames` taken as runs of `run_length` consecutive ones, a run
+    starting every `step * run_length` frames (about one frame in `step` in all)."""
+    starts = np.arange(0, max(frames - run_length + 1, 0), step * run_length)
+    return (starts[:, None] + np.arange(run_length)).reshape(-1)
 
 
 def source_runs(poses: dict[str, np.ndarray], count: int, run_length: int) -> tuple[np.ndarray, np.ndarray]:
-    """About `count` of the source subjects' training frames, pelvis at the origin, and their frame
-    numbers: every k-th frame (run_length 1), or runs of `run_length` consecutive frames (25 Hz)
-    spread over each sequence, numbered with a gap between runs and between sequences."""
+    """About `count` of the source subjects' training frames (data.load_poses' "train" poses, the
+    validation tails left out), pelvis at the origin, and their numbers: every k-th frame of them all
+    in a row (run_length 1: numbered by their place in that row), or runs of `run_length` consecutive
+    frames (25 Hz) spread over each sequence (run_frames), numbered with a gap between runs and
+    between sequences."""
     heads = [
         seq[: data.sequence_split(len(seq), 0.1)]
         for key, seq in sorted(poses.items())
@@ -71,8 +74,7 @@ def source_runs(poses: dict[str, np.ndarray], count: int, run_length: int) -> tu
         return every - every[:, :1], np.arange(len(every)) * step
     world, frames, offset = [], [], 0
     for head in heads:
-        starts = np.arange(0, max(len(head) - run_length + 1, 0), step * run_length)
-        take = (starts[:, None] + np.arange(run_length)).reshape(-1)
+        take = run_frames(len(head), run_length, step)
         world.append(head[take])
         frames.append(offset + take)
         offset += len(head) + 2
@@ -124,11 +126,7 @@ def sh_shift(
             n = min(len(detections), len(seq))
             pts, vis = data.mpii_to_h36m(detections[:n])
             split = min(data.sequence_split(len(seq), 0.1), n)
-            if run_length > 1:
-                starts = np.arange(0, max(split - run_length + 1, 0), step * run_length)
-                take = (starts[:, None] + np.arange(run_length)).reshape(-1)
-            else:
-                take = np.arange(0, split, step)
+            take = run_frames(split, run_length, step) if run_length > 1 else np.arange(0, split, step)
             points.append(pts[take])
             visible.append(vis[take])
             frames.append(offset + take)

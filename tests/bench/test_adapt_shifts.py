@@ -28,7 +28,6 @@ def test_every_kth_frame_is_the_stride_over_the_source_heads_in_a_row() -> None:
     heads = [poses[k][: data.sequence_split(len(poses[k]), 0.1)] for k in ("S1/Walking", "S5/Eating")]
     expected = np.concatenate(heads)[:: len(np.concatenate(heads)) // 100]
     np.testing.assert_array_equal(world, expected - expected[:, :1])
-    np.testing.assert_array_equal(adapt_shifts.source_frames(poses, 100), world)
 
 
 def test_clips_are_runs_of_consecutive_frames_within_one_sequence_each_seen_by_one_camera() -> None:
