@@ -161,7 +161,7 @@ def adapted_figures(
 
 
 # How long a run is when --steps is not given, by what the user's held-out 2D are (docs/RESULTS.md,
-# "Longer runs"). Clips of consecutive frames, as video gives them, hold few distinct poses: on SH
+# "The run's length"). Clips of consecutive frames, as video gives them, hold few distinct poses: on SH
 # detections in runs of 32 frames at 25 Hz, 2,000 steps gained -1.35 mm against 500's -2.72 and were
 # refused for their jitter. Poses spread over many frames, people or views (every 5th frame) gained
 # 0-2.7 mm more at 2,000 steps than at 500, on four shifts of five without loss (SH's S8: 0.4 mm less).
