@@ -12,7 +12,7 @@
    spread evenly over a frame period; then the same N streams untracked. N is searched: the
    --cameras counts in turn until one is not held, then halved down to --refine cameras between the
    last held and the first not. Held: p99 <= --p99-ms per frame, no errors, and >= 98 % of the
-   offered frames sent and answered within the window.
+   offered frames sent and answered within the window, less one frame a camera at its edges.
 4. People per frame: one stream in lock-step (one frame in flight) of 1-person frames (`pose`),
    1-person frames (`people`) and --people-person frames (`people`): per-frame latency and server
    CPU, and their ratio (target: a 16-person frame <= 3x a 1-person frame).
@@ -89,13 +89,18 @@ def measure_cameras(service: ServiceProcess, count: int, tracked: bool, args: ar
 
 
 def held(result: Result, p99_ms: float) -> bool:
-    """The cameras were served: p99 within the target, no errors, the offered frames sent and answered."""
-    offered = result.extra["offered"]
+    """The cameras were served: p99 within the target, no errors, the offered frames sent and answered.
+
+    Each camera may be one frame short at the window's edges beyond HELD_FRACTION: where its phase
+    puts its first and last frame, and the frame in flight when the window closes. In a long window
+    that is noise (32 cameras for 8 s: 32 of 7,680 frames); in a short one it alone would decide (2
+    cameras for 0.6 s: one missing frame of 36 is 97 %)."""
+    need = HELD_FRACTION * result.extra["offered"] - result.concurrency
     return (
         result.errors == 0
         and result.latency_ms.get("p99", float("inf")) <= p99_ms
-        and result.extra["sent"] >= HELD_FRACTION * offered
-        and result.calls >= HELD_FRACTION * offered
+        and result.extra["sent"] >= need
+        and result.calls >= need
     )
 
 

@@ -157,7 +157,8 @@ class Report:
         if self.cameras:
             parts.append(
                 f"Cameras (paced at {FPS:g} fps each; held: p99 <= {self.p99_ms:g} ms, no errors, "
-                f">= {HELD_FRACTION:.0%} of the offered frames answered; measured in the order "
+                f">= {HELD_FRACTION:.0%} of the offered frames answered, less one a camera at the "
+                "window's edges; measured in the order "
                 f"{', '.join(map(str, self.searched))}):\n\n" + cameras_table(self.cameras)
             )
         if self.floor:

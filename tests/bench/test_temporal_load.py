@@ -27,8 +27,11 @@ def test_the_search_stops_at_the_first_count_not_held_then_halves_the_gap() -> N
     assert search([16, 8], lambda n: n < 16, refine=0) == (8, [8, 16])
 
 
-def result(name: str, frames: int, p99: float = 10.0, errors: int = 0, **extra: object) -> Result:
-    return Result(name, 1, frames, frames, 1.0, {"p50": p99 / 2, "p99": p99}, errors, 0.5, 0.1, dict(extra))
+def result(
+    name: str, frames: int, p99: float = 10.0, errors: int = 0, cameras: int = 1, **extra: object
+) -> Result:
+    latency = {"p50": p99 / 2, "p99": p99}
+    return Result(name, cameras, frames, frames, 1.0, latency, errors, 0.5, 0.1, dict(extra))
 
 
 def test_cameras_are_held_with_p99_in_bounds_no_errors_and_every_frame_answered() -> None:
@@ -37,6 +40,13 @@ def test_cameras_are_held_with_p99_in_bounds_no_errors_and_every_frame_answered(
     assert not held(result("c", 300, errors=1, offered=300.0, sent=300), 25)
     assert not held(result("c", 280, offered=300.0, sent=300), 25)  # the server fell behind
     assert not held(result("c", 300, offered=300.0, sent=280), 25)  # the client fell behind
+
+
+def test_a_short_window_holds_cameras_one_frame_short_each_at_its_edges_but_not_more() -> None:
+    # 2 cameras at 30 fps for 0.6 s: 36 frames offered; 98 % alone would ask for all 36
+    assert held(result("c", 34, cameras=2, offered=36.0, sent=35), 25)
+    assert not held(result("c", 33, cameras=2, offered=36.0, sent=36), 25)  # the server fell behind
+    assert not held(result("c", 36, cameras=2, offered=36.0, sent=33), 25)  # the client fell behind
 
 
 def test_the_roof_per_tracked_pose_costs_one_run_of_each_model() -> None:
