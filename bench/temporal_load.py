@@ -48,6 +48,7 @@ from bench.server import ServiceProcess, rss_bytes
 from bench.stats import Result, machine, write_json
 from bench.temporal_clients import camera, crowd_frames, run_id, run_streams
 from bench.temporal_report import (
+    EDGE_FRAMES,
     HELD_FRACTION,
     P99_TARGET_MS,
     PEOPLE_KINDS,
@@ -91,11 +92,11 @@ def measure_cameras(service: ServiceProcess, count: int, tracked: bool, args: ar
 def held(result: Result, p99_ms: float) -> bool:
     """The cameras were served: p99 within the target, no errors, the offered frames sent and answered.
 
-    Each camera may be one frame short at the window's edges beyond HELD_FRACTION: where its phase
+    Each camera may be EDGE_FRAMES short at the window's edges beyond HELD_FRACTION: where its phase
     puts its first and last frame, and the frame in flight when the window closes. In a long window
     that is noise (32 cameras for 8 s: 32 of 7,680 frames); in a short one it alone would decide (2
     cameras for 0.6 s: one missing frame of 36 is 97 %)."""
-    need = HELD_FRACTION * result.extra["offered"] - result.concurrency
+    need = HELD_FRACTION * result.extra["offered"] - EDGE_FRAMES * result.concurrency
     return (
         result.errors == 0
         and result.latency_ms.get("p99", float("inf")) <= p99_ms
